@@ -1,0 +1,167 @@
+"""Scenario configuration: every constant of a native driving scenario in one dataclass.
+
+Defaults follow the COIN paper where it speaks (penalties 5, lidar 50 m) and MetaDrive
+0.4.3's multi-agent scenarios elsewhere (``shared/reference/decisions.md``). The preset
+``metadrive_compat`` restores MetaDrive's own values (penalties 10, lidar 40 m).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from coin_app.envs.road_map import MAP_NAMES
+
+DEFAULT_NUM_AGENTS = {"intersection": 30, "roundabout": 40, "bottleneck": 20}
+SPAWN_CAPACITY = 48  # MetaDrive's spawn slots per map (6 per lane of every spawn road)
+
+
+@dataclass(frozen=True)
+class DynamicsConfig:
+    """Vehicle model: a kinematic bicycle whose constants are fitted to MetaDrive's car.
+
+    ``curvature_per_steer=None`` gives the textbook bicycle curvature tan(delta)/L; the
+    fitted defaults come from ``maps/vehicle_dynamics_fit.json``. With
+    ``yaw_rate_alpha=1, beta_gain=0, scrub=0, brake_steer=0, lateral_grip=inf`` the model
+    is exactly the seed-2 paper's Eq. 1 in semi-implicit order.
+    """
+
+    dt: float = 0.1  # s per env step (MetaDrive: 5 x 0.02 s)
+    max_steer_deg: float = 40.0  # steering angle at |a0| = 1
+    wheelbase: float = 2.46894  # m, front to rear axle
+    curvature_per_steer: float | None = 0.2697195149202444  # 1/m per unit a0 (fit), None = tan(delta)/L
+    throttle_accel: float = 2.909090909090909  # m/s^2 per unit a1 > 0 (4 x 800 N / 1100 kg)
+    coast_decel: float = 0.36363636363636365  # m/s^2 at a1 = 0 or above max speed
+    brake_linear: float = 27.272727272727273  # m/s^2 per unit brake, below saturation
+    brake_sat_intercept: float = 5.414138062029027  # friction-limited brake: c + k*b
+    brake_sat_slope: float = 9.650087717020922
+    max_speed_kmh: float = 80.0
+    lateral_grip: float = 8.707595044203563  # m/s^2, lateral acceleration cap at a0 = 0
+    lateral_grip_steer2: float = 2.706596419114096  # cap drops by this * a0^2
+    yaw_rate_alpha: float = 0.333176619483477  # first-order lag of the yaw rate per step
+    scrub: float = 0.27399397868708614  # speed loss ~ |v r tan(delta)| in hard turns
+    scrub_throttle: float = 2.724422022498398
+    brake_steer: float = 0.5054811796176552  # brake loses this fraction at full lock
+    beta_gain: float = 0.7144937481838857  # sideslip of the centre, fraction of kinematic
+    lf: float = 1.05234  # m, centre to front axle
+    lr: float = 1.4166  # m, centre to rear axle
+
+    @classmethod
+    def kinematic(cls) -> DynamicsConfig:
+        """The plain seed-2 bicycle (Eq. 1) with MetaDrive's geometry and pedal mapping."""
+        return cls(curvature_per_steer=None, lateral_grip=math.inf, yaw_rate_alpha=1.0, scrub=0.0, brake_steer=0.0, beta_gain=0.0)
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """All constants of one native scenario; build with :func:`make_config`."""
+
+    scenario: str = "intersection"
+    num_agents: int = 30  # vehicles at reset; the cap on active + dying while respawning
+    horizon: int = 1000  # env steps with respawn; also each vehicle's own step limit
+    max_agent_steps: int = 1000  # a vehicle is truncated (max_step) after this many own steps
+    delay_done: int = 25  # steps a crashed / off-road vehicle stays as a static obstacle
+    allow_respawn: bool = True
+    force_stop_factor: int = 5  # every agent is truncated at env step factor * horizon
+    spawn_jitter_long: float = 1.0  # initial spawns: longitude += U(-a, a) (m)
+    spawn_jitter_lat: float = 0.25  # initial spawns: lateral += U(-a, a) (m)
+    # reward (COIN App. A.3)
+    driving_reward: float = 1.0
+    speed_reward: float = 0.1
+    success_reward: float = 10.0
+    crash_penalty: float = 5.0
+    out_of_road_penalty: float = 5.0
+    # sensors
+    lidar_beams: int = 72
+    lidar_range: float = 50.0
+    navi_point_dist: float = 50.0  # navigation vectors are clipped to this length (m)
+    # vehicle
+    vehicle_length: float = 4.515
+    vehicle_width: float = 1.852
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+
+    @property
+    def obs_dim(self) -> int:
+        """Observation length: 19 ego/navigation features + lidar beams."""
+        return 19 + self.lidar_beams
+
+    @property
+    def max_speed(self) -> float:
+        """Maximum speed in m/s."""
+        return self.dynamics.max_speed_kmh / 3.6
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "metadrive_compat": {"crash_penalty": 10.0, "out_of_road_penalty": 10.0, "lidar_range": 40.0},
+    "kinematic": {"dynamics": DynamicsConfig.kinematic()},
+}
+
+_POSITIVE_INT = ("num_agents", "horizon", "max_agent_steps", "lidar_beams", "force_stop_factor")
+_NON_NEGATIVE = (
+    "delay_done",
+    "spawn_jitter_long",
+    "spawn_jitter_lat",
+    "driving_reward",
+    "speed_reward",
+    "success_reward",
+    "crash_penalty",
+    "out_of_road_penalty",
+)
+_POSITIVE = ("lidar_range", "navi_point_dist", "vehicle_length", "vehicle_width")
+
+
+def _check(name: str, value: Any, ok: bool, allowed: str) -> None:
+    if not ok:
+        raise ValueError(f"bad value for {name!r}: {value!r}; allowed: {allowed}")
+
+
+def make_config(scenario: str = "intersection", preset: str = "paper", **overrides: Any) -> ScenarioConfig:
+    """Validated config of ``scenario`` with a preset and key overrides applied.
+
+    Unknown keys and bad values raise ``ValueError`` naming the key and what is allowed.
+    ``dynamics`` accepts a :class:`DynamicsConfig` or a dict of its fields.
+    """
+    if scenario not in MAP_NAMES:
+        raise ValueError(f"unknown scenario {scenario!r}; allowed: {', '.join(MAP_NAMES)}")
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; allowed: {', '.join(PRESETS)}")
+    allowed = {f.name for f in fields(ScenarioConfig)} - {"scenario"}
+    unknown = sorted(set(overrides) - allowed)
+    if unknown:
+        raise ValueError(f"unknown config key(s) {unknown}; allowed: {', '.join(sorted(allowed))}")
+    values: dict[str, Any] = {"num_agents": DEFAULT_NUM_AGENTS[scenario], **PRESETS[preset], **overrides}
+    dyn = values.get("dynamics", DynamicsConfig())
+    if isinstance(dyn, dict):
+        dyn_allowed = {f.name for f in fields(DynamicsConfig)}
+        bad = sorted(set(dyn) - dyn_allowed)
+        if bad:
+            raise ValueError(f"unknown dynamics key(s) {bad}; allowed: {', '.join(sorted(dyn_allowed))}")
+        dyn = DynamicsConfig(**dyn)
+    _check("dynamics", dyn, isinstance(dyn, DynamicsConfig), "a DynamicsConfig or a dict of its fields")
+    for f in fields(DynamicsConfig):
+        v = getattr(dyn, f.name)
+        if f.name == "curvature_per_steer" and v is None:
+            continue
+        _check(
+            f"dynamics.{f.name}",
+            v,
+            isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 and not math.isnan(v),
+            "a number >= 0",
+        )
+    _check("dynamics.dt", dyn.dt, dyn.dt > 0, "a number > 0")
+    values["dynamics"] = dyn
+    for k in _POSITIVE_INT:
+        v = values.get(k, getattr(ScenarioConfig, k, None))
+        _check(k, v, isinstance(v, int) and not isinstance(v, bool) and v > 0, "an integer > 0")
+    for k in _NON_NEGATIVE + _POSITIVE:
+        v = values.get(k, getattr(ScenarioConfig, k, None))
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        ok = ok and (v > 0 if k in _POSITIVE else v >= 0)
+        _check(k, v, ok, "a finite number > 0" if k in _POSITIVE else "a finite number >= 0")
+    n = values["num_agents"]
+    _check("num_agents", n, n <= SPAWN_CAPACITY, f"an integer from 1 to {SPAWN_CAPACITY} (the map's spawn slots)")
+    _check("allow_respawn", values.get("allow_respawn", True), isinstance(values.get("allow_respawn", True), bool), "True or False")
+    return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)

@@ -1,0 +1,111 @@
+"""Dict-of-agents driving env over the simulator core: the one interface every adapter wraps.
+
+Semantics are PettingZoo's parallel API: ``agents`` are the ids that act next; ``step``
+takes one action per agent in ``agents`` and returns rewards / terminations /
+truncations for those agents, and observations / infos for them *and* for agents that
+spawned in this step (new, never reused ids ``agent<N>``, reward 0, not done).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from coin_app.envs.config import ScenarioConfig, make_config
+from coin_app.envs.simulator import ACTIVE, DrivingSimulator, StepResult, agent_name
+
+INFO_KEYS = (
+    "arrive_dest",
+    "crash_vehicle",
+    "out_of_road",
+    "max_step",
+    "step_reward",
+    "episode_length",
+    "episode_reward",
+    "state",
+    "env_step",
+    "global_reward",
+)
+
+
+class DrivingEnv:
+    """A native multi-agent driving scenario with respawning vehicles."""
+
+    def __init__(self, config: ScenarioConfig | None = None, scenario: str = "intersection", preset: str = "paper", **overrides: Any):
+        self.config = config if config is not None else make_config(scenario, preset, **overrides)
+        self.sim = DrivingSimulator(self.config)
+        self.possible_agents = [agent_name(i) for i in range(self.sim.max_agent_ids)]
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (self.config.obs_dim,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.agents: list[str] = []
+        self._slot_of: dict[str, int] = {}
+        self._returns = np.zeros(self.sim.num_slots)
+        self.episode_over = True
+
+    @property
+    def scenario(self) -> str:
+        """Name of the scenario (map)."""
+        return self.config.scenario
+
+    def reset(self, seed: int | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        """Start a new episode; returns observations and infos of the initial agents."""
+        res = self.sim.reset(seed)
+        self._returns[:] = 0.0
+        self.episode_over = False
+        obs, _, _, _, infos = self._unpack(res)
+        return obs, infos
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """Apply one action per agent in ``agents``; returns obs, rewards, terminations, truncations, infos."""
+        if self.episode_over:
+            raise RuntimeError("the episode is over (every vehicle is done); call reset() first")
+        unknown = sorted(set(actions) - set(self._slot_of))
+        if unknown:
+            raise ValueError(f"actions for agent(s) {unknown} that cannot act now; acting agents: {self.agents}")
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise ValueError(f"missing actions for agent(s) {missing}; every agent in env.agents must act")
+        arr = np.zeros((self.sim.num_slots, 2))
+        for aid, a in actions.items():
+            a = np.asarray(a, dtype=float).reshape(-1)
+            if a.shape != (2,):
+                raise ValueError(f"action of {aid} must have 2 numbers [steer, throttle_brake], got shape {a.shape}")
+            arr[self._slot_of[aid]] = a
+        return self._unpack(self.sim.step(arr))
+
+    def _unpack(self, res: StepResult) -> tuple[dict, dict, dict, dict, dict]:
+        """Turn a per-slot step result into PettingZoo-style per-agent dicts."""
+        obs, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
+        self._returns[res.spawned] = 0.0
+        self._returns[res.acted] += res.reward[res.acted]
+        step = self.sim.episode_step
+        for slot in np.nonzero(res.acted | res.spawned)[0]:
+            aid = agent_name(int(res.agent_num[slot]))
+            obs[aid] = res.obs[slot]
+            infos[aid] = {
+                "arrive_dest": bool(res.arrive_dest[slot]),
+                "crash_vehicle": bool(res.crash_vehicle[slot]),
+                "out_of_road": bool(res.out_of_road[slot]),
+                "max_step": bool(res.max_step[slot]),
+                "step_reward": float(res.reward[slot]),
+                "episode_length": int(res.episode_length[slot]) if not res.spawned[slot] else 0,
+                "episode_reward": float(self._returns[slot]),
+                "state": res.state[slot],
+                "env_step": step,
+                "global_reward": float(res.global_reward[0]),
+            }
+            if res.acted[slot]:
+                rewards[aid] = float(res.reward[slot])
+                terms[aid] = bool(res.terminated[slot])
+                truncs[aid] = bool(res.truncated[slot])
+        status = self.sim.status
+        self._slot_of = {agent_name(int(self.sim.agent_num[s])): int(s) for s in np.nonzero(status == ACTIVE)[0]}
+        self.agents = list(self._slot_of)
+        self.episode_over = bool(res.episode_over[0])
+        return obs, rewards, terms, truncs, infos
+
+    def agent_slot(self, agent_id: str) -> int:
+        """Simulator slot of an acting agent."""
+        return self._slot_of[agent_id]

@@ -1,0 +1,69 @@
+"""Vehicle dynamics: one vectorized bicycle-model step for every moving vehicle.
+
+Order (semi-implicit, as the seed-2 paper describes Eq. 1): speed first, then yaw rate
+and heading, then position with the *new* speed and heading.
+
+    delta   = a0 * max_steer
+    v'      = clip(v + accel(a0, a1, v, r) * dt, 0, v_max)
+    kappa   = k * a0                (or tan(delta) / L), |kappa| <= grip(a0) / v'^2
+    r'      = r + alpha * (v' * kappa - r)
+    psi'    = psi + dt * (r + r') / 2        (trapezoid; psi + dt * r' if not trapezoid)
+    beta    = beta_gain * atan(lr / L * tan(delta)) * kappa / kappa_cmd
+    x', y'  = x, y + v' * dt * (cos, sin)(psi' + beta)
+
+accel: a1 > 0 -> throttle * a1 (0 above max speed, then coasting); a1 = 0 -> -coast;
+a1 < 0 -> -min(brake_linear * b, c + k * b) * (1 - brake_steer * |a0|), b = -a1; when
+a1 >= 0 a scrub loss scrub * (1 + scrub_throttle * a1) * |v r tan(delta)| is subtracted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from coin_app.envs.config import DynamicsConfig
+
+
+def bicycle_step(
+    cfg: DynamicsConfig,
+    pos: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    yaw_rate: np.ndarray,
+    action: np.ndarray,
+    trapezoid: bool | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Advance (pos, heading, speed, yaw_rate) of N vehicles by one step of ``cfg.dt``."""
+    dt = cfg.dt
+    a0 = action[:, 0]
+    a1 = action[:, 1]
+    delta = a0 * np.deg2rad(cfg.max_steer_deg)
+    tan_d = np.tan(delta)
+    v_max = cfg.max_speed_kmh / 3.6
+    over = speed * 3.6 > cfg.max_speed_kmh
+    brake = np.maximum(-a1, 0.0)
+    brake_decel = np.minimum(cfg.brake_linear * brake, cfg.brake_sat_intercept + cfg.brake_sat_slope * brake)
+    accel = np.where(
+        a1 > 0,
+        np.where(over, -cfg.coast_decel, cfg.throttle_accel * a1),
+        np.where(a1 == 0, -cfg.coast_decel, -brake_decel * (1.0 - cfg.brake_steer * np.abs(a0))),
+    )
+    accel = accel - np.where(a1 >= 0, cfg.scrub * (1.0 + cfg.scrub_throttle * a1) * np.abs(speed * yaw_rate * tan_d), 0.0)
+    v_new = np.clip(speed + accel * dt, 0.0, v_max)
+
+    if cfg.curvature_per_steer is None:
+        kappa_cmd = tan_d / cfg.wheelbase
+    else:
+        kappa_cmd = cfg.curvature_per_steer * a0
+    grip = np.maximum(cfg.lateral_grip - cfg.lateral_grip_steer2 * a0**2, 0.0)
+    with np.errstate(divide="ignore"):
+        cap = np.where(v_new > 0, grip / np.maximum(v_new, 1e-12) ** 2, np.inf)
+    kappa = np.clip(kappa_cmd, -cap, cap)
+    r_new = yaw_rate + cfg.yaw_rate_alpha * (v_new * kappa - yaw_rate)
+    if trapezoid is None:
+        trapezoid = cfg.yaw_rate_alpha < 1.0
+    heading_new = heading + dt * (0.5 * (yaw_rate + r_new) if trapezoid else r_new)
+    ratio = np.where(np.abs(kappa_cmd) > 1e-12, kappa / np.where(np.abs(kappa_cmd) > 1e-12, kappa_cmd, 1.0), 1.0)
+    beta = cfg.beta_gain * np.arctan(cfg.lr / cfg.wheelbase * tan_d) * ratio
+    direction = heading_new + beta
+    pos_new = pos + (v_new * dt)[:, None] * np.stack([np.cos(direction), np.sin(direction)], axis=1)
+    return pos_new, heading_new, v_new, r_new

@@ -1,0 +1,128 @@
+"""RLlib (2.60, new API stack) ``MultiAgentEnv`` adapter of the driving env, and its registration.
+
+Contract of :class:`CoinMultiAgentEnv` (``shared/reference/rllib_2_60.md`` sections 0, 1, 3):
+
+* ``possible_agents`` is the whole id pool of an episode; ``observation_spaces`` /
+  ``action_spaces`` map every pool id to one shared ``Box`` object, so an agent that
+  spawns mid-episode always has declared spaces (``NormalizeAndClipActions`` needs them).
+  Ids are strings, restart at ``agent0`` on ``reset`` and are never reused in an episode.
+* ``terminateds`` and ``truncateds`` always hold ``"__all__"``. ``terminateds["__all__"]``
+  is True when the episode is over: the driving env has no acting agent left
+  (``DrivingEnv.episode_over``), *or* every agent that acted in this step is done in this
+  step. In the second case RLlib's ``MultiAgentEpisode`` ends the episode by itself (all
+  agents it has seen are done) and drops agents that first appear in that step, while the
+  vector env would not reset and would keep stepping the env with empty actions. So in
+  that step the adapter ends the episode itself and **drops the observations and infos of
+  the agents spawned in that step**; RLlib never sees them and the next ``step`` call of
+  the vector env resets this env.
+* ``truncateds["__all__"]`` is True when the episode is over and every agent that finished
+  in the last step finished by a time limit. RLlib still marks such an episode (and its
+  agents) as terminated as well (section 0.5).
+* A vehicle's own step limit (``max_step``) and the env's force stop are per-agent
+  ``truncated=True, terminated=False``; arrival, crash and leaving the road are
+  ``terminated=True``.
+* ``infos`` only has agents that have an observation in the same return; ``rewards`` /
+  per-agent flags only agents that acted in the step.
+* RLlib's env checker (``disable_env_checking=False``) steps once after ``reset(seed=42)``
+  and requires every returned id to still be in ``agents``; it fails if an agent is done
+  on that very first step (not the case for the shipped scenarios).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from functools import partial
+from typing import Any
+
+import numpy as np
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+from ray.rllib.env.multi_agent_env import MultiAgentEnv
+from ray.tune.registry import register_env
+
+from coin_app.envs.config import make_config
+from coin_app.envs.driving_env import DrivingEnv
+
+SHARED_MODULE_ID = "shared"
+ENV_IDS: dict[str, str] = {
+    "coin-intersection-v0": "intersection",
+    "coin-roundabout-v0": "roundabout",
+    "coin-bottleneck-v0": "bottleneck",
+}
+
+
+class CoinMultiAgentEnv(MultiAgentEnv):
+    """A COIN driving scenario as an RLlib ``MultiAgentEnv`` with respawning agents (see module doc).
+
+    ``config`` holds ``scenario`` (default ``"intersection"``), ``preset`` (default
+    ``"paper"``) and any :class:`~coin_app.envs.config.ScenarioConfig` field as an
+    override; an unknown key raises ``ValueError`` naming it and the allowed keys.
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None):
+        super().__init__()
+        overrides = dict(config or {})
+        scenario = overrides.pop("scenario", "intersection")
+        preset = overrides.pop("preset", "paper")
+        self.config = make_config(scenario, preset, **overrides)
+        self.driving_env = DrivingEnv(self.config)
+        self.metadata = {"render_modes": [], "render_fps": round(1.0 / self.config.dynamics.dt)}
+        self.possible_agents = list(self.driving_env.possible_agents)
+        obs_space, act_space = self.driving_env.observation_space, self.driving_env.action_space
+        self.observation_spaces = dict.fromkeys(self.possible_agents, obs_space)
+        self.action_spaces = dict.fromkeys(self.possible_agents, act_space)
+        self.agents = []
+        self._over = True
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        """Start a new episode; returns observations and infos of the initial agents (``options`` is unused)."""
+        super().reset(seed=seed, options=options)
+        obs, infos = self.driving_env.reset(seed)
+        self.agents = list(self.driving_env.agents)
+        self._over = False
+        return obs, infos
+
+    def step(self, action_dict: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """Act for every agent in ``agents``; returns obs, rewards, terminateds, truncateds, infos."""
+        if self._over:
+            raise RuntimeError("the episode is over; call reset() first")
+        acting = list(self.driving_env.agents)
+        obs, rewards, terms, truncs, infos = self.driving_env.step(action_dict)
+        ended = [a for a in acting if terms[a] or truncs[a]]
+        over = self.driving_env.episode_over or len(ended) == len(acting)
+        if over:
+            for aid in [a for a in obs if a not in rewards]:  # spawned in this step
+                del obs[aid], infos[aid]
+            self.agents = []
+            self._over = True
+        else:
+            self.agents = list(self.driving_env.agents)
+        terms["__all__"] = over
+        truncs["__all__"] = over and all(truncs[a] for a in ended)
+        return obs, rewards, terms, truncs, infos
+
+
+def make_env(scenario: str, env_config: Mapping[str, Any] | None = None) -> CoinMultiAgentEnv:
+    """Env of ``scenario`` with ``env_config`` overrides merged on (a different ``scenario`` key is an error)."""
+    cfg = dict(env_config or {})
+    if cfg.get("scenario", scenario) != scenario:
+        raise ValueError(f"env_config scenario {cfg['scenario']!r} contradicts the registered scenario {scenario!r}")
+    cfg["scenario"] = scenario
+    return CoinMultiAgentEnv(cfg)
+
+
+def register_envs() -> list[str]:
+    """Register ``coin-<scenario>-v0`` for every scenario with Ray Tune; returns the env ids."""
+    for env_id, scenario in ENV_IDS.items():
+        creator: Callable[[Mapping[str, Any] | None], CoinMultiAgentEnv] = partial(make_env, scenario)
+        register_env(env_id, creator)
+    return list(ENV_IDS)
+
+
+def policy_mapping_fn(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
+    """Map every agent to the one shared module."""
+    return SHARED_MODULE_ID
+
+
+def shared_policy_config(config: AlgorithmConfig) -> AlgorithmConfig:
+    """``config`` with all agents mapped to one shared module ``"shared"`` (parameter sharing)."""
+    return config.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)

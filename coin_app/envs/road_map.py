@@ -1,0 +1,277 @@
+"""Road networks of the native scenarios, loaded from MetaDrive 0.4.3 map data.
+
+The JSON files in ``maps/`` are MetaDrive's own multi-agent maps (Apache-2.0, see
+``maps/NOTICE.md``). A lane is either straight or circular; every query here is
+vectorized over an array of lane ids so that all vehicles are handled in one call.
+
+Lane-local coordinates follow MetaDrive: ``s`` along the lane from its start, ``r``
+positive to the *right* of the driving direction.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+
+MAP_DIR = Path(__file__).parent / "maps"
+MAP_NAMES = ("intersection", "roundabout", "bottleneck")
+SOLID_LINE_TYPES = ("ROAD_LINE_SOLID_SINGLE_WHITE", "ROAD_LINE_SOLID_SINGLE_YELLOW")
+
+
+def wrap_to_pi(angle: np.ndarray) -> np.ndarray:
+    """Wrap angles to [-pi, pi)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def _pad(polys: list[np.ndarray]) -> np.ndarray:
+    """Stack polygons into (P, K, 2), repeating each one's last vertex as padding."""
+    k = max(len(p) for p in polys)
+    out = np.empty((len(polys), k, 2))
+    for i, p in enumerate(polys):
+        out[i, : len(p)] = p
+        out[i, len(p) :] = p[-1]
+    return out
+
+
+class GridIndex:
+    """Uniform grid over the map listing, per cell, the items whose box touches the cell."""
+
+    def __init__(self, bbox: np.ndarray, reach: float, cell: float = 8.0):
+        lo = bbox[:, :2].min(0) - reach - cell
+        hi = bbox[:, 2:].max(0) + reach + cell
+        self.origin, self.cell = lo, cell
+        self.shape = np.ceil((hi - lo) / cell).astype(int)
+        c0 = np.floor((bbox[:, :2] - reach - lo) / cell).astype(int)
+        c1 = np.floor((bbox[:, 2:] + reach - lo) / cell).astype(int)
+        cells: list[list[int]] = [[] for _ in range(int(np.prod(self.shape)))]
+        for item, (a, b) in enumerate(zip(c0, c1)):
+            for x in range(a[0], b[0] + 1):
+                for y in range(a[1], b[1] + 1):
+                    cells[x * self.shape[1] + y].append(item)
+        k = max(1, max(len(c) for c in cells))
+        self.table = np.full((len(cells), k), -1, dtype=np.int64)
+        for i, c in enumerate(cells):
+            self.table[i, : len(c)] = c
+
+    def candidates(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(point index, item index) pairs of items near each point (a superset)."""
+        c = np.floor((pos - self.origin) / self.cell).astype(np.int64)
+        c = np.clip(c, 0, self.shape - 1)
+        rows = self.table[c[:, 0] * self.shape[1] + c[:, 1]]
+        pi, k = np.nonzero(rows >= 0)
+        return pi, rows[pi, k]
+
+
+@dataclass(frozen=True)
+class Route:
+    """A spawn lane's route to one destination: the ordered roads and the final lane."""
+
+    spawn_lane: int
+    destination: str
+    roads: tuple[int, ...]
+    final_lane: int
+
+
+class RoadMap:
+    """Lane geometry, roads, routes, lines, sidewalks and spawn places of one map."""
+
+    def __init__(self, name: str):
+        if name not in MAP_NAMES:
+            raise ValueError(f"unknown map {name!r}; allowed: {', '.join(MAP_NAMES)}")
+        data = json.loads((MAP_DIR / f"{name}.json").read_text())
+        self.name = name
+        lanes = data["lanes"]
+        self.lane_keys = [tuple(lane["key"].split("|")[:2]) + (int(lane["index"]),) for lane in lanes]
+        self.lane_index = {k: i for i, k in enumerate(self.lane_keys)}
+        n = len(lanes)
+        self.num_lanes = n
+        self.is_circ = np.array([lane["type"] == "circular" for lane in lanes])
+        self.length = np.array([lane["length"] for lane in lanes], dtype=float)
+        self.width = np.array([lane["width"] for lane in lanes], dtype=float)
+        self.start = np.array([lane["start_point"] for lane in lanes], dtype=float)
+        self.end = np.array([lane["end_point"] for lane in lanes], dtype=float)
+        self.center = np.zeros((n, 2))
+        self.radius = np.ones(n)
+        self.start_phase = np.zeros(n)
+        self.direction = np.zeros(n)  # +1 CCW, -1 CW, 0 straight (MetaDrive's nav "dir")
+        self.angle = np.zeros(n)
+        for i, lane in enumerate(lanes):
+            if lane["type"] == "circular":
+                self.center[i] = lane["center"]
+                self.radius[i] = lane["radius"]
+                self.start_phase[i] = lane["start_phase"]
+                self.direction[i] = lane["direction"]
+                self.angle[i] = lane["angle"]
+        d = self.end - self.start
+        self.unit = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+        self.unit[self.is_circ] = 0.0
+        self.polygons = [np.array(lane["polygon"], dtype=float) for lane in lanes]
+        self.centerlines = [np.array(lane["centerline_s_x_y_heading"], dtype=float)[:, 1:3] for lane in lanes]
+
+        # roads: (from, to) -> lanes ordered by index (0 = left-most, next to the centre line)
+        road_keys = sorted({k[:2] for k in self.lane_keys}, key=lambda rk: self.lane_index[rk + (0,)])
+        self.road_keys = road_keys
+        self.road_index = {rk: i for i, rk in enumerate(road_keys)}
+        self.road_nlanes = np.array([sum(1 for k in self.lane_keys if k[:2] == rk) for rk in road_keys])
+        self.road_lanes = np.full((len(road_keys), int(self.road_nlanes.max())), -1, dtype=np.int64)
+        for i, k in enumerate(self.lane_keys):
+            self.road_lanes[self.road_index[k[:2]], k[2]] = i
+        self.road_negative = np.array(["-" in rk[1] for rk in road_keys])
+        self.lane_road = np.array([self.road_index[k[:2]] for k in self.lane_keys])
+        self.road_first_lane = self.road_lanes[:, 0]
+        self.road_last_lane = self.road_lanes[np.arange(len(road_keys)), self.road_nlanes - 1]
+
+        # on-lane test regions: MetaDrive's convex hulls (CCW) as half-planes
+        hulls = [np.array(lane["localization_hull"], dtype=float) for lane in lanes]
+        self.hull_vertices = _pad(hulls)
+        edges = np.roll(self.hull_vertices, -1, axis=1) - self.hull_vertices
+        norm = np.linalg.norm(edges, axis=2, keepdims=True)
+        # outward normal of a CCW polygon edge (ex, ey) is (ey, -ex); padded edges get 0
+        self.hull_normals = np.where(norm > 1e-9, np.stack([edges[..., 1], -edges[..., 0]], -1) / np.maximum(norm, 1e-9), 0.0)
+        self.hull_offsets = np.einsum("lkd,lkd->lk", self.hull_normals, self.hull_vertices)
+        self.hull_bbox = np.concatenate([self.hull_vertices.min(1), self.hull_vertices.max(1)], axis=1)
+        self.hull_grid = GridIndex(self.hull_bbox, reach=0.1)
+
+        # physical solid lines (touching one is out of road); broken lines never terminate
+        segs = [s for s in data["line_segments_physical"] if s["type"] in SOLID_LINE_TYPES]
+        self.solid_p1 = np.array([s["p1"] for s in segs], dtype=float).reshape(-1, 2)
+        self.solid_p2 = np.array([s["p2"] for s in segs], dtype=float).reshape(-1, 2)
+        self.solid_half_width = float(segs[0]["half_width"]) if segs else 0.0375
+        self.sidewalks = _pad([np.array(s["polygon"], dtype=float) for s in data["sidewalks"]])
+        self.sidewalk_bbox = np.concatenate([self.sidewalks.min(1), self.sidewalks.max(1)], axis=1)
+        # each sidewalk polygon is a strip: inner edge points, then the outer edge reversed;
+        # split it into triangles (always convex) for exact, cheap point tests
+        tris = []
+        for sw in data["sidewalks"]:
+            poly = np.array(sw["polygon"], dtype=float)
+            half = len(poly) // 2
+            inner, outer = poly[:half], poly[::-1][:half]
+            for i in range(half - 1):
+                for t in (np.stack([inner[i], inner[i + 1], outer[i + 1]]), np.stack([inner[i], outer[i + 1], outer[i]])):
+                    area = 0.5 * np.sum(t[:, 0] * np.roll(t[:, 1], -1) - np.roll(t[:, 0], -1) * t[:, 1])
+                    if abs(area) > 1e-9:
+                        tris.append(t if area > 0 else t[::-1])
+        self.sidewalk_quads = np.array(tris).reshape(-1, 3, 2)
+        qe = np.roll(self.sidewalk_quads, -1, axis=1) - self.sidewalk_quads
+        qn = np.stack([qe[..., 1], -qe[..., 0]], -1)
+        self.sidewalk_normals = qn / np.maximum(np.linalg.norm(qn, axis=2, keepdims=True), 1e-12)
+        self.sidewalk_offsets = np.einsum("qkd,qkd->qk", self.sidewalk_normals, self.sidewalk_quads)
+        self.sidewalk_quad_bbox = np.concatenate([self.sidewalk_quads.min(1), self.sidewalk_quads.max(1)], axis=1)
+
+        spawn = data["spawn"]
+        self.spawn_slot_lane = np.array([self.lane_index[tuple(s["lane"][:2]) + (int(s["lane"][2]),)] for s in spawn["slots"]])
+        self.spawn_slot_s = np.array([s["longitude"] for s in spawn["slots"]], dtype=float)
+        places = spawn["respawn_places"]
+        self.respawn_lane = np.array([self.lane_index[tuple(p["lane"][:2]) + (int(p["lane"][2]),)] for p in places])
+        self.respawn_s = np.array([p["longitude"] for p in places], dtype=float)
+        self.respawn_region = (float(spawn["RESPAWN_REGION_LONGITUDE"]), float(spawn["RESPAWN_REGION_LATERAL"]))
+
+        # routes: one per (spawn lane, destination node)
+        self.routes: list[Route] = []
+        for rec in data["destinations"]["routes"]:
+            cps = rec["checkpoints"]
+            roads = tuple(self.road_index[(a, b)] for a, b in zip(cps[:-1], cps[1:]))
+            fl = rec["final_lane"]
+            self.routes.append(
+                Route(
+                    spawn_lane=self.lane_index[tuple(rec["spawn_lane"][:2]) + (int(rec["spawn_lane"][2]),)],
+                    destination=rec["destination_node"],
+                    roads=roads,
+                    final_lane=self.lane_index[(fl[0], fl[1], int(fl[2]))],
+                )
+            )
+        self.routes_by_spawn_lane: dict[int, list[int]] = {}
+        for i, r in enumerate(self.routes):
+            self.routes_by_spawn_lane.setdefault(r.spawn_lane, []).append(i)
+        max_roads = max(len(r.roads) for r in self.routes)
+        self.route_roads = np.full((len(self.routes), max_roads), -1, dtype=np.int64)
+        self.route_nroads = np.array([len(r.roads) for r in self.routes])
+        self.route_final_lane = np.array([r.final_lane for r in self.routes])
+        # position of each road inside each route (-1 = not on the route)
+        self.route_road_pos = np.full((len(self.routes), len(road_keys)), -1, dtype=np.int64)
+        for i, r in enumerate(self.routes):
+            self.route_roads[i, : len(r.roads)] = r.roads
+            for j, rd in enumerate(r.roads):
+                if self.route_road_pos[i, rd] < 0:
+                    self.route_road_pos[i, rd] = j
+
+        allp = np.concatenate([self.hull_vertices.reshape(-1, 2), self.sidewalks.reshape(-1, 2)])
+        self.bounds = np.concatenate([allp.min(0), allp.max(0)])
+        self.centre = 0.5 * (self.bounds[:2] + self.bounds[2:])
+        self.scale = 0.5 * float(np.max(self.bounds[2:] - self.bounds[:2]))
+
+    # ----------------------------------------------------------------- lane queries
+    def position(self, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """World positions (N, 2) of lane-local coordinates (s, r) on lanes ``lane``."""
+        circ = self.is_circ[lane]
+        u = self.unit[lane]
+        straight = self.start[lane] + u * s[:, None] + np.stack([u[:, 1], -u[:, 0]], 1) * r[:, None]
+        direc = self.direction[lane]
+        rad = self.radius[lane]
+        phi = self.start_phase[lane] + direc * s / rad
+        rr = rad + r * direc
+        curved = self.center[lane] + rr[:, None] * np.stack([np.cos(phi), np.sin(phi)], 1)
+        return np.where(circ[:, None], curved, straight)
+
+    def heading_at(self, lane: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Lane heading (rad) at longitudinal positions ``s``."""
+        straight = np.arctan2(self.unit[lane, 1], self.unit[lane, 0])
+        direc = self.direction[lane]
+        phi = self.start_phase[lane] + direc * s / self.radius[lane]
+        return np.where(self.is_circ[lane], phi + direc * np.pi / 2, straight)
+
+    def local_coordinates(self, lane: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lane-local (s, r) of world points ``pos`` (N, 2) on lanes ``lane`` (N,)."""
+        rel = pos - self.start[lane]
+        u = self.unit[lane]
+        s_straight = np.einsum("nd,nd->n", rel, u)
+        r_straight = rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0]
+        delta = pos - self.center[lane]
+        sp = self.start_phase[lane]
+        direc = self.direction[lane]
+        # wrap around the arc's middle, not its start: MetaDrive wraps around the start,
+        # which flips s to negative near the end of its 180-degree U-turn lanes
+        mid = direc * self.angle[lane] / 2
+        dphi = mid + wrap_to_pi(np.arctan2(delta[:, 1], delta[:, 0]) - sp - mid)
+        rad = self.radius[lane]
+        s_circ = direc * dphi * rad
+        r_circ = direc * (np.hypot(delta[:, 0], delta[:, 1]) - rad)
+        circ = self.is_circ[lane]
+        return np.where(circ, s_circ, s_straight), np.where(circ, r_circ, r_straight)
+
+    def right_normal(self, lane: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """Unit vector pointing to the right of the lane's direction at ``pos``."""
+        u = self.unit[lane]
+        straight = np.stack([u[:, 1], -u[:, 0]], 1)
+        delta = pos - self.center[lane]
+        nrm = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-9)[:, None]
+        curved = self.direction[lane][:, None] * delta / nrm
+        return np.where(self.is_circ[lane][:, None], curved, straight)
+
+    def hull_contains(self, pos: np.ndarray, margin: float = 0.05) -> np.ndarray:
+        """(N, L) bool: point n lies in the on-lane region (convex hull) of lane l."""
+        out = np.zeros((len(pos), self.num_lanes), bool)
+        vi, li = self.hull_grid.candidates(pos)
+        if len(vi):
+            proj = np.einsum("ckd,cd->ck", self.hull_normals[li], pos[vi]) - self.hull_offsets[li]
+            out[vi, li] = np.all(proj <= margin, axis=1)
+        return out
+
+    def successors(self) -> dict[int, list[int]]:
+        """Physically continuing lanes: a lane's end meets the successor's start."""
+        d = np.linalg.norm(self.end[:, None, :] - self.start[None, :, :], axis=2)
+        h_end = self.heading_at(np.arange(self.num_lanes), self.length)
+        h_start = self.heading_at(np.arange(self.num_lanes), np.zeros(self.num_lanes))
+        same_heading = np.cos(h_end[:, None] - h_start[None, :]) > 0.99
+        nxt = (d < 0.05) & same_heading
+        return {i: list(np.nonzero(nxt[i])[0]) for i in range(self.num_lanes)}
+
+
+@cache
+def load_map(name: str) -> RoadMap:
+    """The (cached, read-only) road map of a scenario."""
+    return RoadMap(name)

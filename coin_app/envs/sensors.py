@@ -1,0 +1,156 @@
+"""Sensors: 2-D lidar against vehicle boxes, and MetaDrive's 19 ego/navigation features.
+
+Feature formulas and their quirks are MetaDrive 0.4.3's ``LidarStateObservation``
+(``shared/reference/metadrive_scenarios.md`` §4), reproduced on purpose so that a policy
+trained on one simulator can be evaluated on the other.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from coin_app.envs.road_map import RoadMap
+
+MAX_LANE_SPAN = 18.0  # (MAX_LANE_NUM 3 + 1) * MAX_LANE_WIDTH 4.5
+LANE_OFFSET_NORM = 4.5  # MAX_LANE_WIDTH
+STEERING_QUIRK = 60.0  # MetaDrive divides the normalised steering by MAX_STEERING = 60
+CURVE_RADIUS_MAX = 60.0
+CURVE_ANGLE_MAX_DEG = 135.0
+
+
+def lidar_scan(
+    obs_pos: np.ndarray,
+    obs_heading: np.ndarray,
+    pair_obs: np.ndarray,
+    pair_center: np.ndarray,
+    pair_heading: np.ndarray,
+    half: tuple[float, float],
+    n_beams: int,
+    max_range: float,
+) -> np.ndarray:
+    """Distances (A, n_beams) from each observer to the nearest box along each beam.
+
+    Beam k points at ``heading + 2 pi k / n_beams`` (CCW; 0 = ahead). The boxes an observer
+    can see are given as pairs: observer ``pair_obs[p]`` and a box of half extents ``half``
+    at ``pair_center[p]`` with ``pair_heading[p]`` (the caller lists nearby boxes only).
+    Each pair is ray-cast only on the beams inside its bounding circle's angular sector,
+    so the cost grows with the number of nearby pairs, not with beams x vehicles.
+    """
+    a_n = len(obs_pos)
+    out = np.full(a_n * n_beams, max_range)
+    if a_n == 0 or len(pair_obs) == 0:
+        return out.reshape(a_n, n_beams)
+    hl, hw = half
+    rad_b = float(np.hypot(hl, hw))
+    rel = pair_center - obs_pos[pair_obs]
+    d = np.hypot(rel[:, 0], rel[:, 1])
+    keep = d < max_range + rad_b
+    pair_obs, rel, d, pair_heading = pair_obs[keep], rel[keep], d[keep], pair_heading[keep]
+    step = 2 * np.pi / n_beams
+    own_h = obs_heading[pair_obs]
+    bearing = np.arctan2(rel[:, 1], rel[:, 0]) - own_h
+    half_ang = np.arcsin(np.minimum(rad_b / np.maximum(d, 1e-9), 1.0))
+    full = d <= rad_b
+    k0 = np.where(full, 0, np.ceil((bearing - half_ang) / step)).astype(np.int64)
+    k1 = np.floor((bearing + half_ang) / step).astype(np.int64)
+    counts = np.clip(np.where(full, n_beams, k1 - k0 + 1), 0, n_beams)
+    total = int(counts.sum())
+    if total == 0:
+        return out.reshape(a_n, n_beams)
+    # observer position in each box's frame, once per pair
+    c, s = np.cos(pair_heading), np.sin(pair_heading)
+    ox = -(rel[:, 0] * c + rel[:, 1] * s)
+    oy = rel[:, 0] * s - rel[:, 1] * c
+    rel_h = own_h - pair_heading
+    pair = np.repeat(np.arange(len(pair_obs)), counts)
+    k = np.repeat(k0 - np.cumsum(counts) + counts, counts) + np.arange(total)
+    phi = rel_h[pair] + k * step  # beam direction in the box frame
+    dx, dy = np.cos(phi), np.sin(phi)
+    oxp, oyp = ox[pair], oy[pair]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx1, tx2 = (-hl - oxp) / dx, (hl - oxp) / dx
+        ty1, ty2 = (-hw - oyp) / dy, (hw - oyp) / dy
+    t_in = np.maximum(np.minimum(tx1, tx2), np.minimum(ty1, ty2))
+    t_out = np.minimum(np.maximum(tx1, tx2), np.maximum(ty1, ty2))
+    hit = (t_out >= np.maximum(t_in, 0.0)) & (t_out < np.inf)
+    flat = pair_obs[pair[hit]] * n_beams + k[hit] % n_beams
+    np.minimum.at(out, flat, np.maximum(t_in[hit], 0.0))
+    return np.minimum(out, max_range).reshape(a_n, n_beams)
+
+
+def checkpoint_features(
+    road_map: RoadMap,
+    ref_lane: np.ndarray,
+    mid_offset: np.ndarray,
+    lane_span: np.ndarray,
+    pos: np.ndarray,
+    heading: np.ndarray,
+    navi_dist: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """MetaDrive's 5 navigation features of one checkpoint, and its world position.
+
+    The checkpoint is the end of ``ref_lane`` shifted ``mid_offset`` to the right (the
+    lateral middle of the current road); features are [forward, left, radius, dir, angle].
+    """
+    ck = road_map.position(ref_lane, road_map.length[ref_lane], mid_offset)
+    d = ck - pos
+    norm = np.hypot(d[:, 0], d[:, 1])
+    d = d * np.where(norm > navi_dist, navi_dist / np.maximum(norm, 1e-9), 1.0)[:, None]
+    c, s = np.cos(heading), np.sin(heading)
+    fwd = (d[:, 0] * c + d[:, 1] * s) / navi_dist
+    left = (-d[:, 0] * s + d[:, 1] * c) / navi_dist
+    circ = road_map.is_circ[ref_lane]
+    radius = np.where(circ, road_map.radius[ref_lane] / (CURVE_RADIUS_MAX + lane_span), 0.0)
+    direc = np.where(circ, (-road_map.direction[ref_lane] + 1) / 2, 0.5)
+    angle = np.where(circ, (np.rad2deg(road_map.angle[ref_lane]) / CURVE_ANGLE_MAX_DEG + 1) / 2, 0.5)
+    feats = np.stack([(fwd + 1) / 2, (left + 1) / 2, radius, direc, angle], 1)
+    return feats, ck
+
+
+def ego_features(
+    road_map: RoadMap,
+    pos: np.ndarray,
+    heading: np.ndarray,
+    heading_prev: np.ndarray,
+    speed: np.ndarray,
+    action: np.ndarray,
+    lane: np.ndarray,
+    ref_road: np.ndarray,
+    next_road: np.ndarray,
+    max_speed_kmh: float,
+    navi_dist: float,
+    dt: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 19 ego + navigation features (N, 19) in [0, 1], and both checkpoints (N, 2) each."""
+    ref0 = road_map.road_first_lane[ref_road]
+    ref_last = road_map.road_last_lane[ref_road]
+    n_lanes = road_map.road_nlanes[ref_road].astype(float)
+    w = road_map.width[ref0]
+    _, r_ref0 = road_map.local_coordinates(ref0, pos)
+    dl = r_ref0 + w / 2
+    hvec = np.stack([np.cos(heading), np.sin(heading)], 1)
+    heading_err = 0.5 + 0.5 * np.einsum("nd,nd->n", hvec, road_map.right_normal(ref_last, pos))
+    speed_f = (3.6 * speed + 1) / (max_speed_kmh + 1)
+    steer_f = (action[:, 0] / STEERING_QUIRK + 1) / 2
+    hprev = np.stack([np.cos(heading_prev), np.sin(heading_prev)], 1)
+    yaw = np.arccos(np.clip(np.einsum("nd,nd->n", hvec, hprev), 0.0, 1.0)) / dt
+    _, r_cur = road_map.local_coordinates(lane, pos)
+    mid = (n_lanes / 2 - 0.5) * w
+    span = n_lanes * w
+    nav1, ck1 = checkpoint_features(road_map, ref0, mid, span, pos, heading, navi_dist)
+    nav2, ck2 = checkpoint_features(road_map, road_map.road_first_lane[next_road], mid, span, pos, heading, navi_dist)
+    ego = np.stack(
+        [
+            dl / MAX_LANE_SPAN,
+            (span - dl) / MAX_LANE_SPAN,
+            heading_err,
+            speed_f,
+            steer_f,
+            (action[:, 0] + 1) / 2,
+            (action[:, 1] + 1) / 2,
+            np.minimum(yaw, 1.0),
+            0.5 + r_cur / LANE_OFFSET_NORM,
+        ],
+        1,
+    )
+    return np.clip(np.concatenate([ego, nav1, nav2], 1), 0.0, 1.0), ck1, ck2

@@ -1,0 +1,494 @@
+"""The vectorized multi-vehicle simulator core: ``num_envs`` copies of one scenario.
+
+State lives in flat per-slot numpy arrays; env ``e`` owns slots ``e*S .. e*S+S-1``. A slot
+is EMPTY, ACTIVE (an agent that acts) or DYING (a crashed / off-road / timed-out vehicle
+left as a static obstacle for ``delay_done`` steps). Every per-vehicle computation in
+:meth:`DrivingSimulator.step` is one numpy call over all slots of all envs; pairwise
+tests only pair vehicles of the same env. The only Python loops run over the four
+separating axes and over respawn *events*. Each env has its own random generator, so env
+``e`` of a batch reproduces a single env seeded the same way.
+
+Step order (as MetaDrive): clip actions -> dynamics -> lane localisation and reference
+road update -> arrival / out-of-road / crash tests -> rewards -> retire done vehicles ->
+respawn -> observations of every agent that acted or spawned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from coin_app.envs.collision import boxes_overlap, footprint_samples
+from coin_app.envs.config import ScenarioConfig
+from coin_app.envs.dynamics import bicycle_step
+from coin_app.envs.road_map import GridIndex, load_map
+from coin_app.envs.sensors import ego_features, lidar_scan
+
+EMPTY, ACTIVE, DYING = 0, 1, 2
+CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
+ARRIVE_LONG_TOLERANCE = 5.0  # m around the end of the final lane
+MAX_RESPAWN_PER_STEP = 8  # one per respawn place
+
+
+def agent_name(num: int) -> str:
+    """The string id of the ``num``-th vehicle of an episode."""
+    return f"agent{num}"
+
+
+@dataclass
+class StepResult:
+    """Per-slot outcome of one step (flat over envs); rows of slots that did not act are zero."""
+
+    acted: np.ndarray  # bool (N,): the slot's agent acted this step
+    spawned: np.ndarray  # bool (N,): a new agent appeared in the slot this step
+    agent_num: np.ndarray  # int (N,): agent number that acted (or spawned) in the slot
+    obs: np.ndarray  # (N, obs_dim) float32
+    state: np.ndarray  # (N, 10) float32 local world-frame state
+    reward: np.ndarray  # (N,)
+    arrive_dest: np.ndarray
+    crash_vehicle: np.ndarray
+    out_of_road: np.ndarray
+    max_step: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    episode_length: np.ndarray  # the agent's own steps so far
+    global_reward: np.ndarray  # (E,) mean reward over the agents that acted in each env
+    episode_over: np.ndarray  # bool (E,): no agent left and none will spawn
+    env_step: np.ndarray  # (E,) env steps taken in the current episode
+
+
+class DrivingSimulator:
+    """All vehicles of ``num_envs`` independent instances of one scenario, stepped together."""
+
+    def __init__(self, config: ScenarioConfig, num_envs: int = 1):
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"bad num_envs {num_envs!r}; allowed: an integer >= 1")
+        self.cfg = config
+        self.map = load_map(config.scenario)
+        m = self.map
+        self.num_envs = num_envs
+        # spare slots so that a slot vacated in a step is never refilled in the same step
+        self.slots_per_env = config.num_agents + MAX_RESPAWN_PER_STEP
+        self.num_slots = self.slots_per_env * num_envs
+        self.env_of = np.repeat(np.arange(num_envs), self.slots_per_env)
+        self.half = np.array([config.vehicle_length / 2, config.vehicle_width / 2])
+        self.half_diag = float(np.hypot(*self.half))
+        self.no_sign_quirk = config.scenario == "bottleneck"  # MetaDrive's bottleneck reward
+        seg = m.solid_p2 - m.solid_p1
+        self.seg_center = 0.5 * (m.solid_p1 + m.solid_p2)
+        self.seg_heading = np.arctan2(seg[:, 1], seg[:, 0])
+        self.seg_half = np.stack([0.5 * np.hypot(seg[:, 0], seg[:, 1]), np.full(len(seg), m.solid_half_width)], 1)
+        seg_bbox = np.concatenate([np.minimum(m.solid_p1, m.solid_p2), np.maximum(m.solid_p1, m.solid_p2)], 1)
+        self.seg_grid = GridIndex(seg_bbox, reach=self.half_diag + m.solid_half_width + 0.01) if len(seg) else None
+        self.tri_centroid = m.sidewalk_quads.mean(1)
+        self.tri_radius = (
+            np.linalg.norm(m.sidewalk_quads - self.tri_centroid[:, None], axis=2).max(1) if len(m.sidewalk_quads) else np.zeros(0)
+        )
+        self.sidewalk_grid = GridIndex(m.sidewalk_quad_bbox, reach=self.half_diag + 0.01) if len(m.sidewalk_quads) else None
+        rl, rs = m.respawn_lane, m.respawn_s
+        self.place_pos = m.position(rl, rs, np.zeros(len(rl)))
+        self.place_heading = m.heading_at(rl, rs)
+        self.place_half = np.array([m.respawn_region[0] / 2, m.respawn_region[1] / 2])
+        self.max_agent_ids = config.num_agents + min(MAX_RESPAWN_PER_STEP, config.num_agents) * config.horizon
+        self.rngs = [np.random.default_rng(0) for _ in range(num_envs)]
+        self._alloc()
+
+    # ------------------------------------------------------------------ state
+    def _alloc(self) -> None:
+        n, e = self.num_slots, self.num_envs
+        self.status = np.zeros(n, dtype=np.int8)
+        self.agent_num = np.full(n, -1, dtype=np.int64)
+        self.pos = np.zeros((n, 2))
+        self.prev_pos = np.zeros((n, 2))
+        self.vel = np.zeros((n, 2))
+        self.heading = np.zeros(n)
+        self.heading_prev = np.zeros(n)
+        self.speed = np.zeros(n)
+        self.yaw_rate = np.zeros(n)
+        self.action = np.zeros((n, 2))
+        self.route = np.zeros(n, dtype=np.int64)
+        self.ref_idx = np.zeros(n, dtype=np.int64)
+        self.lane = np.zeros(n, dtype=np.int64)
+        self.ep_len = np.zeros(n, dtype=np.int64)
+        self.dying_left = np.zeros(n, dtype=np.int64)
+        self.env_step = np.zeros(e, dtype=np.int64)
+        self.next_agent = np.zeros(e, dtype=np.int64)
+
+    @property
+    def episode_step(self) -> int:
+        """Env steps of env 0's current episode (the single-env view)."""
+        return int(self.env_step[0])
+
+    def env_slots(self, env: int) -> np.ndarray:
+        """Slot indices owned by ``env``."""
+        return np.arange(env * self.slots_per_env, (env + 1) * self.slots_per_env)
+
+    def reset(self, seed: int | list[int] | None = None) -> StepResult:
+        """Start new episodes in every env; env ``e`` is seeded with ``seed + e`` (or ``seed[e]``)."""
+        if seed is None or isinstance(seed, (int, np.integer)):
+            seeds = [None if seed is None else int(seed) + e for e in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+        return self.reset_envs(np.arange(self.num_envs), seeds)
+
+    def reset_envs(self, envs: np.ndarray, seeds: list[int | None]) -> StepResult:
+        """Start new episodes in ``envs`` (others are untouched; their rows in the result are zero)."""
+        m, cfg = self.map, self.cfg
+        envs = np.asarray(envs, dtype=np.int64)
+        if len(seeds) != len(envs):
+            raise ValueError(f"need one seed per env: {len(envs)} envs, {len(seeds)} seeds")
+        spawned = np.zeros(self.num_slots, bool)
+        n = cfg.num_agents
+        for e, sd in zip(envs, seeds):
+            rows = self.env_slots(int(e))
+            self.status[rows] = EMPTY
+            self.agent_num[rows] = -1
+            self.env_step[e] = 0
+            self.next_agent[e] = 0
+            rng = self.rngs[e] = np.random.default_rng(sd)
+            slots = rng.choice(len(m.spawn_slot_lane), size=n, replace=False)
+            lane = m.spawn_slot_lane[slots]
+            s = m.spawn_slot_s[slots] + rng.uniform(-cfg.spawn_jitter_long, cfg.spawn_jitter_long, n)
+            r = rng.uniform(-cfg.spawn_jitter_lat, cfg.spawn_jitter_lat, n)
+            self._spawn(rows[:n], lane, s, r)
+            spawned[rows[:n]] = True
+        z = np.zeros(self.num_slots, bool)
+        return self._result(z, spawned, z, z, z, z, np.zeros(self.num_slots), np.zeros(self.num_envs))
+
+    def _spawn(self, slots: np.ndarray, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> None:
+        """Place new agents of one env at rest in ``slots``, each with a fresh number and route."""
+        m = self.map
+        k = len(slots)
+        e = int(self.env_of[slots[0]])
+        self.status[slots] = ACTIVE
+        self.agent_num[slots] = self.next_agent[e] + np.arange(k)
+        self.next_agent[e] += k
+        self.pos[slots] = m.position(lane, s, r)
+        self.prev_pos[slots] = self.pos[slots]
+        self.heading[slots] = m.heading_at(lane, s)
+        self.heading_prev[slots] = self.heading[slots]
+        self.vel[slots] = 0.0
+        self.speed[slots] = 0.0
+        self.yaw_rate[slots] = 0.0
+        self.action[slots] = 0.0
+        self.lane[slots] = lane
+        self.ref_idx[slots] = 0
+        self.ep_len[slots] = 0
+        self.dying_left[slots] = 0
+        # destination uniform over the map's choices for this spawn lane
+        rng = self.rngs[e]
+        for sl, ln in zip(slots, lane):
+            choices = m.routes_by_spawn_lane[int(ln)]
+            self.route[sl] = choices[int(rng.integers(len(choices)))]
+
+    # ------------------------------------------------------------------ step
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Advance every env one step; ``actions`` (N, 2) holds a row per slot (non-active rows ignored)."""
+        cfg, m = self.cfg, self.map
+        actions = np.asarray(actions, dtype=float)
+        if actions.shape != (self.num_slots, 2):
+            raise ValueError(f"actions must have shape ({self.num_slots}, 2), got {actions.shape}")
+        idx = np.nonzero(self.status == ACTIVE)[0]
+        a = actions[idx]
+        bad = ~np.isfinite(a).all(1)
+        if bad.any():
+            names = [agent_name(int(self.agent_num[i])) for i in idx[bad]]
+            raise ValueError(f"non-finite action for agent(s) {names}: {a[bad].tolist()}; actions must be finite numbers in [-1, 1]")
+        a = np.clip(a, -1.0, 1.0)
+        self.env_step += 1
+
+        # dynamics
+        self.prev_pos[idx] = self.pos[idx]
+        self.heading_prev[idx] = self.heading[idx]
+        self.action[idx] = a
+        pos, hd, v, r = bicycle_step(cfg.dynamics, self.pos[idx], self.heading[idx], self.speed[idx], self.yaw_rate[idx], a)
+        self.vel[idx] = (pos - self.pos[idx]) / cfg.dynamics.dt
+        self.pos[idx], self.heading[idx], self.speed[idx], self.yaw_rate[idx] = pos, hd, v, r
+
+        on_lane = self._localize(idx)
+        ref_road = m.route_roads[self.route[idx], self.ref_idx[idx]]
+
+        # terminations
+        fl = m.route_final_lane[self.route[idx]]
+        s_f, r_f = m.local_coordinates(fl, pos)
+        n_ref = m.road_nlanes[ref_road]
+        w = m.width[fl]
+        length = m.length[fl]
+        arrive = (
+            (s_f > length - ARRIVE_LONG_TOLERANCE) & (s_f < length + ARRIVE_LONG_TOLERANCE) & (r_f >= (0.5 - n_ref) * w) & (r_f <= w / 2)
+        )
+        oor = ~on_lane | self._touches_solid_line(pos, hd) | self._on_sidewalk(pos, hd)
+        crash = self._crashes()[idx]
+        self.ep_len[idx] += 1
+        max_step = self.ep_len[idx] >= cfg.max_agent_steps
+        force_env = self.env_step >= cfg.force_stop_factor * cfg.horizon
+        force = force_env[self.env_of[idx]]
+
+        # rewards (MetaDrive: progress on the localised lane if it is a reference lane)
+        lane = self.lane[idx]
+        on_ref = m.lane_road[lane] == ref_road
+        rw_lane = np.where(on_ref, lane, m.road_first_lane[ref_road])
+        neg = m.road_negative[ref_road] & (not self.no_sign_quirk)
+        sign = np.where(on_ref | ~neg, 1.0, -1.0)
+        s_now, _ = m.local_coordinates(rw_lane, pos)
+        s_last, _ = m.local_coordinates(rw_lane, self.prev_pos[idx])
+        reward = cfg.driving_reward * (s_now - s_last) * sign + cfg.speed_reward * (v * 3.6 / cfg.dynamics.max_speed_kmh) * sign
+        reward = np.where(arrive, cfg.success_reward, np.where(oor, -cfg.out_of_road_penalty, np.where(crash, -cfg.crash_penalty, reward)))
+
+        terminated = arrive | oor | crash
+        truncated = (max_step | force) & ~terminated
+
+        # retire: dying vehicles count down; arrived ones vanish, other done ones linger
+        dying = self.status == DYING
+        self.dying_left[dying] -= 1
+        self.status[dying & (self.dying_left <= 0)] = EMPTY
+        done_idx = idx[terminated | truncated]
+        linger = ~arrive[terminated | truncated] & (cfg.delay_done > 0)
+        self.status[done_idx[linger]] = DYING
+        self.dying_left[done_idx[linger]] = cfg.delay_done
+        self.speed[done_idx] = 0.0
+        self.vel[done_idx] = 0.0
+        self.yaw_rate[done_idx] = 0.0
+        self.status[done_idx[~linger]] = EMPTY
+
+        vacated = np.zeros(self.num_slots, bool)
+        vacated[done_idx[~linger]] = True
+        spawned = self._respawn(vacated, ~force_env)
+
+        acted = np.zeros(self.num_slots, bool)
+        acted[idx] = True
+        spawned_mask = np.zeros(self.num_slots, bool)
+        spawned_mask[spawned] = True
+
+        def scatter(vals: np.ndarray) -> np.ndarray:
+            out = np.zeros(self.num_slots, dtype=vals.dtype)
+            out[idx] = vals
+            return out
+
+        env_idx = self.env_of[idx]
+        count = np.bincount(env_idx, minlength=self.num_envs)
+        global_reward = np.bincount(env_idx, weights=reward, minlength=self.num_envs) / np.maximum(count, 1)
+        result = self._result(
+            acted,
+            spawned_mask,
+            scatter(arrive),
+            scatter(crash),
+            scatter(oor),
+            scatter(max_step),
+            scatter(reward),
+            global_reward,
+            terminated=scatter(terminated),
+            truncated=scatter(truncated),
+        )
+        if force_env.any():  # after the observations, so that final observations see the traffic
+            self.status[force_env[self.env_of]] = EMPTY
+            result.episode_over |= force_env
+        return result
+
+    # ------------------------------------------------------------------ pieces
+    def _localize(self, idx: np.ndarray) -> np.ndarray:
+        """Update each vehicle's lane and reference road; return whether it is on a lane."""
+        m = self.map
+        pos, hd = self.pos[idx], self.heading[idx]
+        contains = m.hull_contains(pos)
+        on_lane = contains.any(1)
+        vi, li = np.nonzero(contains)
+        key = np.full(contains.shape, np.inf)
+        if len(vi):
+            s, r = m.local_coordinates(li, pos[vi])
+            same_dir = np.cos(m.heading_at(li, s) - hd[vi]) > 0
+            l1 = np.abs(r) + np.maximum(s - m.length[li], 0) + np.maximum(-s, 0)
+            route = self.route[idx][vi]
+            ref = self.ref_idx[idx][vi]
+            road = m.lane_road[li]
+            cur_road = m.route_roads[route, ref]
+            nxt_road = m.route_roads[route, np.minimum(ref + 1, m.route_nroads[route] - 1)]
+            prio = np.where(road == cur_road, 0.0, np.where(road == nxt_road, 1.0, 2.0))
+            key[vi, li] = np.where(same_dir, prio * 1e6 + l1, np.inf)
+        best = key.argmin(1)
+        found = np.isfinite(key[np.arange(len(idx)), best])
+        lane = np.where(found, best, self.lane[idx])
+        self.lane[idx] = lane
+        # reference road: switch when the localised lane starts a later road of the route
+        s_lane, _ = m.local_coordinates(lane, pos)
+        pos_in_route = m.route_road_pos[self.route[idx], m.lane_road[lane]]
+        switch = (pos_in_route > self.ref_idx[idx]) & (s_lane < CKPT_UPDATE_RANGE)
+        self.ref_idx[idx] = np.where(switch, pos_in_route, self.ref_idx[idx])
+        return on_lane
+
+    def _touches_solid_line(self, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """Whether each footprint overlaps a physical solid line (or road edge) box."""
+        out = np.zeros(len(pos), bool)
+        if self.seg_grid is None or len(pos) == 0:
+            return out
+        vi, si = self.seg_grid.candidates(pos)
+        if len(vi):
+            hit = boxes_overlap(
+                pos[vi], heading[vi], np.broadcast_to(self.half, (len(vi), 2)), self.seg_center[si], self.seg_heading[si], self.seg_half[si]
+            )
+            np.logical_or.at(out, vi, hit)
+        return out
+
+    def _on_sidewalk(self, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """Whether a footprint sample point lies on a sidewalk (triangulated strips)."""
+        m = self.map
+        out = np.zeros(len(pos), bool)
+        if self.sidewalk_grid is None or len(pos) == 0:
+            return out
+        vi, ti = self.sidewalk_grid.candidates(pos)
+        near = np.hypot(*(pos[vi] - self.tri_centroid[ti]).T) < self.tri_radius[ti] + self.half_diag
+        vi, ti = vi[near], ti[near]
+        if len(vi):
+            pts = footprint_samples(pos, heading, self.half[0], self.half[1])[vi]  # (C, 9, 2)
+            px, py = pts[..., 0], pts[..., 1]
+            nrm, off = m.sidewalk_normals[ti], m.sidewalk_offsets[ti]
+            inside = np.ones(px.shape, bool)
+            for k in range(nrm.shape[1]):
+                inside &= nrm[:, k, 0:1] * px + nrm[:, k, 1:2] * py <= off[:, k : k + 1]
+            np.logical_or.at(out, vi, inside.any(1))
+        return out
+
+    def _same_env_pairs(self, max_dist: float, observers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Slot pairs of vehicles of one env closer than ``max_dist``.
+
+        Without ``observers``: unordered pairs (i < j) of non-empty slots. With a per-slot
+        ``observers`` mask: ordered pairs (observer i, other non-empty vehicle j != i).
+        """
+        e, s = self.num_envs, self.slots_per_env
+        p = self.pos.reshape(e, s, 2)
+        live = (self.status != EMPTY).reshape(e, s)
+        dx = p[:, :, None, 0] - p[:, None, :, 0]
+        dy = p[:, :, None, 1] - p[:, None, :, 1]
+        close = (dx * dx + dy * dy < max_dist**2) & live[:, None, :]
+        if observers is None:
+            ee, i, j = np.nonzero(np.triu(close & live[:, :, None], 1))
+        else:
+            close &= observers.reshape(e, s)[:, :, None] & ~np.eye(s, dtype=bool)[None]
+            ee, i, j = np.nonzero(close)
+        return ee * s + i, ee * s + j
+
+    def _crashes(self) -> np.ndarray:
+        """Per slot: whether its box overlaps another active or dying vehicle's box."""
+        out = np.zeros(self.num_slots, bool)
+        i, j = self._same_env_pairs(2 * self.half_diag)
+        if len(i):
+            hb = np.broadcast_to(self.half, (len(i), 2))
+            hit = boxes_overlap(self.pos[i], self.heading[i], hb, self.pos[j], self.heading[j], hb)
+            out[i[hit]] = True
+            out[j[hit]] = True
+        return out
+
+    def _respawn(self, vacated: np.ndarray, env_ok: np.ndarray) -> np.ndarray:
+        """Spawn new agents on free respawn places while under each env's cap; new slots."""
+        cfg, m = self.cfg, self.map
+        if not cfg.allow_respawn:
+            return np.zeros(0, dtype=np.int64)
+        e_n, s_n, p_n = self.num_envs, self.slots_per_env, len(self.place_pos)
+        live = (self.status != EMPTY).reshape(e_n, s_n)
+        allowed = np.where(env_ok & (self.env_step < cfg.horizon), cfg.num_agents - live.sum(1), 0)
+        if not (allowed > 0).any():
+            return np.zeros(0, dtype=np.int64)
+        # which places are blocked by a vehicle of the same env (8 x 3 m box at the place)
+        ee, jj = np.nonzero(live & (allowed > 0)[:, None])
+        blocked = np.zeros((e_n, p_n), bool)
+        if len(ee):
+            slot = np.repeat(ee * s_n + jj, p_n)
+            pl = np.tile(np.arange(p_n), len(ee))
+            hit = boxes_overlap(
+                self.place_pos[pl],
+                self.place_heading[pl],
+                np.broadcast_to(self.place_half, (len(pl), 2)),
+                self.pos[slot],
+                self.heading[slot],
+                np.broadcast_to(self.half, (len(pl), 2)),
+            )
+            np.logical_or.at(blocked, (np.repeat(ee, p_n), pl), hit)
+        free = (self.status == EMPTY) & ~vacated
+        new_slots = []
+        for e in np.nonzero(allowed > 0)[0]:
+            avail = np.nonzero(~blocked[e])[0]
+            rows = self.env_slots(int(e))
+            slots = rows[free[rows]]
+            k = min(int(allowed[e]), len(avail), len(slots))
+            if k == 0:
+                continue
+            places = self.rngs[e].choice(avail, size=k, replace=False)
+            self._spawn(slots[:k], m.respawn_lane[places], m.respawn_s[places], np.zeros(k))
+            new_slots.append(slots[:k])
+        return np.concatenate(new_slots) if new_slots else np.zeros(0, dtype=np.int64)
+
+    # ------------------------------------------------------------------ output
+    def observe(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Observations (n, obs_dim) and local states (n, 10) of the vehicles in ``slots``."""
+        cfg, m = self.cfg, self.map
+        pos, hd = self.pos[slots], self.heading[slots]
+        route, ref = self.route[slots], self.ref_idx[slots]
+        ref_road = m.route_roads[route, ref]
+        next_road = m.route_roads[route, np.minimum(ref + 1, m.route_nroads[route] - 1)]
+        ego, ck1, ck2 = ego_features(
+            m, pos, hd, self.heading_prev[slots], self.speed[slots], self.action[slots], self.lane[slots], ref_road, next_road,
+            cfg.dynamics.max_speed_kmh, cfg.navi_point_dist, cfg.dynamics.dt,
+        )  # fmt: skip
+        row = np.full(self.num_slots, -1)
+        row[slots] = np.arange(len(slots))
+        po, pb = self._same_env_pairs(cfg.lidar_range + self.half_diag, observers=row >= 0)
+        lidar = lidar_scan(pos, hd, row[po], self.pos[pb], self.heading[pb], tuple(self.half), cfg.lidar_beams, cfg.lidar_range)
+        obs = np.concatenate([ego, lidar / cfg.lidar_range], 1).astype(np.float32)
+        nd = cfg.navi_point_dist
+
+        def clip_vec(d: np.ndarray) -> np.ndarray:
+            n = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+            return d * np.minimum(1.0, nd / n)[:, None] / nd
+
+        state = np.concatenate(
+            [
+                (pos - m.centre) / m.scale,
+                self.vel[slots] / cfg.max_speed,
+                np.stack([np.cos(hd), np.sin(hd)], 1),
+                clip_vec(ck1 - pos),
+                clip_vec(ck2 - pos),
+            ],
+            1,
+        ).astype(np.float32)
+        return obs, state
+
+    def _result(
+        self,
+        acted: np.ndarray,
+        spawned: np.ndarray,
+        arrive: np.ndarray,
+        crash: np.ndarray,
+        oor: np.ndarray,
+        max_step: np.ndarray,
+        reward: np.ndarray,
+        global_reward: np.ndarray,
+        terminated: np.ndarray | None = None,
+        truncated: np.ndarray | None = None,
+    ) -> StepResult:
+        n = self.num_slots
+        out_slots = np.nonzero(acted | spawned)[0]
+        obs = np.zeros((n, self.cfg.obs_dim), np.float32)
+        state = np.zeros((n, 10), np.float32)
+        if len(out_slots):
+            obs[out_slots], state[out_slots] = self.observe(out_slots)
+        zeros = np.zeros(n, bool)
+        active_per_env = np.bincount(self.env_of[self.status == ACTIVE], minlength=self.num_envs)
+        return StepResult(
+            acted=acted,
+            spawned=spawned,
+            agent_num=self.agent_num.copy(),
+            obs=obs,
+            state=state,
+            reward=reward,
+            arrive_dest=arrive,
+            crash_vehicle=crash,
+            out_of_road=oor,
+            max_step=max_step,
+            terminated=zeros if terminated is None else terminated,
+            truncated=zeros if truncated is None else truncated,
+            episode_length=self.ep_len.copy(),
+            global_reward=global_reward,
+            episode_over=active_per_env == 0,
+            env_step=self.env_step.copy(),
+        )
