@@ -15,12 +15,16 @@ from functools import cache
 
 import numpy as np
 
+from coin_app.envs.config import make_config
 from coin_app.envs.driving_env import DrivingEnv
 from coin_app.envs.road_map import RoadMap, load_map
-from coin_app.envs.simulator import ACTIVE, EMPTY
+from coin_app.envs.simulator import ACTIVE, DrivingSimulator
 
 LANE_CHANGE_COST = 15.0  # metres of detour charged per lane change
 EXTENSION = 40.0  # metres of straight path appended past the final lane's end
+PROGRESS_WINDOW = 20  # path points searched ahead of the last progress each step
+CURVE_LOOKAHEAD = 40.0  # metres of path scanned for curvature when choosing the speed
+GAP_RANGE = 40.0  # metres within which a vehicle ahead limits the speed
 
 
 def _lane_graph(m: RoadMap, min_radius: float) -> dict[int, list[tuple[int, float, bool]]]:
@@ -100,19 +104,21 @@ def route_path(m: RoadMap, route: int, min_radius: float = 4.0) -> np.ndarray:
             s1 = max(0.0, length / 2 - 6.0)
         pieces.append(_lane_points(m, lane, s0, s1))
     pts = np.concatenate([p for p in pieces if len(p)])
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 0.3])
-    pts = pts[keep]
+    # resample by arc length at 1 m: lane changes become straight 12 m diagonals
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    grid = np.arange(0.0, arc[-1] + 1e-9, 1.0)
+    pts = np.stack([np.interp(grid, arc, pts[:, 0]), np.interp(grid, arc, pts[:, 1])], 1)
     end_h = m.heading_at(np.array([goal]), np.array([m.length[goal]]))[0]
     ext = pts[-1] + np.arange(1, EXTENSION + 1)[:, None] * np.array([np.cos(end_h), np.sin(end_h)])
     return np.concatenate([pts, ext])
 
 
 class HeuristicDriver:
-    """Route-following driver for every agent of a :class:`DrivingEnv` (uses privileged state)."""
+    """Route-following driver for every agent of a :class:`DrivingEnv` or simulator (privileged state)."""
 
     def __init__(
         self,
-        env: DrivingEnv,
+        env: DrivingEnv | DrivingSimulator,
         cruise_speed: float = 10.0,
         lateral_accel: float = 1.5,
         time_gap: float = 1.2,
@@ -120,8 +126,9 @@ class HeuristicDriver:
         look_gain: float = 0.4,
         look_min: float = 3.0,
     ):
-        self.env = env
-        m = env.sim.map
+        self.env = env if isinstance(env, DrivingEnv) else None
+        self.sim = env.sim if isinstance(env, DrivingEnv) else env
+        m = self.sim.map
         paths = route_paths(m.name)
         k = max(len(p) for p in paths)
         self.paths = np.stack([np.concatenate([p, np.repeat(p[-1:], k - len(p), 0)]) for p in paths])
@@ -135,21 +142,30 @@ class HeuristicDriver:
         self.min_gap = min_gap
         self.look_gain = look_gain
         self.look_min = look_min
-        self.progress = np.zeros(env.sim.num_slots, dtype=np.int64)
-        self._owner = np.full(env.sim.num_slots, -1, dtype=np.int64)
+        self.progress = np.zeros(self.sim.num_slots, dtype=np.int64)
+        self._owner = np.full(self.sim.num_slots, -1, dtype=np.int64)
 
     def actions(self) -> dict[str, np.ndarray]:
-        """Actions for every agent that acts next."""
-        sim = self.env.sim
+        """Actions for every agent that acts next in the wrapped :class:`DrivingEnv`."""
+        if self.env is None:
+            raise TypeError("actions() needs a DrivingEnv; use act_slots() with a bare simulator")
         slots = np.array([self.env.agent_slot(a) for a in self.env.agents], dtype=np.int64)
         if len(slots) == 0:
             return {}
-        acts = self.act_slots(slots)
-        return {a: acts[i].astype(np.float32) for i, a in enumerate(self.env.agents)} if sim else {}
+        acts = self.act_slots(slots).astype(np.float32)
+        return {a: acts[i] for i, a in enumerate(self.env.agents)}
+
+    def act_all(self) -> np.ndarray:
+        """Actions (num_slots, 2) for every slot of the simulator (zeros where nobody acts)."""
+        out = np.zeros((self.sim.num_slots, 2))
+        active = np.nonzero(self.sim.status == ACTIVE)[0]
+        if len(active):
+            out[active] = self.act_slots(active)
+        return out
 
     def act_slots(self, slots: np.ndarray) -> np.ndarray:
         """Actions (n, 2) of the vehicles in ``slots``."""
-        sim = self.env.sim
+        sim = self.sim
         dyn = sim.cfg.dynamics
         new = self._owner[slots] != sim.agent_num[slots]
         self._owner[slots] = sim.agent_num[slots]
@@ -157,18 +173,21 @@ class HeuristicDriver:
         paths = self.paths[route]  # (n, K, 2)
         pos, hd, v = sim.pos[slots], sim.heading[slots], sim.speed[slots]
         n, k = len(slots), paths.shape[1]
-        # progress: global nearest for new agents, windowed search ahead otherwise
-        d_all = np.linalg.norm(paths - pos[:, None, :], axis=2)
-        win = np.arange(k)[None, :]
-        lo = np.where(new, 0, self.progress[slots])[:, None]
-        hi = np.where(new, k, self.progress[slots] + 20)[:, None]
-        d_all = np.where((win >= lo) & (win < hi), d_all, np.inf)
-        prog = d_all.argmin(1)
+        rows = np.arange(n)
+        # progress along the path: global nearest point for new agents, else a window ahead
+        prog = self.progress[slots].copy()
+        if new.any():
+            d_new = np.linalg.norm(paths[new] - pos[new][:, None, :], axis=2)
+            d_new[np.arange(k)[None, :] >= self.path_len[route[new]][:, None]] = np.inf
+            prog[new] = d_new.argmin(1)
+        win = np.minimum(prog[:, None] + np.arange(PROGRESS_WINDOW)[None, :], k - 1)
+        pts = paths[rows[:, None], win]
+        prog = win[rows, np.hypot(pts[..., 0] - pos[:, 0:1], pts[..., 1] - pos[:, 1:2]).argmin(1)]
         self.progress[slots] = prog
         # pure pursuit steering
         look = np.clip(self.look_gain * v + self.look_min, self.look_min, 15.0)
         tgt_i = np.minimum(prog + np.round(look).astype(np.int64), k - 1)
-        tgt = paths[np.arange(n), tgt_i]
+        tgt = paths[rows, tgt_i]
         d = tgt - pos
         c, s = np.cos(hd), np.sin(hd)
         x_l = d[:, 0] * c + d[:, 1] * s
@@ -180,17 +199,23 @@ class HeuristicDriver:
         else:
             steer = kappa / dyn.curvature_per_steer
         # target speed: curvature ahead, then gap to the nearest body in the corridor ahead
-        horizon = np.clip(v**2 / 4.0 + 12.0, 12.0, 40.0).astype(np.int64)
-        ahead = (win >= prog[:, None]) & (win <= (prog + horizon)[:, None])
-        curv_ahead = np.where(ahead, self.curvature[route], 0.0).max(1)
-        v_target = np.minimum(self.cruise_speed, np.sqrt(self.lateral_accel / np.maximum(curv_ahead, 1e-6)))
-        bodies = np.nonzero(sim.status != EMPTY)[0]
-        rel = sim.pos[bodies][None, :, :] - pos[:, None, :]
-        fx = rel[..., 0] * c[:, None] + rel[..., 1] * s[:, None]
-        fy = -rel[..., 0] * s[:, None] + rel[..., 1] * c[:, None]
-        corridor = (fx > 0.5) & (np.abs(fy) < 2.4) & (bodies[None, :] != slots[:, None])
-        corridor &= sim.env_of[bodies][None, :] == sim.env_of[slots][:, None]
-        gap = np.where(corridor, fx - 2 * sim.half[0], np.inf).min(1)
+        horizon = np.clip(v**2 / 4.0 + 12.0, 12.0, CURVE_LOOKAHEAD)
+        ahead = np.arange(int(CURVE_LOOKAHEAD) + 1)[None, :]
+        idx_ahead = np.minimum(prog[:, None] + ahead, k - 1)
+        curv = np.where(ahead <= horizon[:, None], self.curvature[route[:, None], idx_ahead], 0.0).max(1)
+        v_target = np.minimum(self.cruise_speed, np.sqrt(self.lateral_accel / np.maximum(curv, 1e-6)))
+        observer = np.zeros(sim.num_slots, bool)
+        observer[slots] = True
+        row_of = np.full(sim.num_slots, -1)
+        row_of[slots] = rows
+        po, pb = sim._same_env_pairs(GAP_RANGE, observers=observer)
+        i = row_of[po]
+        rel = sim.pos[pb] - pos[i]
+        fx = rel[:, 0] * c[i] + rel[:, 1] * s[i]
+        fy = -rel[:, 0] * s[i] + rel[:, 1] * c[i]
+        corridor = (fx > 0.5) & (np.abs(fy) < 2.4)
+        gap = np.full(n, np.inf)
+        np.minimum.at(gap, i[corridor], fx[corridor] - 2 * sim.half[0])
         v_gap = np.maximum(gap - self.min_gap, 0.0) / self.time_gap
         v_target = np.minimum(v_target, v_gap)
         throttle = np.clip(0.5 * (v_target - v), -1.0, 1.0)
@@ -198,20 +223,28 @@ class HeuristicDriver:
         return np.clip(np.stack([steer, throttle], 1), -1.0, 1.0)
 
 
-def run_single_vehicle(scenario: str, seed: int, max_steps: int = 600) -> str:
-    """Drive one heuristic vehicle from a seeded spawn; returns its outcome."""
-    env = DrivingEnv(scenario=scenario, num_agents=1, allow_respawn=False)
-    driver = HeuristicDriver(env)
-    env.reset(seed=seed)
+def single_vehicle_outcomes(scenario: str, seeds: list[int], max_steps: int = 800) -> list[str]:
+    """Outcome of one heuristic vehicle alone on the map for each seeded spawn.
+
+    The spawns run as a batch of independent one-vehicle envs (env ``e`` is exactly a
+    single env reset with ``seeds[e]``); outcomes are ``arrive_dest``, ``crash_vehicle``,
+    ``out_of_road``, ``max_step`` or ``running``.
+    """
+    sim = DrivingSimulator(make_config(scenario, num_agents=1, allow_respawn=False), num_envs=len(seeds))
+    driver = HeuristicDriver(sim)
+    sim.reset(list(seeds))
+    outcome = ["running"] * len(seeds)
     for _ in range(max_steps):
-        _, _, term, trunc, infos = env.step(driver.actions())
-        for aid, info in infos.items():
-            if term.get(aid) or trunc.get(aid):
-                for key in ("arrive_dest", "crash_vehicle", "out_of_road", "max_step"):
-                    if info[key]:
-                        return key
-                return "truncated"
-    return "running"
+        res = sim.step(driver.act_all())
+        for slot in np.nonzero(res.terminated | res.truncated)[0]:
+            e = int(sim.env_of[slot])
+            for key in ("arrive_dest", "out_of_road", "crash_vehicle", "max_step"):
+                if getattr(res, key)[slot]:
+                    outcome[e] = key
+                    break
+        if res.episode_over.all():
+            break
+    return outcome
 
 
-__all__ = ["ACTIVE", "HeuristicDriver", "route_path", "run_single_vehicle"]
+__all__ = ["HeuristicDriver", "route_path", "single_vehicle_outcomes"]

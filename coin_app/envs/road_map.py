@@ -40,7 +40,7 @@ def _pad(polys: list[np.ndarray]) -> np.ndarray:
 class GridIndex:
     """Uniform grid over the map listing, per cell, the items whose box touches the cell."""
 
-    def __init__(self, bbox: np.ndarray, reach: float, cell: float = 8.0):
+    def __init__(self, bbox: np.ndarray, reach: float, cell: float = 4.0):
         lo = bbox[:, :2].min(0) - reach - cell
         hi = bbox[:, 2:].max(0) + reach + cell
         self.origin, self.cell = lo, cell
@@ -256,6 +256,14 @@ class RoadMap:
         """(N, L) bool: point n lies in the on-lane region (convex hull) of lane l."""
         out = np.zeros((len(pos), self.num_lanes), bool)
         vi, li = self.hull_grid.candidates(pos)
+        bb, p = self.hull_bbox[li], pos[vi]
+        inside_bb = (
+            (p[:, 0] >= bb[:, 0] - margin)
+            & (p[:, 0] <= bb[:, 2] + margin)
+            & (p[:, 1] >= bb[:, 1] - margin)
+            & (p[:, 1] <= bb[:, 3] + margin)
+        )
+        vi, li = vi[inside_bb], li[inside_bb]
         if len(vi):
             proj = np.einsum("ckd,cd->ck", self.hull_normals[li], pos[vi]) - self.hull_offsets[li]
             out[vi, li] = np.all(proj <= margin, axis=1)

@@ -7,6 +7,8 @@ trained on one simulator can be evaluated on the other.
 
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
 
 from coin_app.envs.road_map import RoadMap
@@ -16,6 +18,13 @@ LANE_OFFSET_NORM = 4.5  # MAX_LANE_WIDTH
 STEERING_QUIRK = 60.0  # MetaDrive divides the normalised steering by MAX_STEERING = 60
 CURVE_RADIUS_MAX = 60.0
 CURVE_ANGLE_MAX_DEG = 135.0
+
+
+@cache
+def _beam_table(n_beams: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of every beam's angle offset."""
+    ang = 2 * np.pi * np.arange(n_beams) / n_beams
+    return np.cos(ang), np.sin(ang)
 
 
 def lidar_scan(
@@ -64,8 +73,12 @@ def lidar_scan(
     rel_h = own_h - pair_heading
     pair = np.repeat(np.arange(len(pair_obs)), counts)
     k = np.repeat(k0 - np.cumsum(counts) + counts, counts) + np.arange(total)
-    phi = rel_h[pair] + k * step  # beam direction in the box frame
-    dx, dy = np.cos(phi), np.sin(phi)
+    # beam direction in the box frame: angle rel_h + k * step, by angle addition
+    kk = k % n_beams
+    cr, sr = np.cos(rel_h)[pair], np.sin(rel_h)[pair]
+    ck, sk = _beam_table(n_beams)
+    dx = cr * ck[kk] - sr * sk[kk]
+    dy = sr * ck[kk] + cr * sk[kk]
     oxp, oyp = ox[pair], oy[pair]
     with np.errstate(divide="ignore", invalid="ignore"):
         tx1, tx2 = (-hl - oxp) / dx, (hl - oxp) / dx
@@ -73,7 +86,7 @@ def lidar_scan(
     t_in = np.maximum(np.minimum(tx1, tx2), np.minimum(ty1, ty2))
     t_out = np.minimum(np.maximum(tx1, tx2), np.maximum(ty1, ty2))
     hit = (t_out >= np.maximum(t_in, 0.0)) & (t_out < np.inf)
-    flat = pair_obs[pair[hit]] * n_beams + k[hit] % n_beams
+    flat = pair_obs[pair[hit]] * n_beams + kk[hit]
     np.minimum.at(out, flat, np.maximum(t_in[hit], 0.0))
     return np.minimum(out, max_range).reshape(a_n, n_beams)
 

@@ -182,6 +182,26 @@ class DrivingSimulator:
             choices = m.routes_by_spawn_lane[int(ln)]
             self.route[sl] = choices[int(rng.integers(len(choices)))]
 
+    def place(self, slot: int, pos: tuple[float, float], heading: float, speed: float = 0.0, route: int | None = None) -> None:
+        """Put a new active vehicle at a pose (scripted scenarios and tests); its lane is localised."""
+        m = self.map
+        route = int(self.route[slot]) if route is None else int(route)
+        if not 0 <= route < len(m.routes):
+            raise ValueError(f"bad route {route}; allowed: 0 .. {len(m.routes) - 1}")
+        lane = np.array([m.routes[route].spawn_lane])
+        sl = np.array([slot])
+        self._spawn(sl, lane, np.zeros(1), np.zeros(1))
+        self.route[slot] = route
+        self.pos[slot] = self.prev_pos[slot] = pos
+        self.heading[slot] = self.heading_prev[slot] = heading
+        self.speed[slot] = speed
+        self.vel[slot] = speed * np.array([np.cos(heading), np.sin(heading)])
+        self._localize(sl)
+
+    def remove(self, slot: int) -> None:
+        """Take the vehicle in ``slot`` off the map."""
+        self.status[slot] = EMPTY
+
     # ------------------------------------------------------------------ step
     def step(self, actions: np.ndarray) -> StepResult:
         """Advance every env one step; ``actions`` (N, 2) holds a row per slot (non-active rows ignored)."""
@@ -323,6 +343,9 @@ class DrivingSimulator:
         if self.seg_grid is None or len(pos) == 0:
             return out
         vi, si = self.seg_grid.candidates(pos)
+        rel = pos[vi] - self.seg_center[si]
+        near = rel[:, 0] ** 2 + rel[:, 1] ** 2 < (self.seg_half[si, 0] + self.half_diag + self.seg_half[si, 1]) ** 2
+        vi, si = vi[near], si[near]
         if len(vi):
             hit = boxes_overlap(
                 pos[vi], heading[vi], np.broadcast_to(self.half, (len(vi), 2)), self.seg_center[si], self.seg_heading[si], self.seg_half[si]

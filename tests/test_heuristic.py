@@ -1,0 +1,37 @@
+"""The heuristic driver: route paths and single-vehicle success on every scenario."""
+
+import numpy as np
+import pytest
+
+from coin_app.envs.heuristic import route_paths, single_vehicle_outcomes
+from coin_app.envs.road_map import load_map
+
+SCENARIOS = ["intersection", "roundabout", "bottleneck"]
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_single_vehicle_arrives_in_at_least_99_percent_of_200_spawns(scenario):
+    outcomes = single_vehicle_outcomes(scenario, list(range(200)))
+    arrived = sum(o == "arrive_dest" for o in outcomes)
+    assert arrived >= 198, {o: outcomes.count(o) for o in set(outcomes)}
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_route_paths_are_continuous_and_end_on_the_final_road(scenario):
+    m = load_map(scenario)
+    for route, path in zip(m.routes, route_paths(scenario)):
+        step = np.linalg.norm(np.diff(path, axis=0), axis=1)
+        assert step.max() < 1.6  # 1 m samples; lane changes spread over 12 m
+        start = m.position(np.array([route.spawn_lane]), np.zeros(1), np.zeros(1))[0]
+        assert np.linalg.norm(path[0] - start) < 1e-6
+        # the path passes the end of the final road (any of its lanes)
+        final_road = m.lane_road[route.final_lane]
+        ends = m.end[m.road_lanes[final_road][m.road_lanes[final_road] >= 0]]
+        assert np.min(np.linalg.norm(path[:, None, :] - ends[None], axis=2)) < 0.6
+
+
+def test_batched_outcomes_equal_one_env_at_a_time():
+    seeds = [3, 11, 42]
+    together = single_vehicle_outcomes("intersection", seeds)
+    alone = [single_vehicle_outcomes("intersection", [s])[0] for s in seeds]
+    assert together == alone

@@ -1,0 +1,279 @@
+"""Simulator rules: observations, rewards, terminations, respawn, seeding and bad input."""
+
+import math
+
+import numpy as np
+import pytest
+
+from coin_app.envs.config import make_config
+from coin_app.envs.driving_env import DrivingEnv
+from coin_app.envs.simulator import ACTIVE, DYING, EMPTY, DrivingSimulator
+
+L = 4.515
+
+
+def route_of(sim, spawn_lane_key, destination):
+    m = sim.map
+    lane = m.lane_index[spawn_lane_key]
+    return next(i for i in m.routes_by_spawn_lane[lane] if m.routes[i].destination == destination)
+
+
+def lone_vehicle(scenario="intersection", **kw):
+    sim = DrivingSimulator(make_config(scenario, num_agents=2, allow_respawn=False, **kw))
+    sim.reset(0)
+    sim.remove(1)
+    return sim
+
+
+def step_one(sim, a0=0.0, a1=0.0):
+    act = np.zeros((sim.num_slots, 2))
+    act[0] = a0, a1
+    return sim.step(act)
+
+
+def test_ego_features_of_a_placed_vehicle():
+    sim = lone_vehicle()
+    route = route_of(sim, (">>", ">>>", 1), "1X1_1_")  # straight through, right lane y = 0
+    sim.place(0, (30.0, 0.0), 0.0, speed=10.0, route=route)
+    obs, state = sim.observe(np.array([0]))
+    o = obs[0].astype(float)
+    assert obs.shape == (1, 91) and state.shape == (1, 10)
+    # distances to the road edges from the left-most lane (y = 3.5): dl = 3.5 + 1.75
+    assert o[0] == pytest.approx(5.25 / 18, abs=1e-6)
+    assert o[1] == pytest.approx((7.0 - 5.25) / 18, abs=1e-6)
+    assert o[2] == pytest.approx(0.5, abs=1e-6)  # aligned with the lane
+    assert o[3] == pytest.approx((36.0 + 1) / 81, abs=1e-6)
+    assert o[4:7] == pytest.approx([0.5, 0.5, 0.5], abs=1e-6)
+    assert o[7] == pytest.approx(0.0, abs=1e-6)  # no yaw yet
+    assert o[8] == pytest.approx(0.5, abs=1e-6)  # centred in its lane
+    # checkpoint 1: end of the current road at its lateral middle (60, 1.75)
+    d1 = np.array([30.0, 1.75])
+    assert o[9:14] == pytest.approx([(d1[0] / 50 + 1) / 2, (d1[1] / 50 + 1) / 2, 0.0, 0.5, 0.5], abs=1e-6)
+    # checkpoint 2: end of the straight junction road (90.5, 1.75), clipped to 50 m
+    d2 = np.array([60.5, 1.75])
+    d2 = d2 * 50 / np.linalg.norm(d2)
+    assert o[14:19] == pytest.approx([(d2[0] / 50 + 1) / 2, (d2[1] / 50 + 1) / 2, 0.0, 0.5, 0.5], abs=1e-6)
+    assert (o[19:] == 1.0).all()  # nobody around
+    # local state: world-frame position / velocity / heading / checkpoint vectors
+    m = sim.map
+    s = state[0].astype(float)
+    assert s[:2] == pytest.approx((np.array([30.0, 0.0]) - m.centre) / m.scale, abs=1e-6)
+    assert s[2:4] == pytest.approx([10.0 / (80 / 3.6), 0.0], abs=1e-6)
+    assert s[4:6] == pytest.approx([1.0, 0.0], abs=1e-6)
+    assert s[6:8] == pytest.approx(d1 / 50, abs=1e-6)
+    assert s[8:10] == pytest.approx(d2 / 50, abs=1e-6)
+
+
+def test_turning_checkpoint_features():
+    sim = lone_vehicle()
+    route = route_of(sim, (">>", ">>>", 0), "1X2_1_")  # left turn: CCW arc R = 17, 90 deg
+    sim.place(0, (30.0, 3.5), 0.0, route=route)
+    o = sim.observe(np.array([0]))[0][0].astype(float)
+    assert o[14 + 2] == pytest.approx(17.0 / (60 + 7.0), abs=1e-6)  # radius / (60 + n w)
+    assert o[14 + 3] == pytest.approx(0.0)  # CCW = left turn
+    assert o[14 + 4] == pytest.approx((90 / 135 + 1) / 2, abs=1e-6)
+
+
+def test_progress_reward_on_a_straight_lane():
+    sim = lone_vehicle()
+    sim.place(0, (30.0, 0.0), 0.0, speed=10.0, route=route_of(sim, (">>", ">>>", 1), "1X1_1_"))
+    res = step_one(sim, 0.0, 0.0)
+    v1 = 10.0 - 0.036363636363636
+    assert sim.pos[0] == pytest.approx([30.0 + v1 * 0.1, 0.0], abs=1e-9)
+    assert res.reward[0] == pytest.approx(v1 * 0.1 + 0.1 * v1 * 3.6 / 80, abs=1e-9)
+    assert not res.terminated[0] and res.global_reward[0] == pytest.approx(res.reward[0])
+    # driving backwards along the lane is penalised by the same progress term
+    sim.place(0, (30.0, 0.0), math.pi, speed=5.0)
+    res = step_one(sim, 0.0, 0.0)
+    v1 = 5.0 - 0.036363636363636
+    assert res.reward[0] == pytest.approx(-v1 * 0.1 + 0.1 * v1 * 3.6 / 80, abs=1e-9)
+
+
+@pytest.mark.parametrize("preset,penalty", [("paper", 5.0), ("metadrive_compat", 10.0)])
+def test_terminal_rewards_replace_the_dense_reward(preset, penalty):
+    # out of road: touching the right side line
+    sim = DrivingSimulator(make_config("intersection", preset, num_agents=3, allow_respawn=False))
+    sim.reset(0)
+    route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+    sim.place(0, (30.0, -0.9), 0.0, route=route)
+    # crash: two cars overlapping
+    sim.place(1, (40.0, 3.5), 0.0, route=route)
+    sim.place(2, (43.0, 3.5), 0.0, route=route)
+    res = sim.step(np.zeros((sim.num_slots, 2)))
+    assert res.out_of_road[0] and res.reward[0] == -penalty
+    assert res.crash_vehicle[1] and res.crash_vehicle[2] and not res.out_of_road[1]
+    assert res.reward[1] == res.reward[2] == -penalty
+    assert res.terminated[:3].all() and not res.truncated[:3].any()
+    # crashed / off-road vehicles linger as obstacles; arrivals vanish
+    assert (sim.status[:3] == DYING).all()
+    assert res.global_reward[0] == pytest.approx(-penalty)
+
+
+def test_arrival_reward_and_removal():
+    sim = lone_vehicle()
+    route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+    end_lane = sim.map.route_final_lane[route]
+    end = sim.map.end[end_lane]  # (150.5, 0): right-most lane of the east exit
+    sim.place(0, (end[0] - 6.0, end[1]), 0.0, speed=10.0, route=route)
+    sim.ref_idx[0] = 2
+    res = step_one(sim, 0.0, 0.5)
+    assert res.arrive_dest[0] and res.reward[0] == 10.0 and res.terminated[0]
+    assert sim.status[0] == EMPTY and res.episode_over[0]
+
+
+def test_dying_vehicles_block_then_disappear_after_delay_done():
+    sim = DrivingSimulator(make_config("intersection", num_agents=2, allow_respawn=False, delay_done=3))
+    sim.reset(0)
+    route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+    sim.place(0, (30.0, -0.9), 0.0, route=route)  # off road at once
+    sim.place(1, (20.0, 0.0), 0.0, speed=0.0, route=route)
+    statuses = []
+    for _ in range(5):
+        act = np.zeros((sim.num_slots, 2))
+        act[1] = 0.0, -1.0  # braking at rest: stays put and alive
+        sim.step(act)
+        statuses.append(int(sim.status[0]))
+    assert statuses == [DYING, DYING, DYING, EMPTY, EMPTY]
+
+
+def drive_off_policy(sim, t):
+    act = np.zeros((sim.num_slots, 2))
+    act[:, 0] = 1.0  # full left lock and throttle: off the road within a few seconds
+    act[:, 1] = 1.0
+    return act
+
+
+def test_respawn_fresh_ids_cap_and_horizon():
+    cfg = make_config("intersection", num_agents=6, horizon=60, delay_done=4)
+    sim = DrivingSimulator(cfg)
+    res = sim.reset(3)
+    seen = {int(n) for n in res.agent_num[res.spawned]}
+    assert seen == set(range(6))
+    spawn_steps = []
+    step = 0
+    while not res.episode_over[0]:
+        res = sim.step(drive_off_policy(sim, step))
+        step += 1
+        new = [int(n) for n in res.agent_num[res.spawned]]
+        assert not (set(new) & seen), "an agent id was reused"
+        if new:
+            assert sorted(new) == list(range(max(seen) + 1, max(seen) + 1 + len(new)))  # consecutive numbers
+            spawn_steps.append(int(res.env_step[0]))
+        seen |= set(new)
+        assert ((sim.status == ACTIVE) | (sim.status == DYING)).sum() <= cfg.num_agents
+        assert len(new) <= 8
+        assert step < 2000
+    assert spawn_steps and max(spawn_steps) < cfg.horizon  # respawn stops at the horizon
+    assert step >= cfg.horizon
+
+
+def test_per_agent_time_limit_is_a_truncation():
+    sim = DrivingSimulator(make_config("intersection", num_agents=2, horizon=1000, max_agent_steps=5, allow_respawn=False))
+    sim.reset(0)
+    for _ in range(5):
+        act = np.zeros((sim.num_slots, 2))
+        act[:, 1] = -1.0  # stand still
+        res = sim.step(act)
+    assert res.max_step[:2].all() and res.truncated[:2].all() and not res.terminated[:2].any()
+    assert (res.episode_length[:2] == 5).all()
+
+
+def random_actions(sim, rng):
+    return rng.uniform(-1, 1, (sim.num_slots, 2)) * np.array([0.4, 1.0]) + np.array([0.0, 0.3])
+
+
+def rollout(sim, seed, steps=120):
+    res = sim.reset(seed)
+    rng = np.random.default_rng(seed)
+    out = [res.obs.copy()]
+    for _ in range(steps):
+        res = sim.step(random_actions(sim, rng))
+        out.append(np.concatenate([res.obs.ravel(), res.reward, sim.pos.ravel()]))
+    return out
+
+
+def test_same_seed_same_episode_and_different_seed_differs():
+    cfg = make_config("roundabout", num_agents=12)
+    a = rollout(DrivingSimulator(cfg), 7)
+    b = rollout(DrivingSimulator(cfg), 7)
+    c = rollout(DrivingSimulator(cfg), 8)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert not np.array_equal(a[0], c[0])
+
+
+def test_batched_env_reproduces_single_env():
+    cfg = make_config("bottleneck", num_agents=8)
+    batch = DrivingSimulator(cfg, num_envs=3)
+    single = DrivingSimulator(cfg)
+    rb = batch.reset([5, 6, 7])
+    rs = single.reset(6)
+    rows = batch.env_slots(1)
+    for t in range(80):
+        # actions depend only on the agent number and the step, so both runs act alike
+        def acts(sim, t=t):
+            n = sim.agent_num.astype(float)
+            return np.stack([0.3 * np.sin(n + 0.1 * t), 0.5 + 0.5 * np.cos(2 * n + 0.05 * t)], 1)
+
+        rb, rs = batch.step(acts(batch)), single.step(acts(single))
+        assert np.array_equal(rb.obs[rows], rs.obs) and np.array_equal(rb.reward[rows], rs.reward)
+        assert np.array_equal(rb.agent_num[rows][rb.acted[rows]], rs.agent_num[rs.acted])
+
+
+def test_observations_are_in_unit_box_under_random_driving():
+    for sc in ("intersection", "roundabout", "bottleneck"):
+        sim = DrivingSimulator(make_config(sc))
+        res = sim.reset(0)
+        rng = np.random.default_rng(0)
+        for _ in range(60):
+            res = sim.step(random_actions(sim, rng))
+            rows = res.obs[res.acted | res.spawned]
+            assert rows.shape[1] == 91 and rows.min() >= 0.0 and rows.max() <= 1.0
+            assert np.isfinite(res.state).all()
+
+
+def test_nan_action_error_names_the_agent():
+    env = DrivingEnv(scenario="intersection", num_agents=3)
+    env.reset(seed=0)
+    acts = {a: np.zeros(2) for a in env.agents}
+    acts["agent1"] = np.array([np.nan, 0.0])
+    with pytest.raises(ValueError, match=r"agent1.*finite"):
+        env.step(acts)
+    with pytest.raises(ValueError, match=r"agent99"):
+        env.step({**{a: np.zeros(2) for a in env.agents}, "agent99": np.zeros(2)})
+    with pytest.raises(ValueError, match=r"missing actions.*agent2"):
+        env.step({"agent0": np.zeros(2), "agent1": np.zeros(2)})
+
+
+def test_out_of_range_actions_are_clipped():
+    a = lone_vehicle()
+    b = lone_vehicle()
+    for sim in (a, b):
+        sim.place(0, (30.0, 0.0), 0.0, speed=5.0, route=0)
+    step_one(a, 5.0, 7.0)
+    step_one(b, 1.0, 1.0)
+    assert np.array_equal(a.pos, b.pos) and np.array_equal(a.action, b.action)
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"horizon": 0}, "horizon"),
+        ({"num_agents": 49}, "num_agents.*48"),
+        ({"lidar_range": -1.0}, "lidar_range"),
+        ({"crash_penalty": float("nan")}, "crash_penalty"),
+        ({"colour": 3}, "unknown config key.*colour"),
+        ({"dynamics": {"dt": 0.0}}, "dynamics.dt"),
+        ({"dynamics": {"gravity": 9.8}}, "unknown dynamics key.*gravity"),
+        ({"allow_respawn": "yes"}, "allow_respawn"),
+    ],
+)
+def test_bad_config_is_refused_with_a_clear_message(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        make_config("intersection", **kwargs)
+
+
+def test_unknown_scenario_and_preset():
+    with pytest.raises(ValueError, match="unknown scenario 'highway'.*intersection"):
+        make_config("highway")
+    with pytest.raises(ValueError, match="unknown preset.*metadrive_compat"):
+        make_config("intersection", preset="fast")
