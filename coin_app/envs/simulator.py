@@ -54,7 +54,7 @@ class StepResult:
     truncated: np.ndarray
     episode_length: np.ndarray  # the agent's own steps so far
     global_reward: np.ndarray  # (E,) mean reward over the agents that acted in each env
-    episode_over: np.ndarray  # bool (E,): no agent left and none will spawn
+    episode_over: np.ndarray  # bool (E,): no active agent is left after respawn (see README)
     env_step: np.ndarray  # (E,) env steps taken in the current episode
 
 

@@ -1,0 +1,7 @@
+"""``python -m coin_app``: the command line."""
+
+import sys
+
+from coin_app.cli import main
+
+sys.exit(main())
