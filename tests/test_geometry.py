@@ -168,3 +168,31 @@ def test_route_lengths_match_map_data():
         for route, rec in zip(m.routes, data["destinations"]["routes"]):
             total = sum(m.length[m.road_first_lane[rd]] for rd in route.roads)
             assert total == pytest.approx(rec["total_length_lane0"], abs=1e-4)
+
+
+def test_bottleneck96_detectors_match_metadrive_measurement():
+    # MetaDrive (measured): lane 1 of the bottleneck's first block at y = 7 reads
+    # side detector [left, back, right, front] = [5.2125, 50, 8.7125, 44.3] m
+    sim = DrivingSimulator(make_config("bottleneck", num_agents=2, allow_respawn=False, obs_layout="bottleneck96"))
+    sim.reset(0)
+    sim.remove(1)
+    sim.place(0, (30.0, 7.0), 0.0, route=1)
+    obs = sim.observe(np.array([0]))[0][0].astype(float)
+    assert obs.shape == (96,)
+    side = obs[:4] * 50
+    assert side[:3] == pytest.approx([12.25 - 7 - 0.0375, 50.0, 7 + 1.75 - 0.0375], abs=1e-4)
+    assert side[3] == pytest.approx(44.3, abs=0.1)
+    # lane-line detector (20 m, broken lines too): a dash of the divider at y = 8.75 on the left
+    assert obs[10] * 20 == pytest.approx(8.75 - 7 - 0.0375, abs=1e-4)
+    # a sideways beam passes through a gap between dashes: at x = 3 (gap 2..4 m) it reaches the
+    # solid centre line at y = 12.25
+    sim.place(0, (3.0, 7.0), 0.0, route=1)
+    obs = sim.observe(np.array([0]))[0][0].astype(float)
+    assert obs[10] * 20 == pytest.approx(12.25 - 7 - 0.0375, abs=1e-4)
+    # the remaining layout is MetaDrive's: heading, speed, steering, action, yaw, nav, lidar
+    std = DrivingSimulator(make_config("bottleneck", num_agents=2, allow_respawn=False))
+    std.reset(0)
+    std.remove(1)
+    std.place(0, (3.0, 7.0), 0.0, route=1)
+    ref = std.observe(np.array([0]))[0][0]
+    assert np.array_equal(obs[4:10], ref[2:8]) and np.array_equal(obs[14:], ref[9:])

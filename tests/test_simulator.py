@@ -277,3 +277,15 @@ def test_unknown_scenario_and_preset():
         make_config("highway")
     with pytest.raises(ValueError, match="unknown preset.*metadrive_compat"):
         make_config("intersection", preset="fast")
+
+
+def test_unseeded_resets_continue_the_seeded_stream():
+    def episodes(first_seed):
+        sim = DrivingSimulator(make_config("intersection", num_agents=5))
+        starts = [sim.reset(first_seed).obs.copy()]
+        starts += [sim.reset(None).obs.copy() for _ in range(3)]
+        return starts
+
+    a, b = episodes(11), episodes(11)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert not np.array_equal(a[1], a[2])  # later episodes differ from each other

@@ -77,6 +77,11 @@ class ScenarioConfig:
     lidar_beams: int = 72
     lidar_range: float = 50.0
     navi_point_dist: float = 50.0  # navigation vectors are clipped to this length (m)
+    # "standard": 19 ego/navigation features + lidar (91); "bottleneck96": MetaDrive's
+    # bottleneck layout with 4-beam side (solid lines, 50 m) and lane-line (20 m) detectors
+    obs_layout: str = "standard"
+    side_detector_range: float = 50.0
+    lane_line_detector_range: float = 20.0
     # vehicle
     vehicle_length: float = 4.515
     vehicle_width: float = 1.852
@@ -84,8 +89,8 @@ class ScenarioConfig:
 
     @property
     def obs_dim(self) -> int:
-        """Observation length: 19 ego/navigation features + lidar beams."""
-        return 19 + self.lidar_beams
+        """Observation length: 19 (or 24 with detectors) ego/navigation features + lidar beams."""
+        return (24 if self.obs_layout == "bottleneck96" else 19) + self.lidar_beams
 
     @property
     def max_speed(self) -> float:
@@ -110,7 +115,8 @@ _NON_NEGATIVE = (
     "crash_penalty",
     "out_of_road_penalty",
 )
-_POSITIVE = ("lidar_range", "navi_point_dist", "vehicle_length", "vehicle_width")
+_POSITIVE = ("lidar_range", "navi_point_dist", "vehicle_length", "vehicle_width", "side_detector_range", "lane_line_detector_range")
+OBS_LAYOUTS = ("standard", "bottleneck96")
 
 
 def _check(name: str, value: Any, ok: bool, allowed: str) -> None:
@@ -163,5 +169,7 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
         _check(k, v, ok, "a finite number > 0" if k in _POSITIVE else "a finite number >= 0")
     n = values["num_agents"]
     _check("num_agents", n, n <= SPAWN_CAPACITY, f"an integer from 1 to {SPAWN_CAPACITY} (the map's spawn slots)")
+    layout = values.get("obs_layout", "standard")
+    _check("obs_layout", layout, layout in OBS_LAYOUTS, " | ".join(OBS_LAYOUTS))
     _check("allow_respawn", values.get("allow_respawn", True), isinstance(values.get("allow_respawn", True), bool), "True or False")
     return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)

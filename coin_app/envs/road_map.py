@@ -141,6 +141,10 @@ class RoadMap:
         self.solid_p1 = np.array([s["p1"] for s in segs], dtype=float).reshape(-1, 2)
         self.solid_p2 = np.array([s["p2"] for s in segs], dtype=float).reshape(-1, 2)
         self.solid_half_width = float(segs[0]["half_width"]) if segs else 0.0375
+        all_segs = data["line_segments_physical"]
+        self.line_p1 = np.array([s["p1"] for s in all_segs], dtype=float).reshape(-1, 2)
+        self.line_p2 = np.array([s["p2"] for s in all_segs], dtype=float).reshape(-1, 2)
+        self.line_solid = np.array([s["type"] in SOLID_LINE_TYPES for s in all_segs], dtype=bool)
         self.sidewalks = _pad([np.array(s["polygon"], dtype=float) for s in data["sidewalks"]])
         self.sidewalk_bbox = np.concatenate([self.sidewalks.min(1), self.sidewalks.max(1)], axis=1)
         # each sidewalk polygon is a strip: inner edge points, then the outer edge reversed;

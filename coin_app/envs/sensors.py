@@ -91,6 +91,45 @@ def lidar_scan(
     return np.minimum(out, max_range).reshape(a_n, n_beams)
 
 
+def line_detector(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    p1: np.ndarray,
+    p2: np.ndarray,
+    half_width: float,
+    max_range: float,
+    n_beams: int = 4,
+) -> np.ndarray:
+    """MetaDrive's side / lane-line detector: distances (N, n_beams) / range to line segments.
+
+    Beam k points at ``heading + pi/2 + k * 2 pi / n_beams`` ([left, back, right, front] for
+    4 beams); the value is the distance to the line's centre minus its half width, over
+    ``max_range`` (1 = no line within range). Gaps between broken-line dashes let beams through.
+    """
+    n = len(pos)
+    out = np.full((n, n_beams), max_range)
+    if n == 0 or len(p1) == 0:
+        return out / max_range
+    e = p2 - p1
+    mid = 0.5 * (p1 + p2)
+    reach = max_range + 0.5 * np.hypot(e[:, 0], e[:, 1])
+    vi, si = np.nonzero(((pos[:, None, :] - mid[None]) ** 2).sum(-1) < reach[None] ** 2)
+    ang = heading[vi][:, None] + np.pi / 2 + np.arange(n_beams)[None, :] * (2 * np.pi / n_beams)
+    ux, uy = np.cos(ang), np.sin(ang)  # (C, B)
+    ex, ey = e[si, 0:1], e[si, 1:2]
+    ax, ay = p1[si, 0:1] - pos[vi, 0:1], p1[si, 1:2] - pos[vi, 1:2]
+    denom = ux * ey - uy * ex
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (ax * ey - ay * ex) / denom
+        lam = (ax * uy - ay * ux) / denom
+    ok = (np.abs(denom) > 1e-12) & (t >= 0) & (lam >= 0) & (lam <= 1)
+    dist = np.where(ok, np.maximum(t - half_width, 0.0), np.inf)
+    flat = out.reshape(-1)
+    rows = np.broadcast_to(vi[:, None] * n_beams + np.arange(n_beams)[None, :], dist.shape)
+    np.minimum.at(flat, rows.ravel(), dist.ravel())
+    return np.minimum(out, max_range) / max_range
+
+
 def checkpoint_features(
     road_map: RoadMap,
     ref_lane: np.ndarray,

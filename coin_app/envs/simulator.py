@@ -23,7 +23,7 @@ from coin_app.envs.collision import boxes_overlap, footprint_samples
 from coin_app.envs.config import ScenarioConfig
 from coin_app.envs.dynamics import bicycle_step
 from coin_app.envs.road_map import GridIndex, load_map
-from coin_app.envs.sensors import ego_features, lidar_scan
+from coin_app.envs.sensors import ego_features, lidar_scan, line_detector
 
 EMPTY, ACTIVE, DYING = 0, 1, 2
 CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
@@ -91,7 +91,8 @@ class DrivingSimulator:
         self.place_heading = m.heading_at(rl, rs)
         self.place_half = np.array([m.respawn_region[0] / 2, m.respawn_region[1] / 2])
         self.max_agent_ids = config.num_agents + min(MAX_RESPAWN_PER_STEP, config.num_agents) * config.horizon
-        self.rngs = [np.random.default_rng(0) for _ in range(num_envs)]
+        # until an env is reset with a seed it draws from a fixed stream (env e: seed e)
+        self.rngs = [np.random.default_rng(e) for e in range(num_envs)]
         self._alloc()
 
     # ------------------------------------------------------------------ state
@@ -125,7 +126,11 @@ class DrivingSimulator:
         return np.arange(env * self.slots_per_env, (env + 1) * self.slots_per_env)
 
     def reset(self, seed: int | list[int] | None = None) -> StepResult:
-        """Start new episodes in every env; env ``e`` is seeded with ``seed + e`` (or ``seed[e]``)."""
+        """Start new episodes in every env; env ``e`` is seeded with ``seed + e`` (or ``seed[e]``).
+
+        ``seed=None`` continues each env's random stream, so a run seeded once at its first
+        reset is reproducible over all its episodes.
+        """
         if seed is None or isinstance(seed, (int, np.integer)):
             seeds = [None if seed is None else int(seed) + e for e in range(self.num_envs)]
         else:
@@ -146,7 +151,9 @@ class DrivingSimulator:
             self.agent_num[rows] = -1
             self.env_step[e] = 0
             self.next_agent[e] = 0
-            rng = self.rngs[e] = np.random.default_rng(sd)
+            if sd is not None:  # None continues the env's random stream (gymnasium convention)
+                self.rngs[e] = np.random.default_rng(sd)
+            rng = self.rngs[e]
             slots = rng.choice(len(m.spawn_slot_lane), size=n, replace=False)
             lane = m.spawn_slot_lane[slots]
             s = m.spawn_slot_s[slots] + rng.uniform(-cfg.spawn_jitter_long, cfg.spawn_jitter_long, n)
@@ -457,6 +464,11 @@ class DrivingSimulator:
         row[slots] = np.arange(len(slots))
         po, pb = self._same_env_pairs(cfg.lidar_range + self.half_diag, observers=row >= 0)
         lidar = lidar_scan(pos, hd, row[po], self.pos[pb], self.heading[pb], tuple(self.half), cfg.lidar_beams, cfg.lidar_range)
+        if cfg.obs_layout == "bottleneck96":  # MetaDrive's bottleneck observation
+            hw = m.solid_half_width
+            side = line_detector(pos, hd, m.line_p1[m.line_solid], m.line_p2[m.line_solid], hw, cfg.side_detector_range)
+            lanes = line_detector(pos, hd, m.line_p1, m.line_p2, hw, cfg.lane_line_detector_range)
+            ego = np.concatenate([side, ego[:, 2:8], lanes, ego[:, 9:19]], 1)
         obs = np.concatenate([ego, lidar / cfg.lidar_range], 1).astype(np.float32)
         nd = cfg.navi_point_dist
 
