@@ -196,3 +196,28 @@ def test_bottleneck96_detectors_match_metadrive_measurement():
     std.place(0, (3.0, 7.0), 0.0, route=1)
     ref = std.observe(np.array([0]))[0][0]
     assert np.array_equal(obs[4:10], ref[2:8]) and np.array_equal(obs[14:], ref[9:])
+
+
+def test_sector_lidar_equals_brute_force_ray_casting():
+    from coin_app.envs.collision import ray_box_distance
+
+    rng = np.random.default_rng(4)
+    for _ in range(30):
+        n = 12
+        pos = rng.uniform(-30, 30, (n, 2))
+        hd = rng.uniform(-np.pi, np.pi, n)
+        obs_i, box_j = np.nonzero(~np.eye(n, dtype=bool))
+        fast = lidar_scan(pos, hd, obs_i, pos[box_j], hd[box_j], HALF, 72, 50.0)
+        # brute force: every beam of every observer against every other box
+        ang = hd[:, None] + np.arange(72)[None, :] * 2 * np.pi / 72
+        slow = np.full((n, 72), 50.0)
+        for j in range(n):
+            dirs = np.stack([np.cos(ang), np.sin(ang)], -1).reshape(-1, 2)
+            origin = np.repeat(pos, 72, axis=0)
+            t = ray_box_distance(
+                origin, dirs, np.broadcast_to(pos[j], (n * 72, 2)), np.full(n * 72, hd[j]), np.broadcast_to(np.array(HALF), (n * 72, 2))
+            )
+            t = t.reshape(n, 72)
+            t[j] = np.inf  # a vehicle does not see itself
+            slow = np.minimum(slow, t)
+        assert np.allclose(fast, slow, atol=1e-9)

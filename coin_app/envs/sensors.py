@@ -42,15 +42,15 @@ def lidar_scan(
     Beam k points at ``heading + 2 pi k / n_beams`` (CCW; 0 = ahead). The boxes an observer
     can see are given as pairs: observer ``pair_obs[p]`` and a box of half extents ``half``
     at ``pair_center[p]`` with ``pair_heading[p]`` (the caller lists nearby boxes only).
-    Each pair is ray-cast only on the beams inside its bounding circle's angular sector,
-    so the cost grows with the number of nearby pairs, not with beams x vehicles.
+    Each pair is ray-cast only on the beams inside the box's angular extent, so the cost
+    grows with the number of nearby pairs, not with beams x vehicles.
     """
     a_n = len(obs_pos)
     out = np.full(a_n * n_beams, max_range)
     if a_n == 0 or len(pair_obs) == 0:
         return out.reshape(a_n, n_beams)
     hl, hw = half
-    rad_b = float(np.hypot(hl, hw))
+    rad_b = float(np.hypot(hl, hw))  # bounding-circle radius: the range cut
     rel = pair_center - obs_pos[pair_obs]
     d = np.hypot(rel[:, 0], rel[:, 1])
     keep = d < max_range + rad_b
@@ -58,18 +58,23 @@ def lidar_scan(
     step = 2 * np.pi / n_beams
     own_h = obs_heading[pair_obs]
     bearing = np.arctan2(rel[:, 1], rel[:, 0]) - own_h
-    half_ang = np.arcsin(np.minimum(rad_b / np.maximum(d, 1e-9), 1.0))
-    full = d <= rad_b
+    # observer position in each box's frame, once per pair
+    c, s = np.cos(pair_heading), np.sin(pair_heading)
+    ox = -(rel[:, 0] * c + rel[:, 1] * s)
+    oy = rel[:, 0] * s - rel[:, 1] * c
+    # angular half-width of the box seen from the observer, bounded by its extent across
+    # the line of sight (p) over its nearest depth along it (d - q)
+    inv_d = 1.0 / np.maximum(d, 1e-9)
+    p = (hl * np.abs(oy) + hw * np.abs(ox)) * inv_d
+    depth = d - (hl * np.abs(ox) + hw * np.abs(oy)) * inv_d
+    full = depth <= 1e-6
+    half_ang = np.arctan2(p, np.maximum(depth, 1e-6))
     k0 = np.where(full, 0, np.ceil((bearing - half_ang) / step)).astype(np.int64)
     k1 = np.floor((bearing + half_ang) / step).astype(np.int64)
     counts = np.clip(np.where(full, n_beams, k1 - k0 + 1), 0, n_beams)
     total = int(counts.sum())
     if total == 0:
         return out.reshape(a_n, n_beams)
-    # observer position in each box's frame, once per pair
-    c, s = np.cos(pair_heading), np.sin(pair_heading)
-    ox = -(rel[:, 0] * c + rel[:, 1] * s)
-    oy = rel[:, 0] * s - rel[:, 1] * c
     rel_h = own_h - pair_heading
     pair = np.repeat(np.arange(len(pair_obs)), counts)
     k = np.repeat(k0 - np.cumsum(counts) + counts, counts) + np.arange(total)
