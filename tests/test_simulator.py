@@ -289,3 +289,22 @@ def test_unseeded_resets_continue_the_seeded_stream():
     a, b = episodes(11), episodes(11)
     assert all(np.array_equal(x, y) for x, y in zip(a, b))
     assert not np.array_equal(a[1], a[2])  # later episodes differ from each other
+
+
+def test_own_arm_destinations_switch():
+    m = DrivingSimulator(make_config("intersection")).map
+    returns = {(m.lane_keys[r.spawn_lane][:2], r.destination) for r, ret in zip(m.routes, m.route_returns) if ret}
+    # exactly one return route per spawn road of the intersection: the U-turn to its own exit
+    assert returns == {
+        ((">>", ">>>"), "->>"),
+        (("-1X0_1_", "-1X0_0_"), "1X0_1_"),
+        (("-1X1_1_", "-1X1_0_"), "1X1_1_"),
+        (("-1X2_1_", "-1X2_0_"), "1X2_1_"),
+    }
+    for own, expect_returns in ((True, True), (False, False)):
+        sim = DrivingSimulator(make_config("intersection", num_agents=48, own_arm_destinations=own))
+        seen = set()
+        for seed in range(5):
+            sim.reset(seed)
+            seen |= set(m.route_returns[sim.route[:48]].tolist())
+        assert (True in seen) is expect_returns and False in seen

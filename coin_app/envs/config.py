@@ -64,6 +64,7 @@ class ScenarioConfig:
     max_agent_steps: int = 1000  # a vehicle is truncated (max_step) after this many own steps
     delay_done: int = 25  # steps a crashed / off-road vehicle stays as a static obstacle
     allow_respawn: bool = True
+    own_arm_destinations: bool = True  # MetaDrive also draws the spawn arm's exit (U-turn / full loop)
     force_stop_factor: int = 5  # every agent is truncated at env step factor * horizon
     spawn_jitter_long: float = 1.0  # initial spawns: longitude += U(-a, a) (m)
     spawn_jitter_lat: float = 0.25  # initial spawns: lateral += U(-a, a) (m)
@@ -171,5 +172,6 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     _check("num_agents", n, n <= SPAWN_CAPACITY, f"an integer from 1 to {SPAWN_CAPACITY} (the map's spawn slots)")
     layout = values.get("obs_layout", "standard")
     _check("obs_layout", layout, layout in OBS_LAYOUTS, " | ".join(OBS_LAYOUTS))
-    _check("allow_respawn", values.get("allow_respawn", True), isinstance(values.get("allow_respawn", True), bool), "True or False")
+    for key in ("allow_respawn", "own_arm_destinations"):
+        _check(key, values.get(key, True), isinstance(values.get(key, True), bool), "True or False")
     return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)

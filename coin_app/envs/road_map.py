@@ -191,6 +191,14 @@ class RoadMap:
         self.routes_by_spawn_lane: dict[int, list[int]] = {}
         for i, r in enumerate(self.routes):
             self.routes_by_spawn_lane.setdefault(r.spawn_lane, []).append(i)
+
+        def neg(node: str) -> str:
+            return node[1:] if node.startswith("-") else "-" + node
+
+        # a route that leaves by the reverse of its spawn road returns to its own arm
+        self.route_returns = np.array(
+            [road_keys[r.roads[-1]] == (neg(road_keys[r.roads[0]][1]), neg(road_keys[r.roads[0]][0])) for r in self.routes]
+        )
         max_roads = max(len(r.roads) for r in self.routes)
         self.route_roads = np.full((len(self.routes), max_roads), -1, dtype=np.int64)
         self.route_nroads = np.array([len(r.roads) for r in self.routes])

@@ -90,6 +90,9 @@ class DrivingSimulator:
         self.place_pos = m.position(rl, rs, np.zeros(len(rl)))
         self.place_heading = m.heading_at(rl, rs)
         self.place_half = np.array([m.respawn_region[0] / 2, m.respawn_region[1] / 2])
+        self._route_choices = {
+            ln: [r for r in rs if config.own_arm_destinations or not m.route_returns[r]] or rs for ln, rs in m.routes_by_spawn_lane.items()
+        }
         self.max_agent_ids = config.num_agents + min(MAX_RESPAWN_PER_STEP, config.num_agents) * config.horizon
         # until an env is reset with a seed it draws from a fixed stream (env e: seed e)
         self.rngs = [np.random.default_rng(e) for e in range(num_envs)]
@@ -186,7 +189,7 @@ class DrivingSimulator:
         # destination uniform over the map's choices for this spawn lane
         rng = self.rngs[e]
         for sl, ln in zip(slots, lane):
-            choices = m.routes_by_spawn_lane[int(ln)]
+            choices = self._route_choices[int(ln)]
             self.route[sl] = choices[int(rng.integers(len(choices)))]
 
     def place(self, slot: int, pos: tuple[float, float], heading: float, speed: float = 0.0, route: int | None = None) -> None:
