@@ -77,35 +77,48 @@ class DrivingEnv:
 
     def _unpack(self, res: StepResult) -> tuple[dict, dict, dict, dict, dict]:
         """Turn a per-slot step result into PettingZoo-style per-agent dicts."""
-        obs, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
-        self._returns[res.spawned] = 0.0
-        self._returns[res.acted] += res.reward[res.acted]
-        step = self.sim.episode_step
-        for slot in np.nonzero(res.acted | res.spawned)[0]:
-            aid = agent_name(int(res.agent_num[slot]))
-            obs[aid] = res.obs[slot]
-            infos[aid] = {
-                "arrive_dest": bool(res.arrive_dest[slot]),
-                "crash_vehicle": bool(res.crash_vehicle[slot]),
-                "out_of_road": bool(res.out_of_road[slot]),
-                "max_step": bool(res.max_step[slot]),
-                "step_reward": float(res.reward[slot]),
-                "episode_length": int(res.episode_length[slot]) if not res.spawned[slot] else 0,
-                "episode_reward": float(self._returns[slot]),
-                "state": res.state[slot],
-                "env_step": step,
-                "global_reward": float(res.global_reward[0]),
-            }
-            if res.acted[slot]:
-                rewards[aid] = float(res.reward[slot])
-                terms[aid] = bool(res.terminated[slot])
-                truncs[aid] = bool(res.truncated[slot])
+        out = result_dicts(res, np.arange(self.sim.num_slots), self._returns, 0)
         status = self.sim.status
         self._slot_of = {agent_name(int(self.sim.agent_num[s])): int(s) for s in np.nonzero(status == ACTIVE)[0]}
         self.agents = list(self._slot_of)
         self.episode_over = bool(res.episode_over[0])
-        return obs, rewards, terms, truncs, infos
+        return out
 
     def agent_slot(self, agent_id: str) -> int:
         """Simulator slot of an acting agent."""
         return self._slot_of[agent_id]
+
+
+def result_dicts(res: StepResult, slots: np.ndarray, returns: np.ndarray, env: int) -> tuple[dict, dict, dict, dict, dict]:
+    """Per-agent (obs, rewards, terminations, truncations, infos) of env ``env`` from a step result.
+
+    ``slots`` are the env's slots; ``returns`` (per slot, updated in place) accumulates each
+    agent's episode reward. Agents that acted get reward / done entries; agents that
+    spawned in the step only an observation and an info.
+    """
+    obs, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
+    spawned, acted = res.spawned[slots], res.acted[slots]
+    returns[slots[spawned]] = 0.0
+    returns[slots[acted]] += res.reward[slots[acted]]
+    step = int(res.env_step[env])
+    g = float(res.global_reward[env])
+    for slot in slots[acted | spawned]:
+        aid = agent_name(int(res.agent_num[slot]))
+        obs[aid] = res.obs[slot]
+        infos[aid] = {
+            "arrive_dest": bool(res.arrive_dest[slot]),
+            "crash_vehicle": bool(res.crash_vehicle[slot]),
+            "out_of_road": bool(res.out_of_road[slot]),
+            "max_step": bool(res.max_step[slot]),
+            "step_reward": float(res.reward[slot]),
+            "episode_length": int(res.episode_length[slot]) if not res.spawned[slot] else 0,
+            "episode_reward": float(returns[slot]),
+            "state": res.state[slot],
+            "env_step": step,
+            "global_reward": g,
+        }
+        if res.acted[slot]:
+            rewards[aid] = float(res.reward[slot])
+            terms[aid] = bool(res.terminated[slot])
+            truncs[aid] = bool(res.truncated[slot])
+    return obs, rewards, terms, truncs, infos

@@ -1,0 +1,1 @@
+"""Training algorithms: one sub-package per algorithm."""

@@ -1,0 +1,123 @@
+"""CIG-TD3 Algorithm: sample -> joint-step replay -> learner updates -> weight sync.
+
+Each ``training_step``: the env runners sample ``rollout_fragment_length`` env steps
+(uniform random actions during the warm-up, from the module's seeded exploration), the
+episodes are turned into per-agent transitions and added to the joint-step replay buffer
+(the centralized-critic connector: it attaches the other agents' states, actions and next
+observations by env step at sample time), then ``updates_per_env_step`` gradient updates per
+sampled env step run on batches of ``train_batch_size_per_learner`` transitions, and the
+actor weights go back to the env runners. The buffer, its RNG and the update credit are
+part of the algorithm's checkpoint state, so a resumed run continues exactly.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from ray.rllib.algorithms.algorithm import Algorithm
+from ray.rllib.execution.rollout_ops import synchronous_parallel_sample
+from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+from ray.rllib.utils.metrics import (
+    ENV_RUNNER_RESULTS,
+    ENV_RUNNER_SAMPLING_TIMER,
+    LEARNER_RESULTS,
+    LEARNER_UPDATE_TIMER,
+    NUM_AGENT_STEPS_SAMPLED_LIFETIME,
+    NUM_ENV_STEPS_SAMPLED_LIFETIME,
+    REPLAY_BUFFER_ADD_DATA_TIMER,
+    REPLAY_BUFFER_SAMPLE_TIMER,
+    SYNCH_WORKER_WEIGHTS_TIMER,
+    TIMERS,
+)
+
+from coin_app.algorithms.cig_td3.config import CigTd3Config
+from coin_app.algorithms.cig_td3.replay import JointStepReplayBuffer, episodes_to_transitions
+from coin_app.algorithms.cig_td3.rl_module import STATE_DIM
+from coin_app.envs.rllib_env import SHARED_MODULE_ID, register_envs
+
+REPLAY_STATE_KEY = "cig_td3_replay"
+
+
+class CigTd3(Algorithm):
+    """Counterfactual individual-global TD3 (COIN) with a shared policy for all agents."""
+
+    @classmethod
+    def get_default_config(cls) -> CigTd3Config:
+        """A default ``CigTd3Config``."""
+        return CigTd3Config()
+
+    def setup(self, config: CigTd3Config) -> None:
+        """Register the envs, build runners and learners, then the seeded joint-step buffer."""
+        register_envs()
+        torch.set_num_threads(1)
+        super().setup(config)
+        scen = self.config.scenario_config()
+        seed = 0 if self.config.seed is None else int(self.config.seed)
+        self.replay = JointStepReplayBuffer(
+            capacity=self.config.replay_capacity,
+            obs_dim=scen.obs_dim,
+            state_dim=STATE_DIM,
+            act_dim=2,
+            max_others=self.config.max_others,
+            seed=seed,
+        )
+        self._update_credit = 0.0
+
+    def training_step(self) -> None:
+        """One sample -> replay -> update(s) -> sync cycle."""
+        cfg = self.config
+        with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
+            episodes, runner_results = synchronous_parallel_sample(
+                worker_set=self.env_runner_group,
+                concat=True,
+                sample_timeout_s=cfg.sample_timeout_s,
+                _uses_new_env_runners=True,
+                _return_metrics=True,
+            )
+        self.metrics.aggregate(runner_results, key=ENV_RUNNER_RESULTS)
+        with self.metrics.log_time((TIMERS, REPLAY_BUFFER_ADD_DATA_TIMER)):
+            self.replay.add(episodes_to_transitions(episodes))
+        env_steps = sum(len(e) for e in episodes)
+        lifetime = self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0)
+        batch_size = cfg.train_batch_size_per_learner
+        if lifetime < cfg.warmup_steps or len(self.replay) < batch_size:
+            return
+        self._update_credit += env_steps * cfg.updates_per_env_step
+        n_updates = int(self._update_credit)
+        self._update_credit -= n_updates
+        for _ in range(n_updates):
+            with self.metrics.log_time((TIMERS, REPLAY_BUFFER_SAMPLE_TIMER)):
+                sample = self.replay.sample(batch_size)
+            batch = MultiAgentBatch({SHARED_MODULE_ID: SampleBatch(sample)}, env_steps=batch_size)
+            with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
+                results = self.learner_group.update(
+                    batch=batch,
+                    timesteps={
+                        NUM_ENV_STEPS_SAMPLED_LIFETIME: lifetime,
+                        NUM_AGENT_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
+                            (ENV_RUNNER_RESULTS, NUM_AGENT_STEPS_SAMPLED_LIFETIME), default=0
+                        ),
+                    },
+                )
+            self.metrics.aggregate(results, key=LEARNER_RESULTS)
+        if n_updates:
+            with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
+                self.env_runner_group.sync_weights(
+                    from_worker_or_learner_group=self.learner_group, policies=[SHARED_MODULE_ID], inference_only=True
+                )
+
+    # ------------------------------------------------------------------ checkpoints
+    def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
+        """Algorithm state plus the replay buffer (RLlib's new stack leaves it out)."""
+        state = super().get_state(*args, **kwargs)
+        state[REPLAY_STATE_KEY] = {"buffer": self.replay.get_state(), "update_credit": self._update_credit}
+        return state
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Restore the algorithm and its replay buffer."""
+        super().set_state(state)
+        extra = state.get(REPLAY_STATE_KEY)
+        if extra is not None:
+            self.replay.set_state(extra["buffer"])
+            self._update_credit = float(extra["update_credit"])

@@ -1,0 +1,146 @@
+"""CIG-TD3 Learner: three optimizers, policy delay, soft target updates, no gradient leaks.
+
+One ``update`` = one gradient step on one sampled batch:
+    1. targets y^l, y^G with the target networks (no grad);
+    2. local critic loss -> grads of ``local_q`` only;
+    3. centralized-critic loss (twin Q^g + V + CVAE) -> grads of ``central`` only;
+    4. every ``policy_delay``-th update: actor loss -> grads of ``actor`` only (taken with
+       ``torch.autograd.grad`` on the actor's parameters, so nothing leaks into critics),
+       then soft updates of all target networks with ``tau``.
+On other updates the actor's parameters get no gradient, so Adam leaves them untouched.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+from ray.rllib.core.learner.utils import update_target_network
+from ray.rllib.core.rl_module.apis import TargetNetworkAPI
+
+from coin_app.algorithms.cig_td3.losses import LossConfig, actor_loss, central_critic_loss, local_critic_loss, td_targets
+
+OPTIMIZERS = ("actor", "local_critic", "central_critic")
+
+
+def loss_config(config: Any) -> LossConfig:
+    """The loss constants of a ``CigTd3Config``."""
+    return LossConfig(
+        gamma=config.gamma,
+        target_noise=config.target_noise,
+        target_noise_clip=config.target_noise_clip,
+        global_critic=config.global_critic,
+        counterfactual_baseline=config.counterfactual_baseline,
+        global_weight=config.global_weight,
+        vae_weight=config.vae_weight,
+        kl_beta=config.kl_beta,
+    )
+
+
+class CigTd3TorchLearner(TorchLearner):
+    """Torch learner of CIG-TD3 (and ITD3 when the module has no centralized critic)."""
+
+    def build(self) -> None:
+        """Build module and optimizers, then the target networks."""
+        super().build()
+        self.module.foreach_module(lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None)
+        self.num_updates = 0
+        self._grads: dict[str, Any] = {}
+
+    def configure_optimizers_for_module(self, module_id: str, config: Any = None) -> None:
+        """One Adam optimizer each for actor, local critics and centralized critic."""
+        module = self.module[module_id].unwrapped()
+        groups = [("actor", module.actor, config.actor_lr), ("local_critic", module.local_q, config.critic_lr)]
+        if module.central is not None:
+            groups.append(("central_critic", module.central, config.central_critic_lr))
+        for name, net, lr in groups:
+            params = self.get_parameters(net)
+            self.register_optimizer(
+                module_id=module_id, optimizer_name=name, optimizer=torch.optim.Adam(params), params=params, lr_or_lr_schedule=lr
+            )
+
+    def is_policy_step(self, config: Any) -> bool:
+        """Whether the current update also updates the actor and the targets."""
+        return (self.num_updates + 1) % config.policy_delay == 0
+
+    def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any], fwd_out: dict[str, Any]) -> torch.Tensor:
+        """All CIG-TD3 losses; the per-network gradients are taken here, one loss each."""
+        module = self.module[module_id].unwrapped()
+        cfg = loss_config(config)
+        y_local, y_global = td_targets(batch, module.actor_target, module.local_q_target, module.central_target, cfg)
+        grads: dict[str, Any] = {}
+        loss_l, stats = local_critic_loss(module.local_q, batch, y_local)
+        grads["local_critic"] = (loss_l, list(module.local_q.parameters()))
+        total = loss_l.detach()
+        self.metrics.log_value((module_id, "local_critic_loss"), loss_l.detach(), window=1)
+        if module.central is not None:
+            loss_g, g_stats = central_critic_loss(module.central, batch, y_global, cfg)
+            grads["central_critic"] = (loss_g, list(module.central.parameters()))
+            total = total + loss_g.detach()
+            stats.update(g_stats)
+            self.metrics.log_value((module_id, "central_critic_loss"), loss_g.detach(), window=1)
+        if self.is_policy_step(config):
+            loss_pi, pi_stats = actor_loss(module.actor, module.local_q, module.central, batch, cfg)
+            grads["actor"] = (loss_pi, list(module.actor.parameters()))
+            stats.update(pi_stats)
+            self.metrics.log_value((module_id, "actor_loss"), loss_pi.detach(), window=1)
+        for key, value in stats.items():
+            self.metrics.log_value((module_id, key), value, window=1)
+        self._grads[module_id] = grads
+        return total
+
+    def compute_gradients(self, loss_per_module: dict[str, torch.Tensor], **kwargs: Any) -> dict[Any, torch.Tensor]:
+        """Gradients of each loss w.r.t. its own network's parameters only."""
+        for optim in self._optimizer_parameters:
+            optim.zero_grad(set_to_none=True)
+        out: dict[Any, torch.Tensor] = {}
+        for grads in self._grads.values():
+            for loss, params in grads.values():
+                for p, g in zip(params, torch.autograd.grad(loss, params, allow_unused=True)):
+                    if g is not None:
+                        out[self.get_param_ref(p)] = g
+        self._grads = {}
+        return out
+
+    def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
+        """Count the update; on policy steps soft-update every target network."""
+        super().after_gradient_based_update(timesteps=timesteps)
+        for module_id, module in self.module._rl_modules.items():
+            config = self.config.get_config_for_module(module_id)
+            if self.is_policy_step(config):
+                for main_net, target_net in module.unwrapped().get_target_network_pairs():
+                    update_target_network(main_net=main_net, target_net=target_net, tau=config.tau)
+                self.metrics.log_value((module_id, "num_target_updates"), 1, reduce="lifetime_sum")
+        self.num_updates += 1
+
+    def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
+        """Learner state plus the update counter, target networks and torch RNG (exact resume)."""
+        state = super().get_state(*args, **kwargs)
+        state["cig_td3"] = {
+            "num_updates": self.num_updates,
+            "torch_rng": torch.get_rng_state(),
+            "targets": {
+                mid: {
+                    "actor_target": m.unwrapped().actor_target.state_dict(),
+                    "local_q_target": m.unwrapped().local_q_target.state_dict(),
+                    "central_target": None if m.unwrapped().central_target is None else m.unwrapped().central_target.state_dict(),
+                }
+                for mid, m in self.module._rl_modules.items()
+            },
+        }
+        return state
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Restore learner state saved by :meth:`get_state`."""
+        super().set_state(state)
+        extra = state.get("cig_td3")
+        if extra:
+            self.num_updates = int(extra["num_updates"])
+            torch.set_rng_state(extra["torch_rng"])
+            for mid, targets in extra["targets"].items():
+                mod = self.module[mid].unwrapped()
+                mod.actor_target.load_state_dict(targets["actor_target"])
+                mod.local_q_target.load_state_dict(targets["local_q_target"])
+                if targets["central_target"] is not None:
+                    mod.central_target.load_state_dict(targets["central_target"])

@@ -1,0 +1,134 @@
+"""CIG-TD3 losses (COIN paper Eqs. 3, 7-12), readable top to bottom, free of RLlib.
+
+Notation (one row per sampled agent transition i at env step t):
+    o, s, a, r, r^G         ego observation, local state, action, reward, global reward
+    o', s'                  ego next observation / state
+    S, A, M                 other agents acting at t: states, actions, mask   (B, N, .)
+    S', O', M'              agents with an observation at t+1: states, observations, mask
+    d = terminated and not truncated (time-outs bootstrap)
+
+    a'    = clip(mu_targ(o')  + clip(eps, -c, c), -1, 1)          eps ~ N(0, sigma)   (Eq. 8)
+    A'    = clip(mu_targ(O')  + clip(eps, -c, c), -1, 1)          same for every other agent
+    y^l   = r   + gamma (1 - d) min_k Q^l_targ,k(o', a')                              (Eq. 8)
+    y^G   = r^G + gamma (1 - d) min_k Q^g_targ,k(o', a', s', S', A', M')              (Eq. 11)
+    L_l   = sum_k mean (Q^l_k(o, a) - y^l)^2                                          (Eq. 7)
+    L_g   = sum_k mean (Q^g_k(o, a, s, S, A, M) - y^G)^2                              (Eq. 9)
+    L_V   = mean (V(o, s, S, A, M) - y^G)^2                                           (Eq. 10)
+    L_vae = recon([o', s', r]) + kl_beta * KL                                          (Eq. 3)
+    L_pi  = -mean[ Q^l_1(o, mu(o)) + w (Q^g_1(o, mu(o), s, S, A, M) - V(o, s, S, A, M)) ]  (Eq. 12)
+
+V does not depend on the ego action, so with a deterministic policy it leaves the actor's
+gradient unchanged (decisions.md); it is still trained and logged, as Eq. 12 is written.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """The constants the losses need (a view of ``CigTd3Config``)."""
+
+    gamma: float = 0.99
+    target_noise: float = 0.1
+    target_noise_clip: float = 0.5
+    global_critic: bool = True
+    counterfactual_baseline: bool = True
+    global_weight: float = 1.0
+    vae_weight: float = 1.0
+    kl_beta: float = 1.0
+
+
+def smoothed_target_action(actor_target: nn.Module, obs: torch.Tensor, noise_std: float, noise_clip: float) -> torch.Tensor:
+    """Target policy smoothing: clip(mu_targ(o) + clip(N(0, std), -c, c), -1, 1), any leading shape."""
+    mu = actor_target(obs)
+    eps = (torch.randn_like(mu) * noise_std).clamp(-noise_clip, noise_clip)
+    return (mu + eps).clamp(-1.0, 1.0)
+
+
+def not_done(batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """1 - d with d = terminated and not truncated (a time-out still bootstraps)."""
+    done = batch["terminateds"].bool() & ~batch["truncateds"].bool()
+    return 1.0 - done.float()
+
+
+@torch.no_grad()
+def td_targets(
+    batch: dict[str, torch.Tensor],
+    actor_target: nn.Module,
+    local_q_target: nn.Module,
+    central_target: nn.Module | None,
+    cfg: LossConfig,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Individual and global TD targets y^l (Eq. 8) and y^G (Eq. 11); y^G is None without a global critic."""
+    nd = not_done(batch)
+    next_a = smoothed_target_action(actor_target, batch["new_obs"], cfg.target_noise, cfg.target_noise_clip)
+    q1_t, q2_t = local_q_target(batch["new_obs"], next_a)
+    y_local = batch["rewards"] + cfg.gamma * nd * torch.minimum(q1_t, q2_t)
+    if central_target is None:
+        return y_local, None
+    mask_next = batch["next_others_mask"].bool()
+    others_next_a = smoothed_target_action(actor_target, batch["next_others_obs"], cfg.target_noise, cfg.target_noise_clip)
+    others_next_a = others_next_a * mask_next.unsqueeze(-1)
+    g1_t, g2_t = central_target.q_values(batch["new_obs"], batch["new_state"], next_a, batch["next_others_state"], others_next_a, mask_next)
+    y_global = batch["global_rewards"] + cfg.gamma * nd * torch.minimum(g1_t, g2_t)
+    return y_local, y_global
+
+
+def local_critic_loss(local_q: nn.Module, batch: dict[str, torch.Tensor], y_local: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    """Eq. 7: sum over the twin local critics of the mean squared TD error."""
+    q1, q2 = local_q(batch["obs"], batch["actions"])
+    loss = ((q1 - y_local) ** 2).mean() + ((q2 - y_local) ** 2).mean()
+    return loss, {"local_q1_mean": q1.mean().detach(), "local_q_target_mean": y_local.mean()}
+
+
+def central_critic_loss(
+    central: nn.Module, batch: dict[str, torch.Tensor], y_global: torch.Tensor, cfg: LossConfig
+) -> tuple[torch.Tensor, dict]:
+    """Eqs. 9, 10 and 3: twin global Q losses, the counterfactual baseline loss and the CVAE loss (one critic pass)."""
+    mask = batch["others_mask"].bool()
+    target_y = None
+    if cfg.vae_weight > 0:
+        target_y = torch.cat([batch["new_obs"], batch["new_state"], batch["rewards"].unsqueeze(-1)], dim=-1)
+    out = central(batch["obs"], batch["state"], batch["actions"], batch["others_state"], batch["others_actions"], mask, target_y)
+    loss_q = ((out.q1 - y_global) ** 2).mean() + ((out.q2 - y_global) ** 2).mean()
+    stats = {"global_q1_mean": out.q1.mean().detach(), "global_q_target_mean": y_global.mean(), "global_q_loss": loss_q.detach()}
+    loss = loss_q
+    if cfg.counterfactual_baseline:
+        loss_v = ((out.v - y_global) ** 2).mean()
+        loss = loss + loss_v
+        stats.update(baseline_mean=out.v.mean().detach(), baseline_loss=loss_v.detach())
+    if cfg.vae_weight > 0:
+        loss = loss + cfg.vae_weight * (out.recon_mse + cfg.kl_beta * out.kl)
+        stats.update(vae_recon=out.recon_mse.detach(), vae_kl=out.kl.detach())
+    return loss, stats
+
+
+def actor_loss(
+    actor: nn.Module,
+    local_q: nn.Module,
+    central: nn.Module | None,
+    batch: dict[str, torch.Tensor],
+    cfg: LossConfig,
+) -> tuple[torch.Tensor, dict]:
+    """Eq. 12 (ITD3: the individual term only). Gradients reach critic parameters too: take only the actor's."""
+    a = actor(batch["obs"])
+    q_local = local_q.q1_only(batch["obs"], a)
+    objective = q_local
+    stats = {"actor_q_local": q_local.mean().detach()}
+    if central is not None and cfg.global_weight > 0:
+        mask = batch["others_mask"].bool()
+        q_global = central.q1(batch["obs"], batch["state"], a, batch["others_state"], batch["others_actions"], mask)
+        advantage = q_global
+        if cfg.counterfactual_baseline:
+            v = central.baseline(batch["obs"], batch["state"], batch["others_state"], batch["others_actions"], mask)
+            advantage = q_global - v
+            stats["actor_counterfactual_advantage"] = advantage.mean().detach()
+        objective = objective + cfg.global_weight * advantage
+        stats["actor_q_global"] = q_global.mean().detach()
+    loss = -objective.mean()
+    return loss, stats

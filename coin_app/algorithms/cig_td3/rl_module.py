@@ -1,0 +1,100 @@
+"""CIG-TD3 RLModule: the actor (all that env runners build) plus, on the learner, the critics.
+
+* inference-only build (env runners, export): ``actor`` only;
+* full build (learner): ``actor``, twin local critics ``local_q`` and, unless ITD3, the
+  centralized critic ``central`` (twin global Q, counterfactual baseline V, CVAE);
+  ``make_target_networks`` adds ``actor_target``, ``local_q_target``, ``central_target``.
+
+``_forward_inference`` is deterministic; ``_forward_exploration`` adds N(0, 0.05) noise, and
+during the first ``warmup_steps`` env steps (``t`` is the runner's lifetime env-step count)
+returns uniform random actions instead, drawn from the torch generator RLlib seeds, so the
+warm-up is reproducible.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.learner.utils import make_target_network
+from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, TargetNetworkAPI
+from ray.rllib.core.rl_module.torch.torch_rl_module import TorchRLModule
+
+from coin_app.algorithms.cig_td3.networks import Actor, CentralCritic, CentralCriticConfig, TwinQ
+
+STATE_DIM = 10
+
+
+class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
+    """Actor, twin local critics and centralized critic of CIG-TD3 in one module."""
+
+    def setup(self) -> None:
+        """Build the networks from the spaces and ``model_config``."""
+        mc = self.model_config
+        obs_dim = int(self.observation_space.shape[0])
+        act_dim = int(self.action_space.shape[0])
+        hidden = int(mc.get("hidden", 256))
+        self.actor = Actor(obs_dim, act_dim, (hidden, hidden))
+        self.exploration_noise = float(mc.get("exploration_noise", 0.05))
+        self.warmup_steps = int(mc.get("warmup_steps", 0))
+        self.central = None
+        if self.inference_only:
+            return
+        self.local_q = TwinQ(obs_dim, act_dim, (hidden, hidden))
+        if mc.get("global_critic", True):
+            self.central = CentralCritic(
+                CentralCriticConfig(
+                    obs_dim=obs_dim,
+                    state_dim=STATE_DIM,
+                    act_dim=act_dim,
+                    latent_dim=int(mc.get("latent_dim", 20)),
+                    hidden=hidden,
+                    node_width=int(mc.get("node_width", 128)),
+                    local_module=mc.get("local_module", "cvae"),
+                    global_module=mc.get("global_module", "gat"),
+                    graph_radius=mc.get("graph_radius"),
+                    position_scale=float(mc.get("position_scale", 1.0)),
+                )
+            )
+
+    # ------------------------------------------------------------------ forward passes
+    def _forward_inference(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
+        """Deterministic actions mu(o)."""
+        with torch.no_grad():
+            return {Columns.ACTIONS: self.actor(batch[Columns.OBS])}
+
+    def _forward_exploration(self, batch: dict[str, Any], t: int | None = None, **kwargs: Any) -> dict[str, Any]:
+        """mu(o) + N(0, sigma), clipped; uniform random actions during the warm-up."""
+        with torch.no_grad():
+            mu = self.actor(batch[Columns.OBS])
+            if t is not None and t < self.warmup_steps:
+                return {Columns.ACTIONS: torch.rand_like(mu) * 2.0 - 1.0}
+            return {Columns.ACTIONS: (mu + torch.randn_like(mu) * self.exploration_noise).clamp(-1.0, 1.0)}
+
+    def _forward_train(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
+        """Nothing: the learner calls the networks itself, loss by loss."""
+        return {}
+
+    # ------------------------------------------------------------------ APIs
+    def get_non_inference_attributes(self) -> list[str]:
+        """Everything but the actor stays on the learner."""
+        return ["local_q", "central", "actor_target", "local_q_target", "central_target"]
+
+    def make_target_networks(self) -> None:
+        """Frozen copies of actor, local critics and centralized critic."""
+        self.actor_target = make_target_network(self.actor)
+        self.local_q_target = make_target_network(self.local_q)
+        self.central_target = make_target_network(self.central) if self.central is not None else None
+
+    def get_target_network_pairs(self) -> list[tuple[torch.nn.Module, torch.nn.Module]]:
+        """(main, target) pairs that the learner soft-updates on policy steps."""
+        pairs = [(self.actor, self.actor_target), (self.local_q, self.local_q_target)]
+        if self.central is not None:
+            pairs.append((self.central, self.central_target))
+        return pairs
+
+    def forward_target(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """Target-actor actions for ``batch[OBS]`` (the losses call the target nets directly)."""
+        with torch.no_grad():
+            return {Columns.ACTIONS: self.actor_target(batch[Columns.OBS])}

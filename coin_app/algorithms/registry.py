@@ -1,0 +1,147 @@
+"""Registry of trainable algorithms and the shared training loop behind ``python -m coin_app train``.
+
+An entry builds an RLlib ``AlgorithmConfig`` for a scenario from ``--set key=value``
+overrides; keys are routed to the scenario config (``ScenarioConfig`` fields) or to the
+algorithm's hyper-parameters, and anything else is refused with the allowed keys listed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from coin_app.envs.config import ScenarioConfig, make_config
+
+
+@dataclass(frozen=True)
+class AlgorithmEntry:
+    """A trainable algorithm: its name, what it is, and how to build its config."""
+
+    name: str
+    description: str
+    build: Callable[[str, dict[str, Any], dict[str, Any], int], Any]  # (scenario, env_cfg, algo_cfg, seed) -> config
+    hyperparameters: tuple[str, ...]
+
+
+def _cig_td3_config(itd3: bool) -> Callable[[str, dict[str, Any], dict[str, Any], int], Any]:
+    def build(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> Any:
+        from coin_app.algorithms.cig_td3.config import CigTd3Config
+
+        cfg = CigTd3Config().environment(f"coin-{scenario}-v0", env_config=env_cfg).debugging(seed=seed)
+        cfg = cfg.env_runners(num_env_runners=0, rollout_fragment_length=algo_cfg.pop("rollout_fragment_length", 1))
+        cfg = cfg.evaluation(evaluation_interval=None)
+        if itd3:
+            cfg = cfg.itd3()
+        return cfg.training(**algo_cfg)
+
+    return build
+
+
+def _cig_td3_keys() -> tuple[str, ...]:
+    from coin_app.algorithms.cig_td3.config import HYPERPARAMETERS
+
+    return (*HYPERPARAMETERS, "gamma", "train_batch_size_per_learner", "rollout_fragment_length")
+
+
+ALGORITHMS: dict[str, AlgorithmEntry] = {}
+
+
+def register(entry: AlgorithmEntry) -> None:
+    """Add an algorithm to the registry."""
+    ALGORITHMS[entry.name] = entry
+
+
+def get(name: str) -> AlgorithmEntry:
+    """The registry entry of ``name``; unknown names raise a ValueError listing the choices."""
+    if name not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {name!r}; allowed: {', '.join(sorted(ALGORITHMS))}")
+    return ALGORITHMS[name]
+
+
+register(AlgorithmEntry("cig_td3", "COIN: CIG-TD3 with the interaction-aware centralized critic", _cig_td3_config(False), ()))
+register(AlgorithmEntry("itd3", "ITD3: independent TD3 with parameter sharing", _cig_td3_config(True), ()))
+
+
+def split_overrides(name: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Route ``--set`` keys to (scenario config, algorithm config); unknown keys are refused."""
+    env_keys = {f.name for f in fields(ScenarioConfig)} - {"scenario"} | {"preset"}
+    algo_keys = set(_cig_td3_keys()) if name in ("cig_td3", "itd3") else set(get(name).hyperparameters)
+    env_cfg = {k: v for k, v in overrides.items() if k in env_keys}
+    algo_cfg = {k: v for k, v in overrides.items() if k in algo_keys}
+    unknown = sorted(set(overrides) - set(env_cfg) - set(algo_cfg))
+    if unknown:
+        raise ValueError(
+            f"unknown --set key(s) {unknown}; scenario keys: {', '.join(sorted(env_keys))}; {name} keys: {', '.join(sorted(algo_keys))}"
+        )
+    return env_cfg, algo_cfg
+
+
+def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int) -> Any:
+    """A validated RLlib config of algorithm ``name`` on ``scenario``."""
+    entry = get(name)
+    env_cfg, algo_cfg = split_overrides(name, overrides)
+    make_config(scenario, env_cfg.get("preset", "paper"), **{k: v for k, v in env_cfg.items() if k != "preset"})
+    cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed)
+    cfg.validate()
+    return cfg
+
+
+def train(
+    name: str,
+    scenario: str,
+    steps: int,
+    seed: int,
+    overrides: dict[str, Any],
+    out: Path,
+    checkpoint_every: int = 10,
+    resume: Path | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Train until ``steps`` env steps; checkpoints every ``checkpoint_every`` iterations and at the end."""
+    import ray
+
+    from coin_app.envs.rllib_env import register_envs
+
+    if steps < 1:
+        raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
+    if checkpoint_every < 1:
+        raise ValueError(f"bad checkpoint_every {checkpoint_every}; allowed: an integer >= 1")
+    cfg = build_config(name, scenario, overrides, seed)
+    out.mkdir(parents=True, exist_ok=True)
+    if not ray.is_initialized():
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    register_envs()
+    algo = cfg.build_algo()
+    if resume is not None:
+        if not (resume / "rllib_checkpoint.json").exists():
+            raise ValueError(f"--resume {resume} is not a checkpoint directory (no rllib_checkpoint.json)")
+        algo.restore_from_path(str(resume.resolve()))
+        log(f"resumed from {resume}")
+    (out / "config.json").write_text(
+        json.dumps({"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides}, indent=2, default=str)
+    )
+    t0 = time.perf_counter()
+    sampled = 0
+    result: dict[str, Any] = {}
+    ckpt = out / "checkpoint"
+    while sampled < steps:
+        result = algo.train()
+        sampled = int(result.get("num_env_steps_sampled_lifetime", result.get("env_runners", {}).get("num_env_steps_sampled_lifetime", 0)))
+        it = int(result["training_iteration"])
+        runners = result.get("env_runners", {})
+        elapsed = time.perf_counter() - t0
+        log(
+            f"iter {it:>4}  env steps {sampled:>8}  {sampled / max(elapsed, 1e-9):7.1f} steps/s  "
+            f"episode return {runners.get('episode_return_mean', float('nan')):8.2f}"
+        )
+        if it % checkpoint_every == 0:
+            algo.save_to_path(str(ckpt.resolve()))
+    algo.save_to_path(str(ckpt.resolve()))
+    algo.stop()
+    summary = {"checkpoint": str(ckpt), "env_steps": sampled, "iterations": int(result.get("training_iteration", 0))}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
