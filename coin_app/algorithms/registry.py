@@ -90,6 +90,14 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
     return cfg
 
 
+def save(algo: Any, checkpoint: Path, meta: dict[str, Any]) -> None:
+    """Save the algorithm and its coin_app metadata to ``checkpoint``."""
+    from coin_app.algorithms.checkpoints import write_metadata
+
+    algo.save_to_path(str(checkpoint.resolve()))
+    write_metadata(checkpoint, meta)
+
+
 def train(
     name: str,
     scenario: str,
@@ -121,9 +129,9 @@ def train(
             raise ValueError(f"--resume {resume} is not a checkpoint directory (no rllib_checkpoint.json)")
         algo.restore_from_path(str(resume.resolve()))
         log(f"resumed from {resume}")
-    (out / "config.json").write_text(
-        json.dumps({"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides}, indent=2, default=str)
-    )
+    env_cfg, _ = split_overrides(name, overrides)
+    meta = {"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides, "env_config": env_cfg}
+    (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
     t0 = time.perf_counter()
     sampled = 0
     result: dict[str, Any] = {}
@@ -139,8 +147,8 @@ def train(
             f"episode return {runners.get('episode_return_mean', float('nan')):8.2f}"
         )
         if it % checkpoint_every == 0:
-            algo.save_to_path(str(ckpt.resolve()))
-    algo.save_to_path(str(ckpt.resolve()))
+            save(algo, ckpt, meta)
+    save(algo, ckpt, meta)
     algo.stop()
     summary = {"checkpoint": str(ckpt), "env_steps": sampled, "iterations": int(result.get("training_iteration", 0))}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.execution.rollout_ops import synchronous_parallel_sample
@@ -35,6 +36,8 @@ from coin_app.algorithms.cig_td3.config import CigTd3Config
 from coin_app.algorithms.cig_td3.replay import JointStepReplayBuffer, episodes_to_transitions
 from coin_app.algorithms.cig_td3.rl_module import STATE_DIM
 from coin_app.envs.rllib_env import SHARED_MODULE_ID, register_envs
+from coin_app.evaluation.evaluate import evaluate_policy, validation_seeds
+from coin_app.evaluation.metrics import aggregate
 
 REPLAY_STATE_KEY = "cig_td3_replay"
 
@@ -106,6 +109,25 @@ class CigTd3(Algorithm):
                 self.env_runner_group.sync_weights(
                     from_worker_or_learner_group=self.learner_group, policies=[SHARED_MODULE_ID], inference_only=True
                 )
+
+    def step(self) -> dict[str, Any]:
+        """One training iteration, plus the periodic deterministic evaluation on validation seeds."""
+        results = super().step()
+        every = self.config.eval_every
+        if every and (self.iteration + 1) % every == 0:
+            results["coin_eval"] = self.evaluate_native(validation_seeds(self.config.eval_episodes))
+        return results
+
+    def evaluate_native(self, seeds: list[int]) -> dict[str, float]:
+        """Mean of the six metrics (and counts) of the current deterministic actor over ``seeds``."""
+        actor = self.learner_group._learner.module[SHARED_MODULE_ID].unwrapped().actor
+
+        def policy(obs: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                return actor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+
+        per_episode = evaluate_policy(policy, self.config.scenario_config(), seeds)
+        return {k: v["mean"] for k, v in aggregate(per_episode).items()}
 
     # ------------------------------------------------------------------ checkpoints
     def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:

@@ -44,6 +44,8 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "hidden": (256, "width of actor, local-critic and CVAE layers"),
     "latent_dim": (20, "CVAE latent size"),
     "node_width": (128, "GAT node feature width"),
+    "eval_every": (25, "training iterations between deterministic evaluations on validation seeds (0 = off)"),
+    "eval_episodes": (5, "validation episodes (seeds) per periodic evaluation"),
 }
 
 
@@ -110,10 +112,12 @@ class CigTd3Config(AlgorithmConfig):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
                 errors.append(f"{name}={v!r}; allowed: a number >= 0")
-        for name in ("policy_delay", "hidden", "latent_dim", "node_width", "replay_capacity"):
+        for name in ("policy_delay", "hidden", "latent_dim", "node_width", "replay_capacity", "eval_episodes"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 errors.append(f"{name}={v!r}; allowed: an integer >= 1")
+        if not isinstance(self.eval_every, int) or self.eval_every < 0:
+            errors.append(f"eval_every={self.eval_every!r}; allowed: an integer >= 0 (0 = off)")
         if not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
             errors.append(f"warmup_steps={self.warmup_steps!r}; allowed: an integer >= 0")
         if not self.tau <= 1:

@@ -1,0 +1,61 @@
+"""Checkpoint metadata and Ray-light policy loading for evaluation.
+
+``train`` writes ``coin_app.json`` into every checkpoint directory it saves: the algorithm,
+scenario, scenario overrides and seed, so a checkpoint is self-describing. ``load_policy``
+returns the deterministic actor of a checkpoint as a numpy function ``(N, obs) -> (N, 2)``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coin_app.envs.config import ScenarioConfig, make_config
+from coin_app.envs.rllib_env import SHARED_MODULE_ID
+
+META_FILE = "coin_app.json"
+MODULE_PATH = ("learner_group", "learner", "rl_module", SHARED_MODULE_ID)
+
+
+def write_metadata(checkpoint: Path, meta: dict[str, Any]) -> None:
+    """Store what a checkpoint was trained on next to it."""
+    (checkpoint / META_FILE).write_text(json.dumps(meta, indent=2, default=str))
+
+
+def read_metadata(checkpoint: Path) -> dict[str, Any]:
+    """The metadata of a checkpoint written by ``train``; a clear error if it is not one."""
+    checkpoint = Path(checkpoint)
+    if not checkpoint.is_dir():
+        raise ValueError(f"checkpoint {checkpoint} does not exist or is not a directory")
+    meta = checkpoint / META_FILE
+    if not meta.exists() or not (checkpoint.joinpath(*MODULE_PATH)).is_dir():
+        raise ValueError(f"{checkpoint} is not a coin_app checkpoint (missing {META_FILE} or {'/'.join(MODULE_PATH)})")
+    return json.loads(meta.read_text())
+
+
+def scenario_of(checkpoint: Path, **overrides: Any) -> ScenarioConfig:
+    """The scenario config a checkpoint was trained on, with ``overrides`` (e.g. num_agents) applied."""
+    meta = read_metadata(checkpoint)
+    env_cfg = {**meta.get("env_config", {}), **overrides}
+    preset = env_cfg.pop("preset", "paper")
+    return make_config(meta["scenario"], preset, **env_cfg)
+
+
+def load_policy(checkpoint: Path) -> Callable[[np.ndarray], np.ndarray]:
+    """The checkpoint's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
+    import torch
+    from ray.rllib.core.rl_module.rl_module import RLModule
+
+    read_metadata(checkpoint)
+    module = RLModule.from_checkpoint(str(Path(checkpoint).resolve().joinpath(*MODULE_PATH)))
+    actor = module.actor.eval()
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return actor(torch.as_tensor(np.asarray(obs, dtype=np.float32))).numpy()
+
+    return policy
