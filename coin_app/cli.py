@@ -103,6 +103,51 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    """Train an algorithm of the registry; checkpoints and a summary go to ``--out``."""
+    from coin_app.algorithms.registry import train
+
+    overrides = parse_overrides(args.set)
+    if args.num_agents is not None:
+        overrides["num_agents"] = args.num_agents
+    out = Path(args.out or f"runs/{args.algo}_{args.scenario}_s{args.seed}")
+    resume = Path(args.resume) if args.resume else None
+    print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
+    summary = train(args.algo, args.scenario, args.steps, args.seed, overrides, out, args.checkpoint_every, resume)
+    print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations")
+    print(f"  checkpoint: {summary['checkpoint']}")
+    if summary.get("eval"):
+        print("  last periodic evaluation (validation seeds):")
+        print(format_metrics(summary["eval"]))
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate a checkpoint's deterministic policy on test seeds and print the six metrics."""
+    from coin_app.algorithms.checkpoints import load_policy, scenario_of
+    from coin_app.evaluation.evaluate import eval_test_seeds, evaluate_policy
+    from coin_app.evaluation.metrics import aggregate
+
+    if args.episodes < 1:
+        raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
+    seeds = args.seeds if args.seeds else eval_test_seeds(args.episodes)
+    overrides = {} if args.num_agents is None else {"num_agents": args.num_agents}
+    config = scenario_of(Path(args.checkpoint), **overrides)
+    policy = load_policy(Path(args.checkpoint))
+    print(f"evaluate: {args.checkpoint} on {config.scenario} ({config.num_agents} agents), seeds {seeds[0]}..{seeds[-1]} ({len(seeds)})")
+    t0 = time.perf_counter()
+    per_episode = evaluate_policy(policy, config, seeds)
+    agg = aggregate(per_episode)
+    print(f"\n{len(seeds)} episodes in {time.perf_counter() - t0:.1f} s; mean (std):")
+    for key, label, fmt in METRIC_ROWS:
+        m, sd = agg[key]["mean"], agg[key]["std"]
+        print(f"  {label:<18}{fmt.format(m):>10} ({fmt.format(sd)})")
+    if args.out:
+        Path(args.out).write_text(json.dumps({"seeds": seeds, "episodes": per_episode, "aggregate": agg}, indent=2, default=float))
+        print(f"  per-episode results: {args.out}")
+    return 0
+
+
 def cmd_scenarios(args: argparse.Namespace) -> int:
     """List the scenarios, presets and every config key with its default."""
     from dataclasses import fields
@@ -139,6 +184,26 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--no-gif", action="store_true", help="skip the animation")
     demo.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
     demo.set_defaults(func=cmd_demo)
+
+    tr = sub.add_parser("train", help="train cig_td3 | itd3 on a scenario, with checkpoints and --resume")
+    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3")
+    tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck")
+    tr.add_argument("--num-agents", type=int, default=None)
+    tr.add_argument("--steps", type=int, default=1_000_000, help="env steps to train for")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario or algorithm overrides (see docs)")
+    tr.add_argument("--out", default=None, help="run directory (default runs/<algo>_<scenario>_s<seed>)")
+    tr.add_argument("--checkpoint-every", type=int, default=10, help="checkpoint every K training iterations")
+    tr.add_argument("--resume", default=None, help="checkpoint directory to continue from")
+    tr.set_defaults(func=cmd_train)
+
+    ev = sub.add_parser("evaluate", help="evaluate a checkpoint on test seeds (deterministic actions)")
+    ev.add_argument("checkpoint")
+    ev.add_argument("--episodes", type=int, default=20, help="number of test seeds (paper: 20)")
+    ev.add_argument("--seeds", type=int, nargs="*", default=None, help="explicit seeds (default: the fixed test seeds)")
+    ev.add_argument("--num-agents", type=int, default=None, help="evaluate at another agent count (generalization)")
+    ev.add_argument("--out", default=None, help="write per-episode results to this JSON file")
+    ev.set_defaults(func=cmd_evaluate)
 
     scen = sub.add_parser("scenarios", help="list scenarios, presets and config keys")
     scen.set_defaults(func=cmd_scenarios)

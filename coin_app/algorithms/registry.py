@@ -133,8 +133,9 @@ def train(
     meta = {"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides, "env_config": env_cfg}
     (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
     t0 = time.perf_counter()
-    sampled = 0
+    start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
     result: dict[str, Any] = {}
+    last_eval: dict[str, float] = {}
     ckpt = out / "checkpoint"
     while sampled < steps:
         result = algo.train()
@@ -142,14 +143,22 @@ def train(
         it = int(result["training_iteration"])
         runners = result.get("env_runners", {})
         elapsed = time.perf_counter() - t0
+        learner = result.get("learners", {}).get("shared", {})
         log(
-            f"iter {it:>4}  env steps {sampled:>8}  {sampled / max(elapsed, 1e-9):7.1f} steps/s  "
-            f"episode return {runners.get('episode_return_mean', float('nan')):8.2f}"
+            f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
+            f"episode return {runners.get('episode_return_mean', float('nan')):8.2f}  "
+            f"critic loss {learner.get('local_critic_loss', float('nan')):8.4f}"
         )
+        if "coin_eval" in result:
+            last_eval = result["coin_eval"]
+            log(
+                "      eval (validation seeds): "
+                + "  ".join(f"{k} {last_eval.get(k, float('nan')):.3f}" for k in ("success_rate", "collision_rate", "out_of_road_rate"))
+            )
         if it % checkpoint_every == 0:
             save(algo, ckpt, meta)
     save(algo, ckpt, meta)
     algo.stop()
-    summary = {"checkpoint": str(ckpt), "env_steps": sampled, "iterations": int(result.get("training_iteration", 0))}
+    summary = {"checkpoint": str(ckpt), "env_steps": sampled, "iterations": int(result.get("training_iteration", 0)), "eval": last_eval}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -66,6 +66,7 @@ class CigTd3(Algorithm):
             seed=seed,
         )
         self._update_credit = 0.0
+        self._num_updates = 0
 
     def training_step(self) -> None:
         """One sample -> replay -> update(s) -> sync cycle."""
@@ -104,7 +105,8 @@ class CigTd3(Algorithm):
                     },
                 )
             self.metrics.aggregate(results, key=LEARNER_RESULTS)
-        if n_updates:
+        done_before, self._num_updates = self._num_updates, self._num_updates + n_updates
+        if done_before // cfg.policy_delay != self._num_updates // cfg.policy_delay:  # the actor changed
             with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
                 self.env_runner_group.sync_weights(
                     from_worker_or_learner_group=self.learner_group, policies=[SHARED_MODULE_ID], inference_only=True
@@ -133,7 +135,11 @@ class CigTd3(Algorithm):
     def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
         """Algorithm state plus the replay buffer (RLlib's new stack leaves it out)."""
         state = super().get_state(*args, **kwargs)
-        state[REPLAY_STATE_KEY] = {"buffer": self.replay.get_state(), "update_credit": self._update_credit}
+        state[REPLAY_STATE_KEY] = {
+            "buffer": self.replay.get_state(),
+            "update_credit": self._update_credit,
+            "num_updates": self._num_updates,
+        }
         return state
 
     def set_state(self, state: dict[str, Any]) -> None:
@@ -143,3 +149,4 @@ class CigTd3(Algorithm):
         if extra is not None:
             self.replay.set_state(extra["buffer"])
             self._update_credit = float(extra["update_credit"])
+            self._num_updates = int(extra["num_updates"])

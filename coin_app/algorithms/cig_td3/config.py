@@ -61,7 +61,7 @@ class CigTd3Config(AlgorithmConfig):
         self.gamma = 0.99
         self.train_batch_size_per_learner = 256
         self.rollout_fragment_length = 1
-        self.min_sample_timesteps_per_iteration = 1000
+        self.min_sample_timesteps_per_iteration = 500
         self.lr = None  # separate optimizers; see actor_lr, critic_lr, central_critic_lr
         self.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)  # parameter sharing
 

@@ -125,7 +125,9 @@ def actor_loss(
         q_global = central.q1(batch["obs"], batch["state"], a, batch["others_state"], batch["others_actions"], mask)
         advantage = q_global
         if cfg.counterfactual_baseline:
-            v = central.baseline(batch["obs"], batch["state"], batch["others_state"], batch["others_actions"], mask)
+            # V has no ego action, so it carries no actor gradient: evaluate it without a graph
+            with torch.no_grad():
+                v = central.baseline(batch["obs"], batch["state"], batch["others_state"], batch["others_actions"], mask)
             advantage = q_global - v
             stats["actor_counterfactual_advantage"] = advantage.mean().detach()
         objective = objective + cfg.global_weight * advantage

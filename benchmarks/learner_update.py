@@ -1,0 +1,127 @@
+"""Time of one CIG-TD3 (and ITD3) learner update on this CPU, with a breakdown, and of a training loop.
+
+Usage: python benchmarks/learner_update.py [--updates 10] [--threads 1] [--loop-steps 300]
+
+The update runs on a synthetic batch shaped like the intersection's (30 agents: 38 padded
+"other" slots, about 29 of them present at t and 30 at t+1), B = 256, all modules on (CVAE,
+GAT, counterfactual baseline, twin critics, targets). One figure is the mean over a whole
+policy-delay cycle (4 critic-only updates + 1 update with the actor step and target
+updates). The breakdown times each loss's forward + backward separately. ``--loop-steps``
+also times a full ``algo.train()`` loop (sampling, replay, updates, weight sync) on the
+intersection and prints env-steps/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+from coin_app.algorithms.cig_td3.config import CigTd3Config
+from coin_app.algorithms.cig_td3.learner import loss_config
+from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, local_critic_loss, td_targets
+from coin_app.envs.rllib_env import CoinMultiAgentEnv, register_envs
+
+
+def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """A batch with ``present`` of ``n`` other slots filled at t and t+1."""
+    mask = np.zeros((b, n), bool)
+    mask[:, :present] = True
+    next_mask = np.zeros((b, n), bool)
+    next_mask[:, : present + 1] = True
+    f = np.float32
+    return {
+        "obs": rng.random((b, obs_dim), dtype=f),
+        "state": rng.standard_normal((b, 10)).astype(f),
+        "actions": rng.uniform(-1, 1, (b, 2)).astype(f),
+        "rewards": rng.standard_normal(b).astype(f),
+        "global_rewards": rng.standard_normal(b).astype(f),
+        "terminateds": rng.random(b) < 0.05,
+        "truncateds": np.zeros(b, bool),
+        "new_obs": rng.random((b, obs_dim), dtype=f),
+        "new_state": rng.standard_normal((b, 10)).astype(f),
+        "others_state": rng.standard_normal((b, n, 10)).astype(f) * mask[..., None],
+        "others_actions": rng.uniform(-1, 1, (b, n, 2)).astype(f) * mask[..., None],
+        "others_mask": mask,
+        "next_others_state": rng.standard_normal((b, n, 10)).astype(f) * next_mask[..., None],
+        "next_others_obs": rng.random((b, n, obs_dim), dtype=f) * next_mask[..., None],
+        "next_others_mask": next_mask,
+    }
+
+
+def time_updates(cfg: CigTd3Config, updates: int) -> tuple[float, dict[str, float]]:
+    """(mean seconds per learner update over whole delay cycles, breakdown in seconds)."""
+    env = CoinMultiAgentEnv({"scenario": "intersection"})
+    learner = cfg.build_learner(env=env)
+    rng = np.random.default_rng(0)
+    batch_np = synthetic_batch(cfg.train_batch_size_per_learner, cfg.max_others, env.config.obs_dim, 29, rng)
+    batch = MultiAgentBatch({"shared": SampleBatch(batch_np)}, env_steps=cfg.train_batch_size_per_learner)
+    ts = {"num_env_steps_sampled_lifetime": 0}
+    learner.update(batch=batch, timesteps=ts)  # warm-up
+    n = max(cfg.policy_delay, updates - updates % cfg.policy_delay)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        learner.update(batch=batch, timesteps=ts)
+    per_update = (time.perf_counter() - t0) / n
+    # breakdown: forward + backward of each loss on the same batch
+    m = learner.module["shared"].unwrapped()
+    tb = {k: torch.as_tensor(v) for k, v in batch_np.items()}
+    lc = loss_config(cfg)
+    parts: dict[str, float] = {}
+
+    def clock(name: str, fn: object) -> None:
+        t = time.perf_counter()
+        for _ in range(3):
+            fn()
+        parts[name] = (time.perf_counter() - t) / 3
+
+    clock("targets (no grad)", lambda: td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc))
+    y_l, y_g = td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc)
+    clock("local critic fwd+bwd", lambda: local_critic_loss(m.local_q, tb, y_l)[0].backward())
+    if m.central is not None:
+        clock("central critic fwd+bwd", lambda: central_critic_loss(m.central, tb, y_g, lc)[0].backward())
+    clock("actor fwd+bwd (1 in policy_delay)", lambda: actor_loss(m.actor, m.local_q, m.central, tb, lc)[0].backward())
+    return per_update, parts
+
+
+def time_loop(cfg: CigTd3Config, steps: int) -> float:
+    """Env steps per second of ``algo.train()`` after the warm-up (updates every env step)."""
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    cfg = cfg.copy(copy_frozen=False).training(warmup_steps=300).reporting(min_sample_timesteps_per_iteration=steps)
+    algo = cfg.build_algo()
+    algo.train()  # warm-up iteration fills the buffer
+    t0 = time.perf_counter()
+    r = algo.train()
+    dt = time.perf_counter() - t0
+    algo.stop()
+    return float(r["env_runners"]["num_env_steps_sampled"]) / dt
+
+
+def main() -> None:
+    """Print the update times, their breakdown and the loop throughput."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--updates", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--loop-steps", type=int, default=0, help="also time a training loop of this many env steps (0 = skip)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    register_envs()
+    base = CigTd3Config().environment("coin-intersection-v0").debugging(seed=0)
+    print(f"B=256, intersection (30 agents, {base.max_others} other slots, 29 present), torch threads {args.threads}")
+    for name, cfg in (("CIG-TD3 (all modules)", base), ("ITD3", base.copy(copy_frozen=False).itd3())):
+        cfg.validate()
+        per, parts = time_updates(cfg, args.updates)
+        print(f"\n{name}: {per * 1000:.0f} ms per update (mean over delay cycles)")
+        for k, v in parts.items():
+            print(f"  {k:<36}{v * 1000:8.1f} ms")
+        if args.loop_steps:
+            print(f"  training loop: {time_loop(cfg, args.loop_steps):.1f} env steps/s (1 update per env step)")
+
+
+if __name__ == "__main__":
+    main()
