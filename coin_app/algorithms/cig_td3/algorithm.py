@@ -64,6 +64,8 @@ class CigTd3(Algorithm):
             act_dim=2,
             max_others=self.config.max_others,
             seed=seed,
+            # one step entry per env step: with few agents there are nearly as many steps as transitions
+            step_capacity=max(self.config.replay_capacity // 2 + 64, self.config.replay_capacity // max(1, scen.num_agents - 1)),
         )
         self._update_credit = 0.0
         self._num_updates = 0

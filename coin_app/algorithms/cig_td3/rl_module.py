@@ -62,15 +62,21 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
     def _forward_inference(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
         """Deterministic actions mu(o)."""
         with torch.no_grad():
-            return {Columns.ACTIONS: self.actor(batch[Columns.OBS])}
+            obs = batch[Columns.OBS]
+            order = canonical_order(obs)
+            return {Columns.ACTIONS: unsort(self.actor(obs[order]), order)}
 
     def _forward_exploration(self, batch: dict[str, Any], t: int | None = None, **kwargs: Any) -> dict[str, Any]:
         """mu(o) + N(0, sigma), clipped; uniform random actions during the warm-up."""
         with torch.no_grad():
-            mu = self.actor(batch[Columns.OBS])
+            obs = batch[Columns.OBS]
+            order = canonical_order(obs)
+            mu = self.actor(obs[order])
             if t is not None and t < self.warmup_steps:
-                return {Columns.ACTIONS: torch.rand_like(mu) * 2.0 - 1.0}
-            return {Columns.ACTIONS: (mu + torch.randn_like(mu) * self.exploration_noise).clamp(-1.0, 1.0)}
+                actions = torch.rand(mu.shape) * 2.0 - 1.0
+            else:
+                actions = (mu + torch.randn(mu.shape) * self.exploration_noise).clamp(-1.0, 1.0)
+            return {Columns.ACTIONS: unsort(actions, order)}
 
     def _forward_train(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
         """Nothing: the learner calls the networks itself, loss by loss."""
@@ -98,3 +104,23 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
         """Target-actor actions for ``batch[OBS]`` (the losses call the target nets directly)."""
         with torch.no_grad():
             return {Columns.ACTIONS: self.actor_target(batch[Columns.OBS])}
+
+
+def canonical_order(obs: torch.Tensor) -> torch.Tensor:
+    """A canonical order of a batch of observations (ranks of a fixed projection of each row).
+
+    RLlib batches the acting agents in the iteration order of a set of agent ids, which
+    changes with Python's hash seed. Running the actor and drawing the noise in this order
+    instead makes every agent's action independent of that order (bit for bit: BLAS results
+    can depend on a row's position), so a seeded run gives the same result in every process.
+    """
+    n, dim = obs.shape[0], obs.shape[-1]
+    weights = torch.cos(torch.arange(dim, dtype=torch.float64) * 0.731) + 1.618
+    return torch.argsort(obs.reshape(n, dim).to(torch.float64) @ weights, stable=True)
+
+
+def unsort(rows: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
+    """Put rows computed in ``order`` back in the batch's original order."""
+    out = torch.empty_like(rows)
+    out[order] = rows
+    return out

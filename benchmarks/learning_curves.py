@@ -1,0 +1,126 @@
+"""Learning curves: success rate vs env steps of CIG-TD3 and ITD3 (3 seeds) on one small scenario.
+
+Usage: python benchmarks/learning_curves.py [--steps 20000] [--eval-every 2000] [--seeds 0 1 2]
+                                            [--scenario bottleneck] [--set key=value ...] [--out runs/curves]
+
+Each (algorithm, seed) run trains in its own process (two at a time on this 2-core machine)
+and evaluates its deterministic actor on the validation seeds every ``--eval-every`` env
+steps. Writes ``curves.csv`` (algo, seed, env_steps, metric columns) and ``curves.png``
+(mean ± std of the success rate over seeds) and prints the final table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import numpy as np
+
+SMALL = {
+    "num_agents": 4,
+    "horizon": 400,
+    "max_agent_steps": 400,
+    "warmup_steps": 1000,
+    "train_batch_size_per_learner": 128,
+    "hidden": 128,
+    "latent_dim": 8,
+    "node_width": 32,
+    "eval_every": 0,
+}
+
+
+def run_one(job: tuple[str, int, str, int, int, dict, int]) -> list[dict]:
+    """Train one (algo, seed) run and return its evaluation rows."""
+    algo_name, seed, scenario, steps, eval_every, overrides, eval_episodes = job
+    import ray
+    import torch
+
+    from coin_app.algorithms.registry import build_config
+    from coin_app.evaluation.evaluate import validation_seeds
+
+    torch.set_num_threads(1)
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    cfg = build_config(algo_name, scenario, dict(overrides), seed).reporting(min_sample_timesteps_per_iteration=eval_every)
+    algo = cfg.build_algo()
+    rows = []
+    sampled = 0
+    t0 = time.perf_counter()
+    while sampled < steps:
+        res = algo.train()
+        sampled = int(res["env_runners"]["num_env_steps_sampled_lifetime"])
+        ev = algo.evaluate_native(validation_seeds(eval_episodes))
+        rows.append({"algo": algo_name, "seed": seed, "env_steps": sampled, "wall_s": round(time.perf_counter() - t0, 1), **ev})
+        print(f"{algo_name} seed {seed}: {sampled} steps, success {ev['success_rate']:.3f}", flush=True)
+    algo.stop()
+    ray.shutdown()
+    return rows
+
+
+def plot(rows: list[dict], path: Path, title: str) -> None:
+    """Mean ± std of the success rate over seeds, one line per algorithm."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 4), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    for algo in sorted({r["algo"] for r in rows}):
+        steps = sorted({r["env_steps"] for r in rows if r["algo"] == algo})
+        vals = [[r["success_rate"] for r in rows if r["algo"] == algo and r["env_steps"] == s] for s in steps]
+        mean = np.array([np.mean(v) for v in vals])
+        std = np.array([np.std(v) for v in vals])
+        ax.plot(steps, mean, label=algo)
+        ax.fill_between(steps, mean - std, mean + std, alpha=0.2)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("success rate (validation seeds)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def main() -> None:
+    """Run every (algorithm, seed), then write the CSV, the PNG and a summary."""
+    from coin_app.cli import parse_overrides
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--algos", nargs="+", default=["cig_td3", "itd3"])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--scenario", default="bottleneck")
+    ap.add_argument("--steps", type=int, default=20000)
+    ap.add_argument("--eval-every", type=int, default=2000)
+    ap.add_argument("--eval-episodes", type=int, default=5)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--procs", type=int, default=2)
+    ap.add_argument("--out", default="runs/curves")
+    args = ap.parse_args()
+    overrides = {**SMALL, **parse_overrides(args.set)}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(a, s, args.scenario, args.steps, args.eval_every, overrides, args.eval_episodes) for a in args.algos for s in args.seeds]
+    print(f"{len(jobs)} runs of {args.steps} env steps on {args.scenario} ({args.procs} at a time); overrides {overrides}")
+    with mp.get_context("spawn").Pool(args.procs) as pool:
+        rows = [r for rows in pool.map(run_one, jobs) for r in rows]
+    with open(out / "curves.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    plot(rows, out / "curves.png", f"{args.scenario}: success vs env steps ({len(args.seeds)} seeds)")
+    (out / "settings.json").write_text(json.dumps(vars(args) | {"overrides": overrides}, indent=2))
+    print("\nfinal evaluation (mean ± std over seeds):")
+    last = max(r["env_steps"] for r in rows)
+    for algo in args.algos:
+        final = [r for r in rows if r["algo"] == algo and r["env_steps"] == last]
+        for key in ("success_rate", "collision_rate", "out_of_road_rate"):
+            v = [r[key] for r in final]
+            print(f"  {algo:<8} {key:<17} {np.mean(v):.3f} ± {np.std(v):.3f}")
+    print(f"wrote {out / 'curves.csv'} and {out / 'curves.png'}")
+
+
+if __name__ == "__main__":
+    main()
