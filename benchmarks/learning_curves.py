@@ -1,6 +1,6 @@
 """Learning curves: success rate vs env steps of CIG-TD3 and ITD3 (3 seeds) on one small scenario.
 
-Usage: python benchmarks/learning_curves.py [--steps 20000] [--eval-every 2000] [--seeds 0 1 2]
+Usage: python benchmarks/learning_curves.py [--steps 10000] [--eval-every 1000] [--seeds 0 1 2]
                                             [--scenario bottleneck] [--set key=value ...] [--out runs/curves]
 
 Each (algorithm, seed) run trains in its own process (two at a time on this 2-core machine)
@@ -19,18 +19,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-SMALL = {
-    "num_agents": 4,
-    "horizon": 400,
-    "max_agent_steps": 400,
-    "warmup_steps": 1000,
-    "train_batch_size_per_learner": 128,
-    "hidden": 128,
-    "latent_dim": 8,
-    "node_width": 32,
-    "eval_every": 0,
-}
 
 
 def run_one(job: tuple[str, int, str, int, int, dict, int]) -> list[dict]:
@@ -61,45 +49,48 @@ def run_one(job: tuple[str, int, str, int, int, dict, int]) -> list[dict]:
 
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
-    """Mean ± std of the success rate over seeds, one line per algorithm."""
+    """Mean ± std over seeds of the success rate and of the per-vehicle return, one line per algorithm."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(6, 4), dpi=110)
+    fig = Figure(figsize=(10, 4), dpi=110)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    for algo in sorted({r["algo"] for r in rows}):
-        steps = sorted({r["env_steps"] for r in rows if r["algo"] == algo})
-        vals = [[r["success_rate"] for r in rows if r["algo"] == algo and r["env_steps"] == s] for s in steps]
-        mean = np.array([np.mean(v) for v in vals])
-        std = np.array([np.std(v) for v in vals])
-        ax.plot(steps, mean, label=algo)
-        ax.fill_between(steps, mean - std, mean + std, alpha=0.2)
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("success rate (validation seeds)")
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_title(title)
-    ax.legend()
+    for k, (key, label) in enumerate((("success_rate", "success rate"), ("episode_return", "mean return per vehicle"))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        for algo in sorted({r["algo"] for r in rows}):
+            steps = sorted({r["env_steps"] for r in rows if r["algo"] == algo})
+            vals = [[float(r[key]) for r in rows if r["algo"] == algo and r["env_steps"] == s] for s in steps]
+            mean = np.array([np.mean(v) for v in vals])
+            std = np.array([np.std(v) for v in vals])
+            ax.plot(steps, mean, label=algo)
+            ax.fill_between(steps, mean - std, mean + std, alpha=0.2)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel(f"{label} (validation seeds)")
+        if key == "success_rate":
+            ax.set_ylim(-0.02, 1.02)
+        ax.legend()
+    fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path)
 
 
 def main() -> None:
     """Run every (algorithm, seed), then write the CSV, the PNG and a summary."""
+    from coin_app.algorithms.registry import QUICK_SETTINGS
     from coin_app.cli import parse_overrides
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--algos", nargs="+", default=["cig_td3", "itd3"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--scenario", default="bottleneck")
-    ap.add_argument("--steps", type=int, default=20000)
-    ap.add_argument("--eval-every", type=int, default=2000)
+    ap.add_argument("--steps", type=int, default=10000)
+    ap.add_argument("--eval-every", type=int, default=1000)
     ap.add_argument("--eval-episodes", type=int, default=5)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     ap.add_argument("--procs", type=int, default=2)
     ap.add_argument("--out", default="runs/curves")
     args = ap.parse_args()
-    overrides = {**SMALL, **parse_overrides(args.set)}
+    overrides = {**QUICK_SETTINGS, **parse_overrides(args.set)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(a, s, args.scenario, args.steps, args.eval_every, overrides, args.eval_episodes) for a in args.algos for s in args.seeds]
@@ -116,7 +107,7 @@ def main() -> None:
     last = max(r["env_steps"] for r in rows)
     for algo in args.algos:
         final = [r for r in rows if r["algo"] == algo and r["env_steps"] == last]
-        for key in ("success_rate", "collision_rate", "out_of_road_rate"):
+        for key in ("success_rate", "collision_rate", "out_of_road_rate", "episode_return"):
             v = [r[key] for r in final]
             print(f"  {algo:<8} {key:<17} {np.mean(v):.3f} ± {np.std(v):.3f}")
     print(f"wrote {out / 'curves.csv'} and {out / 'curves.png'}")

@@ -196,3 +196,8 @@ def test_invalid_configs_are_refused(training, match):
 def test_unregistered_env_is_refused():
     with pytest.raises(ValueError, match="registered envs"):
         CigTd3Config().environment("CartPole-v1").validate()
+
+
+def test_remote_learners_are_refused():
+    with pytest.raises(ValueError, match="num_learners=1"):
+        make_config().learners(num_learners=1).validate()

@@ -15,32 +15,16 @@ import numpy as np
 import ray
 import torch
 
-from coin_app.algorithms.registry import build_config
+from coin_app.algorithms.registry import QUICK_SETTINGS, build_config
 from coin_app.evaluation.evaluate import eval_test_seeds, evaluate_policy, validation_seeds
 from coin_app.evaluation.metrics import aggregate
-
-SETTINGS = {
-    "num_agents": 4,
-    "horizon": 300,
-    "max_agent_steps": 300,
-    "warmup_steps": 500,
-    "train_batch_size_per_learner": 128,
-    "hidden": 64,
-    "latent_dim": 8,
-    "node_width": 16,
-    "actor_lr": 6e-4,
-    "critic_lr": 1e-3,
-    "central_critic_lr": 1e-3,
-    "policy_delay": 2,
-    "eval_every": 0,
-}
 
 
 def test_cig_td3_beats_random_policy():
     torch.set_num_threads(1)
     ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     try:
-        cfg = build_config("cig_td3", "bottleneck", SETTINGS, seed=0).reporting(min_sample_timesteps_per_iteration=500)
+        cfg = build_config("cig_td3", "bottleneck", QUICK_SETTINGS, seed=0).reporting(min_sample_timesteps_per_iteration=500)
         algo = cfg.build_algo()
         actor = algo.learner_group._learner.module["shared"].unwrapped().actor
         best, best_state = -np.inf, None

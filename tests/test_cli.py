@@ -39,3 +39,40 @@ def test_parse_overrides_literals():
         "allow_respawn": False,
         "dynamics": {"dt": 0.05},
     }
+
+
+TINY_TRAIN = ["--scenario", "bottleneck", "--num-agents", "3", "--set", "horizon=40", "max_agent_steps=40", "warmup_steps=60"]
+TINY_TRAIN += ["train_batch_size_per_learner=16", "hidden=16", "eval_every=0", "--checkpoint-every", "1"]
+
+
+def test_train_evaluate_and_resume(tmp_path, capsys):
+    import ray
+
+    out = tmp_path / "run"
+    try:
+        assert main(["train", "--algo", "itd3", "--steps", "150", "--out", str(out), *TINY_TRAIN]) == 0
+        ckpt = out / "checkpoint"
+        text = capsys.readouterr().out
+        assert "iter" in text and str(ckpt) in text and (ckpt / "coin_app.json").exists()
+        assert main(["evaluate", str(ckpt), "--episodes", "2", "--out", str(tmp_path / "eval.json")]) == 0
+        text = capsys.readouterr().out
+        assert "success rate" in text and "(" in text and json.loads((tmp_path / "eval.json").read_text())["seeds"] == [200000, 200001]
+        first = json.loads((out / "summary.json").read_text())["env_steps"]
+        assert main(["train", "--algo", "itd3", "--steps", str(first + 100), "--out", str(out), "--resume", str(ckpt), *TINY_TRAIN]) == 0
+        text = capsys.readouterr().out
+        assert "resumed from" in text
+        assert json.loads((out / "summary.json").read_text())["env_steps"] >= first + 100
+    finally:
+        ray.shutdown()
+
+
+def test_train_and_evaluate_refuse_bad_input(tmp_path, capsys):
+    assert main(["train", "--algo", "sac", "--steps", "10", "--out", str(tmp_path / "x")]) == 2
+    assert "unknown algorithm 'sac'" in capsys.readouterr().err
+    assert main(["train", "--steps", "10", "--set", "colour=3", "--out", str(tmp_path / "x")]) == 2
+    assert "colour" in capsys.readouterr().err
+    assert main(["train", "--steps", "10", "--set", "policy_delay=0", "--out", str(tmp_path / "x")]) == 2
+    assert "policy_delay=0" in capsys.readouterr().err
+    assert main(["evaluate", str(tmp_path / "missing"), "--episodes", "2"]) == 2
+    assert "missing" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()  # refused before any work started

@@ -24,7 +24,7 @@ class AlgorithmEntry:
     name: str
     description: str
     build: Callable[[str, dict[str, Any], dict[str, Any], int], Any]  # (scenario, env_cfg, algo_cfg, seed) -> config
-    hyperparameters: tuple[str, ...]
+    keys: Callable[[], tuple[str, ...]]  # the algorithm's --set keys
 
 
 def _cig_td3_config(itd3: bool) -> Callable[[str, dict[str, Any], dict[str, Any], int], Any]:
@@ -49,6 +49,24 @@ def _cig_td3_keys() -> tuple[str, ...]:
 
 ALGORITHMS: dict[str, AlgorithmEntry] = {}
 
+# A small bottleneck setting that learns within minutes on a laptop CPU (CI learning test,
+# benchmarks/learning_curves.py): four agents, small networks, faster learning rates.
+QUICK_SETTINGS: dict[str, Any] = {
+    "num_agents": 4,
+    "horizon": 300,
+    "max_agent_steps": 300,
+    "warmup_steps": 500,
+    "train_batch_size_per_learner": 128,
+    "hidden": 64,
+    "latent_dim": 8,
+    "node_width": 16,
+    "policy_delay": 2,
+    "actor_lr": 6e-4,
+    "critic_lr": 1e-3,
+    "central_critic_lr": 1e-3,
+    "eval_every": 0,
+}
+
 
 def register(entry: AlgorithmEntry) -> None:
     """Add an algorithm to the registry."""
@@ -62,14 +80,14 @@ def get(name: str) -> AlgorithmEntry:
     return ALGORITHMS[name]
 
 
-register(AlgorithmEntry("cig_td3", "COIN: CIG-TD3 with the interaction-aware centralized critic", _cig_td3_config(False), ()))
-register(AlgorithmEntry("itd3", "ITD3: independent TD3 with parameter sharing", _cig_td3_config(True), ()))
+register(AlgorithmEntry("cig_td3", "COIN: CIG-TD3 with the interaction-aware centralized critic", _cig_td3_config(False), _cig_td3_keys))
+register(AlgorithmEntry("itd3", "ITD3: independent TD3 with parameter sharing", _cig_td3_config(True), _cig_td3_keys))
 
 
 def split_overrides(name: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """Route ``--set`` keys to (scenario config, algorithm config); unknown keys are refused."""
     env_keys = {f.name for f in fields(ScenarioConfig)} - {"scenario"} | {"preset"}
-    algo_keys = set(_cig_td3_keys()) if name in ("cig_td3", "itd3") else set(get(name).hyperparameters)
+    algo_keys = set(get(name).keys())
     env_cfg = {k: v for k, v in overrides.items() if k in env_keys}
     algo_cfg = {k: v for k, v in overrides.items() if k in algo_keys}
     unknown = sorted(set(overrides) - set(env_cfg) - set(algo_cfg))

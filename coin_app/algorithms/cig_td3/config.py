@@ -136,8 +136,8 @@ class CigTd3Config(AlgorithmConfig):
             errors.append(f"vae_weight={self.vae_weight} but local_module={self.local_module!r} has no CVAE; set vae_weight=0")
         if self.graph != "full" and self.global_module == "none":
             errors.append("a sparse graph radius needs a graph module (gat | gcn | graphsage), not global_module='none'")
-        if self.num_learners > 1:
-            errors.append(f"num_learners={self.num_learners}; CIG-TD3 supports 0 or 1 learner (the replay buffer lives with the algorithm)")
+        if self.num_learners != 0:
+            errors.append(f"num_learners={self.num_learners}; CIG-TD3 runs its learner in the algorithm process (num_learners=0)")
         try:
             self.scenario_config()
         except ValueError as exc:
