@@ -92,7 +92,8 @@ def time_loop(cfg: CigTd3Config, steps: int) -> float:
     import ray
 
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-    cfg = cfg.copy(copy_frozen=False).training(warmup_steps=300).reporting(min_sample_timesteps_per_iteration=steps)
+    cfg = cfg.copy(copy_frozen=False).training(warmup_steps=steps, learner_threads=torch.get_num_threads())
+    cfg = cfg.reporting(min_sample_timesteps_per_iteration=steps)
     algo = cfg.build_algo()
     algo.train()  # warm-up iteration fills the buffer
     t0 = time.perf_counter()

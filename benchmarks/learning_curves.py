@@ -41,6 +41,7 @@ def run_one(job: tuple[str, int, str, int, int, dict, int]) -> list[dict]:
         res = algo.train()
         sampled = int(res["env_runners"]["num_env_steps_sampled_lifetime"])
         ev = algo.evaluate_native(validation_seeds(eval_episodes))
+        ev["eval_episode_steps"] = ev.pop("env_steps")  # the evaluation episodes' length, not training steps
         rows.append({"algo": algo_name, "seed": seed, "env_steps": sampled, "wall_s": round(time.perf_counter() - t0, 1), **ev})
         print(f"{algo_name} seed {seed}: {sampled} steps, success {ev['success_rate']:.3f}", flush=True)
     algo.stop()
@@ -104,9 +105,9 @@ def main() -> None:
     plot(rows, out / "curves.png", f"{args.scenario}: success vs env steps ({len(args.seeds)} seeds)")
     (out / "settings.json").write_text(json.dumps(vars(args) | {"overrides": overrides}, indent=2))
     print("\nfinal evaluation (mean ± std over seeds):")
-    last = max(r["env_steps"] for r in rows)
     for algo in args.algos:
-        final = [r for r in rows if r["algo"] == algo and r["env_steps"] == last]
+        runs = {r["seed"] for r in rows if r["algo"] == algo}
+        final = [max((r for r in rows if r["algo"] == algo and r["seed"] == s), key=lambda r: r["env_steps"]) for s in runs]
         for key in ("success_rate", "collision_rate", "out_of_road_rate", "episode_return"):
             v = [r[key] for r in final]
             print(f"  {algo:<8} {key:<17} {np.mean(v):.3f} ± {np.std(v):.3f}")

@@ -53,7 +53,7 @@ class CigTd3(Algorithm):
     def setup(self, config: CigTd3Config) -> None:
         """Register the envs, build runners and learners, then the seeded joint-step buffer."""
         register_envs()
-        torch.set_num_threads(1)
+        torch.set_num_threads(config.learner_threads)
         super().setup(config)
         scen = self.config.scenario_config()
         seed = 0 if self.config.seed is None else int(self.config.seed)

@@ -44,6 +44,7 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "hidden": (256, "width of actor, local-critic and CVAE layers"),
     "latent_dim": (20, "CVAE latent size"),
     "node_width": (128, "GAT node feature width"),
+    "learner_threads": (2, "torch threads for updates in the training process (2 cores here; use 1 if env runners share the cores)"),
     "eval_every": (25, "training iterations between deterministic evaluations on validation seeds (0 = off)"),
     "eval_episodes": (5, "validation episodes (seeds) per periodic evaluation"),
 }
@@ -112,7 +113,7 @@ class CigTd3Config(AlgorithmConfig):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
                 errors.append(f"{name}={v!r}; allowed: a number >= 0")
-        for name in ("policy_delay", "hidden", "latent_dim", "node_width", "replay_capacity", "eval_episodes"):
+        for name in ("policy_delay", "hidden", "latent_dim", "node_width", "replay_capacity", "eval_episodes", "learner_threads"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 errors.append(f"{name}={v!r}; allowed: an integer >= 1")
