@@ -78,18 +78,6 @@ def ray_box_distance(
     return np.where(hit, np.maximum(t_enter, 0.0), np.inf)
 
 
-def points_in_polygons(points: np.ndarray, polys: np.ndarray) -> np.ndarray:
-    """Even-odd test of row-aligned points (N, 2) in padded polygons (N, K, 2)."""
-    x, y = points[:, 0:1], points[:, 1:2]
-    a = polys
-    b = np.roll(polys, -1, axis=1)
-    cond = (a[..., 1] > y) != (b[..., 1] > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xs = a[..., 0] + (y - a[..., 1]) * (b[..., 0] - a[..., 0]) / (b[..., 1] - a[..., 1])
-    crossings = cond & (x < xs)
-    return (crossings.sum(1) % 2) == 1
-
-
 def footprint_samples(center: np.ndarray, heading: np.ndarray, half_len: float, half_wid: float) -> np.ndarray:
     """Nine points (N, 9, 2) on a box footprint: centre, corners and edge midpoints."""
     fwd, left = box_axes(heading)

@@ -16,19 +16,6 @@ import numpy as np
 from coin_app.envs.config import ScenarioConfig, make_config
 from coin_app.envs.simulator import ACTIVE, DrivingSimulator, StepResult, agent_name
 
-INFO_KEYS = (
-    "arrive_dest",
-    "crash_vehicle",
-    "out_of_road",
-    "max_step",
-    "step_reward",
-    "episode_length",
-    "episode_reward",
-    "state",
-    "env_step",
-    "global_reward",
-)
-
 
 class DrivingEnv:
     """A native multi-agent driving scenario with respawning vehicles."""

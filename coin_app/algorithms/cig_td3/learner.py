@@ -21,8 +21,6 @@ from ray.rllib.core.rl_module.apis import TargetNetworkAPI
 
 from coin_app.algorithms.cig_td3.losses import LossConfig, actor_loss, central_critic_loss, local_critic_loss, td_targets
 
-OPTIMIZERS = ("actor", "local_critic", "central_critic")
-
 
 def loss_config(config: Any) -> LossConfig:
     """The loss constants of a ``CigTd3Config``."""
