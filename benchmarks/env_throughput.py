@@ -1,12 +1,21 @@
-"""Agent-steps per second of the native simulator, per scenario, on one core.
+"""Agent-steps per second of the native simulator (and of MetaDrive side by side), per scenario, on one core.
 
 Usage: python benchmarks/env_throughput.py [--steps 300] [--num-envs 1 16] [--scaling]
+       python benchmarks/env_throughput.py --backend metadrive|both [--steps 300] [--scenarios ...]
 
 Runs each scenario at its default agent count with uniform random actions and with the
 heuristic driver's traffic, for a single env and for a batch of envs stepped together (the
 vectorized core), auto-resetting finished envs. Agent-steps/s counts env time only (the
 policy's time is printed apart). ``--scaling`` adds the step time from 10 to 48 agents
 (48 = the maps' spawn capacity, as in MetaDrive). Pin one core with ``taskset -c 0``.
+
+``--backend metadrive`` times MetaDrive 0.4.3 (optional extra) through coin_app's dict env;
+``--backend both`` runs the native dict env in this process and MetaDrive in a child process
+(one engine per process), one after the other so they never share a core, with the same
+agent count, seeds and policies ("random": uniform actions; "forward": steering U(-0.3, 0.3),
+throttle U(0.2, 1), dense crashes and respawns), and prints the ratio native / MetaDrive.
+The native vectorized core (``--num-envs``) is faster still; its table is printed first
+unless the backend is metadrive.
 """
 
 from __future__ import annotations
@@ -57,6 +66,56 @@ def measure(scenario: str, num_agents: int, num_envs: int, policy: str, steps: i
     return agent_steps / env_time, 1000 * env_time / steps, 1000 * policy_time / steps
 
 
+def measure_dict_env(scenario: str, backend: str, policy: str, steps: int, seed: int = 0) -> tuple[float, float]:
+    """(agent-steps/s, mean acting agents) of one env of ``backend`` through the dict API, auto-resetting."""
+    from coin_app.envs.driving_env import make_driving_env
+
+    env = make_driving_env(make_config(scenario, backend=backend))
+    rng = np.random.default_rng(seed)
+    agent_steps = 0
+    try:
+        env.reset(seed)
+        t0 = time.perf_counter()
+        for k in range(steps):
+            n = len(env.agents)
+            if policy == "random":
+                acts = rng.uniform(-1.0, 1.0, (n, 2))
+            else:
+                acts = np.stack([rng.uniform(-0.3, 0.3, n), rng.uniform(0.2, 1.0, n)], 1)
+            env.step(dict(zip(env.agents, acts)))
+            agent_steps += n
+            if env.episode_over:
+                env.reset(seed + k + 1)
+        elapsed = time.perf_counter() - t0
+    finally:
+        env.close()
+    return agent_steps / elapsed, agent_steps / steps
+
+
+def _metadrive_child(job: tuple[str, str, int]) -> tuple[float, float]:
+    scenario, policy, steps = job
+    return measure_dict_env(scenario, "metadrive", policy, steps)
+
+
+def side_by_side(scenarios: list[str], steps: int, backends: tuple[str, ...]) -> None:
+    """Print agent-steps/s of the native and MetaDrive dict envs and their ratio."""
+    import multiprocessing as mp
+
+    print(f"\n{'scenario':<13}{'agents':>7}{'policy':>9}" + "".join(f"{b + ' steps/s':>20}{'live':>6}" for b in backends) + "   ratio")
+    for sc in scenarios:
+        for pol in ("random", "forward"):
+            row = {}
+            for b in backends:
+                if b == "metadrive":  # one MetaDrive engine per process: measure it in a child
+                    with mp.get_context("spawn").Pool(1) as pool:
+                        row[b] = pool.apply(_metadrive_child, ((sc, pol, steps),))
+                else:
+                    row[b] = measure_dict_env(sc, b, pol, steps)
+            cells = "".join(f"{row[b][0]:>20,.0f}{row[b][1]:>6.1f}" for b in backends)
+            ratio = f"{row['native'][0] / row['metadrive'][0]:7.1f}x" if len(row) == 2 else ""
+            print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{pol:>9}{cells}   {ratio}", flush=True)
+
+
 def main() -> None:
     """Print the throughput table."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -64,7 +123,15 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, nargs="+", default=[1, 16])
     ap.add_argument("--scenarios", nargs="+", default=list(DEFAULT_NUM_AGENTS))
     ap.add_argument("--scaling", action="store_true", help="also time one env from 10 to 48 agents")
+    ap.add_argument("--backend", default="native", choices=["native", "metadrive", "both"], help="metadrive needs the optional extra")
     args = ap.parse_args()
+    if args.backend != "native":
+        backends = ("native", "metadrive") if args.backend == "both" else ("metadrive",)
+        print(f"dict-API env, one env per backend, {args.steps} steps per row ('live' = mean acting agents):")
+        side_by_side(args.scenarios, args.steps, backends)
+        if args.backend == "metadrive":
+            return
+        print("\nnative vectorized core:")
     print(f"{'scenario':<13}{'agents':>7}{'envs':>6}{'policy':>11}{'agent-steps/s':>15}{'env ms/step':>13}{'policy ms':>11}")
     for sc in args.scenarios:
         for ne in args.num_envs:

@@ -15,6 +15,7 @@ import argparse
 import csv
 import json
 import multiprocessing as mp
+import os
 import time
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def run_one(job: tuple[str, int, str, int, int, dict, int]) -> list[dict]:
     while sampled < steps:
         res = algo.train()
         sampled = int(res["env_runners"]["num_env_steps_sampled_lifetime"])
-        ev = algo.evaluate_native(validation_seeds(eval_episodes))
+        ev = algo.evaluate_actor(validation_seeds(eval_episodes))
         ev["eval_episode_steps"] = ev.pop("env_steps")  # the evaluation episodes' length, not training steps
         rows.append({"algo": algo_name, "seed": seed, "env_steps": sampled, "wall_s": round(time.perf_counter() - t0, 1), **ev})
         print(f"{algo_name} seed {seed}: {sampled} steps, success {ev['success_rate']:.3f}", flush=True)
@@ -91,7 +92,9 @@ def main() -> None:
     ap.add_argument("--procs", type=int, default=2)
     ap.add_argument("--out", default="runs/curves")
     args = ap.parse_args()
-    overrides = {**QUICK_SETTINGS, **parse_overrides(args.set)}
+    # runs in parallel share the cores: one torch thread each unless --set learner_threads=N
+    threads = max(1, (os.cpu_count() or 1) // args.procs)
+    overrides = {**QUICK_SETTINGS, "learner_threads": threads, **parse_overrides(args.set)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(a, s, args.scenario, args.steps, args.eval_every, overrides, args.eval_episodes) for a in args.algos for s in args.seeds]

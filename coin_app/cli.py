@@ -110,6 +110,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides = parse_overrides(args.set)
     if args.num_agents is not None:
         overrides["num_agents"] = args.num_agents
+    if args.backend != "native":
+        overrides["backend"] = args.backend
     out = Path(args.out or f"runs/{args.algo}_{args.scenario}_s{args.seed}")
     resume = Path(args.resume) if args.resume else None
     print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
@@ -122,19 +124,50 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any]) -> Any:
+    """The scenario config to evaluate ``source`` on: its training scenario (checkpoint / export metadata) plus overrides."""
+    from coin_app.algorithms.checkpoints import scenario_of
+    from coin_app.envs.config import make_config
+
+    if source.is_dir():
+        meta_scenario = scenario_of(source).scenario
+        if scenario is not None and scenario != meta_scenario:
+            raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {meta_scenario}")
+        return scenario_of(source, **overrides)
+    if not source.is_file():
+        raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported .npz file")
+    from coin_app.inference import load_policy
+
+    meta = load_policy(source).meta
+    scenario = scenario or meta.get("scenario")
+    if scenario is None:
+        raise ValueError(f"{source} does not say which scenario it was trained on; pass --scenario")
+    env_cfg = {**meta.get("env_config", {}), **overrides}
+    preset = env_cfg.pop("preset", "paper")
+    return make_config(scenario, preset, **env_cfg)
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    """Evaluate a checkpoint's deterministic policy on test seeds and print the six metrics."""
-    from coin_app.algorithms.checkpoints import load_policy, scenario_of
+    """Evaluate a checkpoint or exported policy deterministically on test seeds and print the six metrics."""
     from coin_app.evaluation.evaluate import eval_test_seeds, evaluate_policy
     from coin_app.evaluation.metrics import aggregate
+    from coin_app.evaluation.policies import as_policy
 
     if args.episodes < 1:
         raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
     seeds = args.seeds if args.seeds else eval_test_seeds(args.episodes)
-    overrides = {} if args.num_agents is None else {"num_agents": args.num_agents}
-    config = scenario_of(Path(args.checkpoint), **overrides)
-    policy = load_policy(Path(args.checkpoint))
-    print(f"evaluate: {args.checkpoint} on {config.scenario} ({config.num_agents} agents), seeds {seeds[0]}..{seeds[-1]} ({len(seeds)})")
+    overrides = parse_overrides(args.set)
+    if args.num_agents is not None:
+        overrides["num_agents"] = args.num_agents
+    if args.backend is not None:
+        overrides["backend"] = args.backend
+    source = Path(args.policy)
+    config = _evaluation_config(source, args.scenario, overrides)
+    policy = as_policy(source)
+    print(
+        f"evaluate: {source} on {config.scenario} ({config.num_agents} agents, backend {config.backend}), "
+        f"seeds {seeds[0]}..{seeds[-1]} ({len(seeds)})"
+    )
     t0 = time.perf_counter()
     per_episode = evaluate_policy(policy, config, seeds)
     agg = aggregate(per_episode)
@@ -145,6 +178,28 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.out:
         Path(args.out).write_text(json.dumps({"seeds": seeds, "episodes": per_episode, "aggregate": agg}, indent=2, default=float))
         print(f"  per-episode results: {args.out}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Export a checkpoint's deterministic actor to a Ray-free file."""
+    import torch
+    from ray.rllib.core.rl_module.rl_module import RLModule
+
+    from coin_app.algorithms.checkpoints import MODULE_PATH, read_metadata
+    from coin_app.inference import export_numpy, load_policy
+
+    if args.format != "numpy":
+        raise ValueError(f"unknown --format {args.format!r}; allowed: numpy")
+    checkpoint = Path(args.checkpoint)
+    meta = read_metadata(checkpoint)
+    module = RLModule.from_checkpoint(str(checkpoint.resolve().joinpath(*MODULE_PATH)))
+    out = export_numpy(module.actor, args.out, meta={k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta})
+    exported = load_policy(out)
+    obs = torch.rand(64, exported.obs_dim)
+    with torch.no_grad():
+        gap = float(abs(module.actor(obs).numpy() - exported(obs.numpy())).max())
+    print(f"export: {checkpoint} -> {out} ({args.format}, obs {exported.obs_dim}); max |action difference| on 64 random obs {gap:.1e}")
     return 0
 
 
@@ -189,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3")
     tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck")
     tr.add_argument("--num-agents", type=int, default=None)
+    tr.add_argument("--backend", default="native", help="native | metadrive (needs requirements-metadrive.txt)")
     tr.add_argument("--steps", type=int, default=1_000_000, help="env steps to train for")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario or algorithm overrides (see docs)")
@@ -197,13 +253,22 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--resume", default=None, help="checkpoint directory to continue from")
     tr.set_defaults(func=cmd_train)
 
-    ev = sub.add_parser("evaluate", help="evaluate a checkpoint on test seeds (deterministic actions)")
-    ev.add_argument("checkpoint")
+    ev = sub.add_parser("evaluate", help="evaluate a checkpoint or exported policy on test seeds (deterministic actions)")
+    ev.add_argument("policy", help="a checkpoint directory or an exported .npz file")
+    ev.add_argument("--scenario", default=None, help="scenario (default: the one the policy was trained on)")
+    ev.add_argument("--backend", default=None, help="native | metadrive (default: the training backend)")
+    ev.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
     ev.add_argument("--episodes", type=int, default=20, help="number of test seeds (paper: 20)")
     ev.add_argument("--seeds", type=int, nargs="*", default=None, help="explicit seeds (default: the fixed test seeds)")
     ev.add_argument("--num-agents", type=int, default=None, help="evaluate at another agent count (generalization)")
     ev.add_argument("--out", default=None, help="write per-episode results to this JSON file")
     ev.set_defaults(func=cmd_evaluate)
+
+    ex = sub.add_parser("export", help="export a checkpoint's actor for Ray-free inference")
+    ex.add_argument("checkpoint")
+    ex.add_argument("--format", default="numpy", help="numpy (plain .npz weights + numpy forward pass)")
+    ex.add_argument("--out", required=True, help="output file, e.g. policy.npz")
+    ex.set_defaults(func=cmd_export)
 
     scen = sub.add_parser("scenarios", help="list scenarios, presets and config keys")
     scen.set_defaults(func=cmd_scenarios)
@@ -216,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except ValueError as exc:
+    except (ValueError, ImportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

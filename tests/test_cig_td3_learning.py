@@ -31,7 +31,7 @@ def test_cig_td3_beats_random_policy():
         while algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0) < 4000:
             algo.train()
             # checkpoint selection on validation seeds (never on the test seeds)
-            score = algo.evaluate_native(validation_seeds(6))["episode_return"]
+            score = algo.evaluate_actor(validation_seeds(6))["episode_return"]
             if score > best:
                 best, best_state = score, copy.deepcopy(actor.state_dict())
         algo.stop()

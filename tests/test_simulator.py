@@ -265,11 +265,37 @@ def test_out_of_range_actions_are_clipped():
         ({"dynamics": {"dt": 0.0}}, "dynamics.dt"),
         ({"dynamics": {"gravity": 9.8}}, "unknown dynamics key.*gravity"),
         ({"allow_respawn": "yes"}, "allow_respawn"),
+        ({"backend": "carla"}, "backend.*native | metadrive"),
+        ({"metadrive_assets": "maybe"}, "metadrive_assets.*skip | download"),
+        ({"backend": "metadrive", "dynamics": {"dt": 0.05}}, "'dynamics' with backend 'metadrive'"),
+        ({"backend": "metadrive", "vehicle_width": 2.0}, "'vehicle_width' with backend 'metadrive'.*1.852"),
+        ({"backend": "metadrive", "horizon": 100, "max_agent_steps": 50}, "max_agent_steps.*equal to horizon \\(100\\)"),
+        ({"backend": "metadrive", "obs_layout": "bottleneck96"}, "obs_layout.*'standard' on the MetaDrive intersection"),
     ],
 )
 def test_bad_config_is_refused_with_a_clear_message(kwargs, match):
     with pytest.raises(ValueError, match=match):
         make_config("intersection", **kwargs)
+
+
+def test_metadrive_backend_config_follows_metadrive():
+    # no MetaDrive needed: the config alone says what the MetaDrive backend will run
+    cfg = make_config("bottleneck", backend="metadrive", horizon=200)
+    assert cfg.obs_layout == "bottleneck96" and cfg.obs_dim == 96 and cfg.max_agent_steps == 200
+    assert make_config("roundabout", backend="metadrive").obs_dim == 91
+    with pytest.raises(ValueError, match="obs_layout.*'bottleneck96' on the MetaDrive bottleneck"):
+        make_config("bottleneck", backend="metadrive", obs_layout="standard")
+
+
+def test_metadrive_config_mapping():
+    from coin_app.envs.metadrive_env import metadrive_config
+
+    cfg = make_config("bottleneck", backend="metadrive", crash_penalty=7.0, lidar_range=30.0, num_agents=12, delay_done=3)
+    md = metadrive_config(cfg)
+    assert md["crash_vehicle_penalty"] == md["crash_object_penalty"] == 7.0 and md["out_of_road_penalty"] == 5.0
+    assert md["vehicle_config"]["lidar"] == {"num_lasers": 72, "distance": 30.0, "num_others": 0}
+    assert md["vehicle_config"]["side_detector"]["distance"] == 50.0 and md["vehicle_config"]["lane_line_detector"]["distance"] == 20.0
+    assert (md["num_agents"], md["delay_done"], md["horizon"], md["use_render"]) == (12, 3, 1000, False)
 
 
 def test_unknown_scenario_and_preset():

@@ -87,6 +87,11 @@ class ScenarioConfig:
     vehicle_length: float = 4.515
     vehicle_width: float = 1.852
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    # simulator: "native" (coin_app's vectorized core) or "metadrive" (MetaDrive 0.4.3, optional extra)
+    backend: str = "native"
+    # MetaDrive's 3D assets: "skip" = physics only, never touches the network (default);
+    # "download" = let MetaDrive pull its assets from GitHub (needs network; 3D rendering)
+    metadrive_assets: str = "skip"
 
     @property
     def obs_dim(self) -> int:
@@ -118,6 +123,19 @@ _NON_NEGATIVE = (
 )
 _POSITIVE = ("lidar_range", "navi_point_dist", "vehicle_length", "vehicle_width", "side_detector_range", "lane_line_detector_range")
 OBS_LAYOUTS = ("standard", "bottleneck96")
+BACKENDS = ("native", "metadrive")
+METADRIVE_ASSETS = ("skip", "download")
+# keys with no MetaDrive counterpart: the metadrive backend refuses values other than the default
+METADRIVE_FIXED = (
+    "dynamics",
+    "force_stop_factor",
+    "spawn_jitter_long",
+    "spawn_jitter_lat",
+    "vehicle_length",
+    "vehicle_width",
+    "navi_point_dist",
+    "own_arm_destinations",
+)
 
 
 def _check(name: str, value: Any, ok: bool, allowed: str) -> None:
@@ -174,4 +192,28 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     _check("obs_layout", layout, layout in OBS_LAYOUTS, " | ".join(OBS_LAYOUTS))
     for key in ("allow_respawn", "own_arm_destinations"):
         _check(key, values.get(key, True), isinstance(values.get(key, True), bool), "True or False")
+    backend = values.get("backend", "native")
+    _check("backend", backend, backend in BACKENDS, " | ".join(BACKENDS))
+    assets = values.get("metadrive_assets", "skip")
+    _check("metadrive_assets", assets, assets in METADRIVE_ASSETS, " | ".join(METADRIVE_ASSETS))
+    if backend == "metadrive":
+        _metadrive_rules(scenario, values)
     return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)
+
+
+def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:
+    """Refuse keys MetaDrive cannot honour; give the bottleneck MetaDrive's 96-dim observation."""
+    default = ScenarioConfig()
+    for key in METADRIVE_FIXED:
+        if key in values and values[key] != getattr(default, key):
+            raise ValueError(
+                f"bad value for {key!r} with backend 'metadrive': {values[key]!r}; MetaDrive has no such setting, "
+                f"allowed: only the default {getattr(default, key)!r} (or use backend 'native')"
+            )
+    horizon = values.get("horizon", default.horizon)
+    steps = values.get("max_agent_steps", horizon)
+    _check("max_agent_steps", steps, steps == horizon, f"equal to horizon ({horizon}) with backend 'metadrive' (one MetaDrive setting)")
+    values["max_agent_steps"] = horizon
+    layout = "bottleneck96" if scenario == "bottleneck" else "standard"
+    got = values.setdefault("obs_layout", layout)
+    _check("obs_layout", got, got == layout, f"{layout!r} on the MetaDrive {scenario} (MetaDrive's own observation)")

@@ -48,17 +48,8 @@ class DrivingEnv:
         """Apply one action per agent in ``agents``; returns obs, rewards, terminations, truncations, infos."""
         if self.episode_over:
             raise RuntimeError("the episode is over (every vehicle is done); call reset() first")
-        unknown = sorted(set(actions) - set(self._slot_of))
-        if unknown:
-            raise ValueError(f"actions for agent(s) {unknown} that cannot act now; acting agents: {self.agents}")
-        missing = [a for a in self.agents if a not in actions]
-        if missing:
-            raise ValueError(f"missing actions for agent(s) {missing}; every agent in env.agents must act")
         arr = np.zeros((self.sim.num_slots, 2))
-        for aid, a in actions.items():
-            a = np.asarray(a, dtype=float).reshape(-1)
-            if a.shape != (2,):
-                raise ValueError(f"action of {aid} must have 2 numbers [steer, throttle_brake], got shape {a.shape}")
+        for aid, a in checked_actions(actions, self.agents).items():
             arr[self._slot_of[aid]] = a
         return self._unpack(self.sim.step(arr))
 
@@ -74,6 +65,35 @@ class DrivingEnv:
     def agent_slot(self, agent_id: str) -> int:
         """Simulator slot of an acting agent."""
         return self._slot_of[agent_id]
+
+    def close(self) -> None:
+        """Nothing to release (the MetaDrive backend's ``close`` shuts its engine down)."""
+
+
+def make_driving_env(config: ScenarioConfig) -> Any:
+    """The dict-API env of ``config`` on its backend: a native :class:`DrivingEnv` or a ``MetaDriveDrivingEnv``."""
+    if config.backend == "metadrive":
+        from coin_app.envs.metadrive_env import MetaDriveDrivingEnv
+
+        return MetaDriveDrivingEnv(config)
+    return DrivingEnv(config)
+
+
+def checked_actions(actions: dict[str, Any], agents: list[str]) -> dict[str, np.ndarray]:
+    """``actions`` as float arrays of shape (2,), after checking there is exactly one per agent in ``agents``."""
+    unknown = sorted(set(actions) - set(agents))
+    if unknown:
+        raise ValueError(f"actions for agent(s) {unknown} that cannot act now; acting agents: {agents}")
+    missing = [a for a in agents if a not in actions]
+    if missing:
+        raise ValueError(f"missing actions for agent(s) {missing}; every agent in env.agents must act")
+    out = {}
+    for aid, a in actions.items():
+        a = np.asarray(a, dtype=float).reshape(-1)
+        if a.shape != (2,):
+            raise ValueError(f"action of {aid} must have 2 numbers [steer, throttle_brake], got shape {a.shape}")
+        out[aid] = a
+    return out
 
 
 def result_dicts(res: StepResult, slots: np.ndarray, returns: np.ndarray, env: int) -> tuple[dict, dict, dict, dict, dict]:

@@ -21,7 +21,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from coin_app.envs.config import ScenarioConfig, make_config
-from coin_app.envs.driving_env import DrivingEnv
+from coin_app.envs.driving_env import make_driving_env
 
 
 class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
@@ -53,7 +53,7 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unknown render_mode {render_mode!r}; allowed: {', '.join(self.metadata['render_modes'])} or None")
         self.render_mode = render_mode
-        self.driving_env = DrivingEnv(config)
+        self.driving_env = make_driving_env(config)
         self.config = config
         self.possible_agents: list[str] = list(self.driving_env.possible_agents)
         self._pool = frozenset(self.possible_agents)
@@ -105,14 +105,11 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
-        try:
-            from coin_app.envs.rendering import render_frame
-        except ModuleNotFoundError as e:
-            if e.name != "coin_app.envs.rendering":
-                raise
-            return None
+        from coin_app.envs.rendering import render_frame
+
         return render_frame(self.driving_env)
 
     def close(self) -> None:
-        """Release resources (nothing is held)."""
+        """Release the backend (shuts a MetaDrive engine down)."""
         self.agents = []
+        self.driving_env.close()

@@ -40,7 +40,7 @@ from ray.rllib.env.multi_agent_env import MultiAgentEnv
 from ray.tune.registry import register_env
 
 from coin_app.envs.config import make_config
-from coin_app.envs.driving_env import DrivingEnv
+from coin_app.envs.driving_env import make_driving_env
 
 SHARED_MODULE_ID = "shared"
 ENV_IDS: dict[str, str] = {
@@ -55,7 +55,8 @@ class CoinMultiAgentEnv(MultiAgentEnv):
 
     ``config`` holds ``scenario`` (default ``"intersection"``), ``preset`` (default
     ``"paper"``) and any :class:`~coin_app.envs.config.ScenarioConfig` field as an
-    override; an unknown key raises ``ValueError`` naming it and the allowed keys.
+    override (``backend="metadrive"`` runs MetaDrive itself); an unknown key raises
+    ``ValueError`` naming it and the allowed keys.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None):
@@ -64,7 +65,7 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         scenario = overrides.pop("scenario", "intersection")
         preset = overrides.pop("preset", "paper")
         self.config = make_config(scenario, preset, **overrides)
-        self.driving_env = DrivingEnv(self.config)
+        self.driving_env = make_driving_env(self.config)
         self.metadata = {"render_modes": [], "render_fps": round(1.0 / self.config.dynamics.dt)}
         self.possible_agents = list(self.driving_env.possible_agents)
         obs_space, act_space = self.driving_env.observation_space, self.driving_env.action_space
@@ -100,6 +101,10 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         truncs["__all__"] = over and all(truncs[a] for a in ended)
         return obs, rewards, terms, truncs, infos
 
+    def close(self) -> None:
+        """Release the backend (shuts a MetaDrive engine down)."""
+        self.driving_env.close()
+
 
 def make_env(scenario: str, env_config: Mapping[str, Any] | None = None) -> CoinMultiAgentEnv:
     """Env of ``scenario`` with ``env_config`` overrides merged on (a different ``scenario`` key is an error)."""
@@ -121,6 +126,17 @@ def register_envs() -> list[str]:
 def policy_mapping_fn(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
     """Map every agent to the one shared module."""
     return SHARED_MODULE_ID
+
+
+def backend_errors(config: AlgorithmConfig) -> list[str]:
+    """Problems of ``config``'s env runner layout with its env backend (MetaDrive: one engine per process)."""
+    backend = dict(config.env_config or {}).get("backend", "native")
+    if backend == "metadrive" and config.num_envs_per_env_runner > 1:
+        return [
+            f"num_envs_per_env_runner={config.num_envs_per_env_runner} with backend 'metadrive'; allowed: 1 "
+            "(MetaDrive runs one engine per process: scale with num_env_runners instead)"
+        ]
+    return []
 
 
 def shared_policy_config(config: AlgorithmConfig) -> AlgorithmConfig:

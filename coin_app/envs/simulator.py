@@ -23,7 +23,7 @@ from coin_app.envs.collision import boxes_overlap, footprint_samples
 from coin_app.envs.config import ScenarioConfig
 from coin_app.envs.dynamics import bicycle_step
 from coin_app.envs.road_map import GridIndex, load_map
-from coin_app.envs.sensors import ego_features, lidar_scan, line_detector
+from coin_app.envs.sensors import ego_features, lidar_scan, line_detector, local_state
 
 EMPTY, ACTIVE, DYING = 0, 1, 2
 CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
@@ -473,22 +473,7 @@ class DrivingSimulator:
             lanes = line_detector(pos, hd, m.line_p1, m.line_p2, hw, cfg.lane_line_detector_range)
             ego = np.concatenate([side, ego[:, 2:8], lanes, ego[:, 9:19]], 1)
         obs = np.concatenate([ego, lidar / cfg.lidar_range], 1).astype(np.float32)
-        nd = cfg.navi_point_dist
-
-        def clip_vec(d: np.ndarray) -> np.ndarray:
-            n = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-            return d * np.minimum(1.0, nd / n)[:, None] / nd
-
-        state = np.concatenate(
-            [
-                (pos - m.centre) / m.scale,
-                self.vel[slots] / cfg.max_speed,
-                np.stack([np.cos(hd), np.sin(hd)], 1),
-                clip_vec(ck1 - pos),
-                clip_vec(ck2 - pos),
-            ],
-            1,
-        ).astype(np.float32)
+        state = local_state(pos, self.vel[slots], hd, ck1, ck2, m.centre, m.scale, cfg.max_speed, cfg.navi_point_dist)
         return obs, state
 
     def _result(

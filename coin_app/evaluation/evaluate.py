@@ -1,8 +1,13 @@
-"""Ray-free evaluation of a policy on the native simulator: one deterministic episode per seed.
+"""Ray-free evaluation of a policy on either backend: one deterministic episode per seed.
 
 A policy is any callable mapping a batch of observations ``(N, obs_dim)`` to actions
-``(N, 2)``. All seeds run together in one batched simulator, so one policy call per env
-step serves every agent of every episode.
+``(N, 2)`` (see :mod:`coin_app.evaluation.policies` for checkpoints and exported files).
+On the native backend all seeds run together in one batched simulator, so one policy call
+per env step serves every agent of every episode. On MetaDrive each episode runs in a
+fresh engine: MetaDrive's physics carries tiny state across resets of one engine, so
+only a fresh engine makes an episode depend on its seed alone. MetaDrive allows one
+engine per process; if this process already has one open (an env runner's), the
+episodes run in a worker process instead.
 
 Seed sets are disjoint: training runs seed their envs below ``VALIDATION_SEED_BASE``;
 validation seeds (checkpoint selection, periodic evaluation) are ``VALIDATION_SEED_BASE + k``
@@ -12,6 +17,7 @@ and test seeds (reported results) ``TEST_SEED_BASE + k``. Never select on test s
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -37,10 +43,12 @@ def validation_seeds(n: int) -> list[int]:
 
 
 def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int], max_steps: int | None = None) -> list[dict[str, float]]:
-    """Per-episode metrics (one dict per seed, in order) of ``policy`` on ``config``."""
+    """Per-episode metrics (one dict per seed, in order) of ``policy`` on ``config`` (native or MetaDrive backend)."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("evaluate_policy needs at least one seed")
+    if config.backend == "metadrive":
+        return _evaluate_metadrive(policy, config, seeds, max_steps)
     sim = DrivingSimulator(config, num_envs=len(seeds))
     res = sim.reset(seeds)
     returns = np.zeros(sim.num_slots)
@@ -68,3 +76,53 @@ def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int]
         if finished.all():
             break
     return [rec.metrics() for rec in recorders]
+
+
+def run_episode(env: Any, policy: Policy, seed: int, max_steps: int) -> dict[str, float]:
+    """Metrics of one episode of ``policy`` on a dict-API driving env (native ``DrivingEnv`` or MetaDrive)."""
+    recorder = EpisodeRecorder()
+    obs, infos = env.reset(seed)
+    recorder.reset(infos)
+    for _ in range(max_steps):
+        agents = list(env.agents)
+        act = np.asarray(policy(np.stack([obs[a] for a in agents])), dtype=float) if agents else np.zeros((0, 2))
+        if act.shape != (len(agents), 2):
+            raise ValueError(f"policy returned actions of shape {act.shape}; expected ({len(agents)}, 2)")
+        new_obs, rewards, terms, truncs, infos = env.step(dict(zip(agents, act)))
+        obs.update(new_obs)
+        recorder.step(infos, terms, truncs, rewards)
+        if env.episode_over:
+            break
+    return recorder.metrics()
+
+
+def _evaluate_metadrive(policy: Policy, config: ScenarioConfig, seeds: list[int], max_steps: int | None) -> list[dict[str, float]]:
+    """MetaDrive episodes, each in a fresh engine; in a worker process if this one already runs MetaDrive."""
+    from coin_app.envs import metadrive_env
+
+    if metadrive_env.open_in_this_process():
+        return _in_worker_process(policy, config, seeds, max_steps)
+    limit = max_steps if max_steps is not None else config.force_stop_factor * config.horizon + 1
+    out = []
+    for seed in seeds:
+        with metadrive_env.MetaDriveDrivingEnv(config) as env:
+            out.append(run_episode(env, policy, seed, limit))
+    return out
+
+
+def _worker(payload: bytes) -> list[dict[str, float]]:
+    import cloudpickle
+
+    policy, config, seeds, max_steps = cloudpickle.loads(payload)
+    return evaluate_policy(policy, config, seeds, max_steps)
+
+
+def _in_worker_process(policy: Policy, config: ScenarioConfig, seeds: list[int], max_steps: int | None) -> list[dict[str, float]]:
+    """``evaluate_policy`` in a fresh spawned process (the policy travels by cloudpickle)."""
+    import multiprocessing as mp
+
+    import cloudpickle
+
+    payload = cloudpickle.dumps((policy, config, seeds, max_steps))
+    with mp.get_context("spawn").Pool(1) as pool:
+        return pool.apply(_worker, (payload,))

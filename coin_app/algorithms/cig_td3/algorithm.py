@@ -119,10 +119,10 @@ class CigTd3(Algorithm):
         results = super().step()
         every = self.config.eval_every
         if every and (self.iteration + 1) % every == 0:
-            results["coin_eval"] = self.evaluate_native(validation_seeds(self.config.eval_episodes))
+            results["coin_eval"] = self.evaluate_actor(validation_seeds(self.config.eval_episodes))
         return results
 
-    def evaluate_native(self, seeds: list[int]) -> dict[str, float]:
+    def evaluate_actor(self, seeds: list[int]) -> dict[str, float]:
         """Mean of the six metrics (and counts) of the current deterministic actor over ``seeds``."""
         actor = self.learner_group._learner.module[SHARED_MODULE_ID].unwrapped().actor
 

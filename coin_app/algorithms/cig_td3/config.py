@@ -13,7 +13,7 @@ from ray.rllib.algorithms.algorithm_config import AlgorithmConfig, NotProvided
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
 from coin_app.envs.config import ScenarioConfig, make_config
-from coin_app.envs.rllib_env import ENV_IDS, SHARED_MODULE_ID, policy_mapping_fn
+from coin_app.envs.rllib_env import ENV_IDS, SHARED_MODULE_ID, backend_errors, policy_mapping_fn
 from coin_app.envs.road_map import load_map
 from coin_app.envs.simulator import MAX_RESPAWN_PER_STEP
 
@@ -81,7 +81,7 @@ class CigTd3Config(AlgorithmConfig):
 
     # ---------------------------------------------------------------- env facts
     def scenario_config(self) -> ScenarioConfig:
-        """The native scenario config this algorithm trains on (from ``env`` and ``env_config``)."""
+        """The scenario config this algorithm trains on (from ``env`` and ``env_config``; native or MetaDrive backend)."""
         if not isinstance(self.env, str) or self.env not in ENV_IDS:
             raise ValueError(f"CIG-TD3 needs one of the registered envs {sorted(ENV_IDS)}, got env={self.env!r}")
         overrides = dict(self.env_config or {})
@@ -143,6 +143,7 @@ class CigTd3Config(AlgorithmConfig):
             self.scenario_config()
         except ValueError as exc:
             errors.append(str(exc))
+        errors += backend_errors(self)
         if errors:
             raise ValueError("invalid CIG-TD3 config: " + "; ".join(errors))
 

@@ -1,0 +1,36 @@
+"""One policy interface for evaluation: an RLlib checkpoint, an exported policy file, or a callable.
+
+:func:`as_policy` turns any of the three into a callable ``(N, obs_dim) -> (N, 2)`` that
+:func:`~coin_app.evaluation.evaluate.evaluate_policy` runs on either backend.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+Policy = Callable[[np.ndarray], np.ndarray]
+
+
+def as_policy(source: Any) -> Policy:
+    """A batch policy from a callable, a coin_app checkpoint directory or an exported ``.npz`` file."""
+    if callable(source):
+        return source
+    if not isinstance(source, (str, Path)):
+        raise TypeError(f"cannot make a policy from {type(source).__name__}; allowed: a callable, a checkpoint directory, a .npz file")
+    path = Path(source)
+    if path.is_dir():
+        from coin_app.algorithms.checkpoints import load_policy as load_checkpoint
+
+        return load_checkpoint(path)
+    if path.is_file():
+        from coin_app.inference import load_policy as load_exported
+
+        return load_exported(path)
+    raise ValueError(f"policy source {path} does not exist; allowed: a checkpoint directory or an exported .npz file")
+
+
+__all__ = ["Policy", "as_policy"]

@@ -1,0 +1,198 @@
+"""The MetaDrive backend: same interface, ids, flags, local state and metrics as the native env.
+
+Runs only with the optional extra installed (CI installs it). MetaDrive allows one engine
+per process, so every test closes its env.
+"""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("metadrive", reason="the optional MetaDrive extra is not installed (pip install -r requirements-metadrive.txt)")
+
+from coin_app.envs.config import make_config  # noqa: E402
+from coin_app.envs.driving_env import DrivingEnv  # noqa: E402
+from coin_app.envs.metadrive_env import MetaDriveDrivingEnv, open_in_this_process  # noqa: E402
+from coin_app.envs.rendering import EpisodeTrace, write_gif  # noqa: E402
+from coin_app.envs.rllib_env import CoinMultiAgentEnv  # noqa: E402
+from coin_app.envs.road_map import load_map  # noqa: E402
+from coin_app.evaluation.evaluate import evaluate_policy  # noqa: E402
+from coin_app.evaluation.metrics import EpisodeRecorder  # noqa: E402
+
+SMALL = {"num_agents": 4, "horizon": 60, "max_agent_steps": 60}
+NATIVE_INFO_KEYS = set(DrivingEnv(make_config("intersection", num_agents=2)).reset(0)[1]["agent0"])
+
+
+def forward_policy(rng):
+    return lambda obs: np.stack([rng.uniform(-0.4, 0.4, len(obs)), rng.uniform(0.3, 1.0, len(obs))], 1)
+
+
+@pytest.mark.parametrize("scenario,obs_dim", [("intersection", 91), ("roundabout", 91), ("bottleneck", 96)])
+def test_rllib_adapter_spaces_ids_and_all_flags(scenario, obs_dim):
+    env = CoinMultiAgentEnv({"scenario": scenario, "backend": "metadrive", **SMALL, "delay_done": 2})
+    try:
+        pool = set(env.possible_agents)
+        assert len(pool) == 4 + 4 * 60
+        obs, infos = env.reset(seed=1)
+        assert sorted(obs) == [f"agent{i}" for i in range(4)] and set(infos) == set(obs)
+        seen, finished = set(obs), set()
+        rng = np.random.default_rng(0)
+        steps = 0
+        while True:  # hard constant steering: vehicles leave the road and respawn within the horizon
+            acts = {a: np.array([0.6 if int(a[5:]) % 2 else -0.6, rng.uniform(0.5, 1.0)]) for a in env.agents}
+            obs, rew, term, trunc, infos = env.step(acts)
+            steps += 1
+            assert "__all__" in term and "__all__" in trunc
+            assert set(rew) == set(acts) and set(term) - {"__all__"} == set(acts) == set(trunc) - {"__all__"}
+            assert set(infos) == set(obs) and set(obs) <= pool
+            for aid, o in obs.items():
+                assert o.shape == (obs_dim,) and o.dtype == np.float32
+                assert env.observation_spaces[aid].contains(o)
+                assert set(infos[aid]) == NATIVE_INFO_KEYS
+                assert infos[aid]["env_step"] == steps
+            new = set(obs) - set(acts)
+            assert not new & seen, "respawned vehicles get new, never reused ids"
+            seen |= new
+            for aid in acts:
+                assert not (term[aid] and trunc[aid])
+                if trunc[aid]:  # a vehicle's own step limit: truncated, never terminated
+                    assert infos[aid]["max_step"] and infos[aid]["episode_length"] == 60
+                if term[aid]:
+                    i = infos[aid]
+                    assert i["arrive_dest"] or i["crash_vehicle"] or i["out_of_road"]
+                if term[aid] or trunc[aid]:
+                    finished.add(aid)
+            if term["__all__"]:
+                break
+            assert not trunc["__all__"] and set(env.agents) == (set(acts) - finished) | new
+        assert len(seen) > 4 and finished  # vehicles finished and respawned
+        with pytest.raises(RuntimeError, match="reset"):
+            env.step({})
+    finally:
+        env.close()
+    assert not open_in_this_process()
+
+
+def test_local_state_matches_metadrive_vehicles():
+    env = MetaDriveDrivingEnv(scenario="roundabout", num_agents=6)
+    try:
+        m = load_map("roundabout")
+        obs, infos = env.reset(seed=3)
+        rng = np.random.default_rng(1)
+        for _ in range(25):
+            obs, _, _, _, infos = env.step({a: np.array([rng.uniform(-0.2, 0.2), 0.8]) for a in env.agents})
+        checked = 0
+        for aid in env.agents:
+            v, s = env.md.agents[aid], infos[aid]["state"]
+            h = v.heading_theta
+            np.testing.assert_allclose(s[:2], (np.asarray(v.position) - m.centre) / m.scale, atol=1e-5)
+            np.testing.assert_allclose(s[2:4], np.asarray(v.velocity) / (80 / 3.6), atol=1e-5)
+            np.testing.assert_allclose(s[4:6], [np.cos(h), np.sin(h)], atol=1e-6)
+            # checkpoint 1 = middle of the current reference road's end = mean of its lane ends
+            ck = np.mean([np.asarray(lane.end) for lane in v.navigation.current_ref_lanes], 0)
+            d = ck - np.asarray(v.position)
+            d = d * min(1.0, 50.0 / np.linalg.norm(d)) / 50.0
+            np.testing.assert_allclose(s[6:8], d, atol=1e-5)
+            # MetaDrive's own observation of checkpoint 1 (ego frame, forward component)
+            assert abs(obs[aid][9] - (np.dot(s[6:8], [np.cos(h), np.sin(h)]) + 1) / 2) < 1e-4
+            assert np.hypot(*s[8:10]) <= 1 + 1e-6
+            checked += 1
+        assert checked >= 3
+    finally:
+        env.close()
+
+
+def test_metrics_agree_with_raw_metadrive_infos():
+    env = MetaDriveDrivingEnv(scenario="intersection", **SMALL)
+    raw_step = env.md.step
+    raw = []
+
+    def recording_step(actions):
+        out = raw_step(actions)
+        raw.append(out)
+        return out
+
+    env.md.step = recording_step
+    try:
+        rec = EpisodeRecorder()
+        obs, infos = env.reset(seed=5)
+        rec.reset(infos)
+        policy = forward_policy(np.random.default_rng(2))
+        while not env.episode_over:
+            agents = list(env.agents)
+            acts = dict(zip(agents, policy(np.stack([obs[a] for a in agents]))))
+            new_obs, rewards, terms, truncs, infos = env.step(acts)
+            obs.update(new_obs)
+            rec.step(infos, terms, truncs, rewards)
+        got = rec.metrics()
+    finally:
+        env.close()
+    # independent count over MetaDrive's own per-agent infos: each vehicle's first done step decides
+    vehicles, outcome = set(obs) | {f"agent{i}" for i in range(4)}, {}
+    for o, r, tm, tc, info in raw:
+        vehicles |= set(o)
+        for aid in tm:
+            if aid == "__all__" or aid in outcome or not (tm[aid] or tc[aid]):
+                continue
+            i = info[aid]
+            outcome[aid] = "arrive" if i["arrive_dest"] else "crash" if i["crash_vehicle"] else "oor" if i["out_of_road"] else "time"
+            if outcome[aid] in ("crash", "oor"):
+                assert r[aid] == -5.0  # the paper's penalty reached MetaDrive (its own default is -10)
+    n = len(vehicles)
+    counts = {k: sum(v == k for v in outcome.values()) for k in ("arrive", "crash", "oor")}
+    assert got["num_vehicles"] == n > 4
+    assert got["num_crashed"] == counts["crash"] and got["num_out_of_road"] == counts["oor"]
+    assert got["num_arrived"] == counts["arrive"]
+    assert got["success_rate"] == pytest.approx(counts["arrive"] / n)
+    assert got["collision_rate"] == pytest.approx(counts["crash"] / n)
+    assert got["safety"] == -(counts["crash"] + counts["oor"])
+    assert counts["crash"] + counts["oor"] > 0
+    assert got["env_steps"] == len(raw)
+
+
+def scripted(obs):
+    # steer towards checkpoint 1 (its lateral feature), hold ~30 km/h
+    steer = np.clip(4.0 * (obs[:, 10] - 0.5), -1, 1)
+    throttle = np.where(obs[:, 3] < 0.35, 0.6, -0.1)
+    return np.stack([steer, throttle], 1)
+
+
+def test_scripted_policy_metrics_repeat_exactly():
+    cfg = make_config("intersection", backend="metadrive", **SMALL)
+    first = evaluate_policy(scripted, cfg, [11, 12])
+    np.testing.assert_equal(evaluate_policy(scripted, cfg, [11, 12]), first)  # NaN == NaN here (no arrivals)
+    np.testing.assert_equal(evaluate_policy(scripted, cfg, [12]), first[1:])  # an episode depends on its seed only
+    assert first[0]["episode_return"] != first[1]["episode_return"]
+    # with an engine already open here, the episodes run in a worker process: same numbers
+    env = MetaDriveDrivingEnv(cfg)
+    try:
+        np.testing.assert_equal(evaluate_policy(scripted, cfg, [11, 12]), first)
+    finally:
+        env.close()
+
+
+def test_one_engine_per_process_topdown_rendering_and_no_3d(tmp_path):
+    env = MetaDriveDrivingEnv(scenario="bottleneck", num_agents=4)
+    try:
+        with pytest.raises(RuntimeError, match="one engine per process"):
+            MetaDriveDrivingEnv(scenario="intersection")
+        trace = EpisodeTrace()
+        _, infos = env.reset(seed=0)
+        trace.record(env, infos)
+        frames = [env.render("topdown", size=(160, 120))]
+        for _ in range(10):
+            _, _, _, _, infos = env.step({a: np.array([0.0, 1.0]) for a in env.agents})
+            trace.record(env, infos)
+            frames.append(env.render("topdown", size=(160, 120)))
+        assert frames[0].shape == (120, 160, 3) and frames[0].dtype == np.uint8
+        assert not np.array_equal(frames[0], frames[-1])  # the cars moved
+        paths = trace.trajectories()
+        assert len(paths) == 4 and all(len(p) == 11 for p in paths.values())
+        assert all(1.0 < np.linalg.norm(p[-1] - p[0]) < 2.5 for p in paths.values())  # ~ a t^2 / 2 = 1.45 m
+        assert write_gif(frames, tmp_path / "md.gif").stat().st_size > 0
+        md_frame = env.render("metadrive_topdown", size=(100, 100))
+        assert md_frame.ndim == 3 and md_frame.shape[2] == 3
+        with pytest.raises(RuntimeError, match="3D assets"):
+            env.render("rgb_array")
+    finally:
+        env.close()
+    MetaDriveDrivingEnv(scenario="intersection").close()  # a new engine after close()
