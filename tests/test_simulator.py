@@ -285,6 +285,8 @@ def test_metadrive_backend_config_follows_metadrive():
     assert make_config("roundabout", backend="metadrive").obs_dim == 91
     with pytest.raises(ValueError, match="obs_layout.*'bottleneck96' on the MetaDrive bottleneck"):
         make_config("bottleneck", backend="metadrive", obs_layout="standard")
+    with pytest.raises(ValueError, match="native simulator cannot run backend 'metadrive'.*make_driving_env"):
+        DrivingSimulator(cfg)
 
 
 def test_metadrive_config_mapping():

@@ -64,6 +64,11 @@ class DrivingSimulator:
     def __init__(self, config: ScenarioConfig, num_envs: int = 1):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"bad num_envs {num_envs!r}; allowed: an integer >= 1")
+        if config.backend != "native":
+            raise ValueError(
+                f"the native simulator cannot run backend {config.backend!r}; "
+                "use coin_app.envs.driving_env.make_driving_env(config) (or backend='native')"
+            )
         self.cfg = config
         self.map = load_map(config.scenario)
         m = self.map
