@@ -22,18 +22,22 @@ from pathlib import Path
 import numpy as np
 
 
-def run_one(job: tuple[str, int, str, int, int, dict, int]) -> list[dict]:
+def run_one(job: tuple[str, int, str, int, int, dict, int, int]) -> list[dict]:
     """Train one (algo, seed) run and return its evaluation rows."""
-    algo_name, seed, scenario, steps, eval_every, overrides, eval_episodes = job
+    algo_name, seed, scenario, steps, eval_every, overrides, eval_episodes, threads = job
     import ray
     import torch
 
-    from coin_app.algorithms.registry import build_config
+    from coin_app.algorithms.registry import build_config, evaluate_algorithm, get, quick_settings
     from coin_app.evaluation.evaluate import validation_seeds
 
     torch.set_num_threads(1)
     ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
-    cfg = build_config(algo_name, scenario, dict(overrides), seed).reporting(min_sample_timesteps_per_iteration=eval_every)
+    # the algorithm's quick settings; --set keys apply to every algorithm (unknown ones are refused)
+    settings = {**quick_settings(algo_name), **overrides}
+    if "learner_threads" in get(algo_name).keys():
+        settings.setdefault("learner_threads", threads)
+    cfg = build_config(algo_name, scenario, settings, seed).reporting(min_sample_timesteps_per_iteration=eval_every)
     algo = cfg.build_algo()
     rows = []
     sampled = 0
@@ -41,7 +45,7 @@ def run_one(job: tuple[str, int, str, int, int, dict, int]) -> list[dict]:
     while sampled < steps:
         res = algo.train()
         sampled = int(res["env_runners"]["num_env_steps_sampled_lifetime"])
-        ev = algo.evaluate_actor(validation_seeds(eval_episodes))
+        ev = evaluate_algorithm(algo, validation_seeds(eval_episodes))
         ev["eval_episode_steps"] = ev.pop("env_steps")  # the evaluation episodes' length, not training steps
         rows.append({"algo": algo_name, "seed": seed, "env_steps": sampled, "wall_s": round(time.perf_counter() - t0, 1), **ev})
         print(f"{algo_name} seed {seed}: {sampled} steps, success {ev['success_rate']:.3f}", flush=True)
@@ -78,7 +82,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
 
 def main() -> None:
     """Run every (algorithm, seed), then write the CSV, the PNG and a summary."""
-    from coin_app.algorithms.registry import QUICK_SETTINGS
+    from coin_app.algorithms.registry import quick_settings
     from coin_app.cli import parse_overrides
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -94,11 +98,16 @@ def main() -> None:
     args = ap.parse_args()
     # runs in parallel share the cores: one torch thread each unless --set learner_threads=N
     threads = max(1, (os.cpu_count() or 1) // args.procs)
-    overrides = {**QUICK_SETTINGS, "learner_threads": threads, **parse_overrides(args.set)}
+    overrides = parse_overrides(args.set)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(a, s, args.scenario, args.steps, args.eval_every, overrides, args.eval_episodes) for a in args.algos for s in args.seeds]
-    print(f"{len(jobs)} runs of {args.steps} env steps on {args.scenario} ({args.procs} at a time); overrides {overrides}")
+    jobs = [
+        (a, s, args.scenario, args.steps, args.eval_every, overrides, args.eval_episodes, threads) for a in args.algos for s in args.seeds
+    ]
+    print(
+        f"{len(jobs)} runs of {args.steps} env steps on {args.scenario} ({args.procs} at a time); "
+        f"quick settings {[quick_settings(a) for a in args.algos]} + {overrides}"
+    )
     with mp.get_context("spawn").Pool(args.procs) as pool:
         rows = [r for rows in pool.map(run_one, jobs) for r in rows]
     with open(out / "curves.csv", "w", newline="") as f:
@@ -106,7 +115,9 @@ def main() -> None:
         writer.writeheader()
         writer.writerows(rows)
     plot(rows, out / "curves.png", f"{args.scenario}: success vs env steps ({len(args.seeds)} seeds)")
-    (out / "settings.json").write_text(json.dumps(vars(args) | {"overrides": overrides}, indent=2))
+    (out / "settings.json").write_text(
+        json.dumps(vars(args) | {"quick_settings": {a: quick_settings(a) for a in args.algos}, "overrides": overrides}, indent=2)
+    )
     print("\nfinal evaluation (mean ± std over seeds):")
     for algo in args.algos:
         runs = {r["seed"] for r in rows if r["algo"] == algo}

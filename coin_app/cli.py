@@ -184,21 +184,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     """Export a checkpoint's deterministic actor to a Ray-free file."""
     import torch
-    from ray.rllib.core.rl_module.rl_module import RLModule
 
-    from coin_app.algorithms.checkpoints import MODULE_PATH, read_metadata
+    from coin_app.algorithms.checkpoints import deterministic_actor, load_module, read_metadata
     from coin_app.inference import export_numpy, load_policy
 
     if args.format != "numpy":
         raise ValueError(f"unknown --format {args.format!r}; allowed: numpy")
     checkpoint = Path(args.checkpoint)
     meta = read_metadata(checkpoint)
-    module = RLModule.from_checkpoint(str(checkpoint.resolve().joinpath(*MODULE_PATH)))
-    out = export_numpy(module.actor, args.out, meta={k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta})
+    actor = deterministic_actor(load_module(checkpoint))
+    out = export_numpy(actor, args.out, meta={k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta})
     exported = load_policy(out)
     obs = torch.rand(64, exported.obs_dim)
     with torch.no_grad():
-        gap = float(abs(module.actor(obs).numpy() - exported(obs.numpy())).max())
+        gap = float(abs(actor(obs).numpy() - exported(obs.numpy())).max())
     print(f"export: {checkpoint} -> {out} ({args.format}, obs {exported.obs_dim}); max |action difference| on 64 random obs {gap:.1e}")
     return 0
 
@@ -240,8 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
     demo.set_defaults(func=cmd_demo)
 
-    tr = sub.add_parser("train", help="train cig_td3 | itd3 on a scenario, with checkpoints and --resume")
-    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3")
+    tr = sub.add_parser("train", help="train cig_td3 | itd3 | ippo on a scenario, with checkpoints and --resume")
+    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | ippo")
     tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck")
     tr.add_argument("--num-agents", type=int, default=None)
     tr.add_argument("--backend", default="native", help="native | metadrive (needs requirements-metadrive.txt)")

@@ -45,14 +45,46 @@ def scenario_of(checkpoint: Path, **overrides: Any) -> ScenarioConfig:
     return make_config(meta["scenario"], preset, **env_cfg)
 
 
-def load_policy(checkpoint: Path) -> Callable[[np.ndarray], np.ndarray]:
-    """The checkpoint's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
+def deterministic_actor(module: Any) -> Any:
+    """The observation -> action network of a trained module as a plain torch ``nn.Sequential``.
+
+    CIG-TD3 / ITD3: the tanh actor. PPO family: the Gaussian policy's mean (actor encoder and
+    ``pi`` head, the head cut to the mean outputs), clipped to the action bounds [-1, 1] as the
+    env clips actions.
+    """
     import torch
+    from torch import nn
+
+    if hasattr(module, "actor"):
+        return module.actor.net
+    if hasattr(module, "encoder") and hasattr(module, "pi"):
+        enc = getattr(module.encoder, "actor_encoder", module.encoder)
+        layers = [*enc.net.mlp, *module.pi.net.mlp]
+        last = layers[-1]
+        if not isinstance(last, nn.Linear):
+            raise ValueError(f"cannot extract a deterministic actor: the policy head ends in {last!r}")
+        act_dim = last.out_features // 2
+        mean = nn.Linear(last.in_features, act_dim)
+        with torch.no_grad():
+            mean.weight.copy_(last.weight[:act_dim])
+            mean.bias.copy_(last.bias[:act_dim])
+        return nn.Sequential(*layers[:-1], mean, nn.Hardtanh(-1.0, 1.0)).eval()
+    raise ValueError(f"cannot extract a deterministic actor from {type(module).__name__}")
+
+
+def load_module(checkpoint: Path) -> Any:
+    """The shared RLModule stored in a coin_app checkpoint."""
     from ray.rllib.core.rl_module.rl_module import RLModule
 
     read_metadata(checkpoint)
-    module = RLModule.from_checkpoint(str(Path(checkpoint).resolve().joinpath(*MODULE_PATH)))
-    actor = module.actor.eval()
+    return RLModule.from_checkpoint(str(Path(checkpoint).resolve().joinpath(*MODULE_PATH)))
+
+
+def load_policy(checkpoint: Path) -> Callable[[np.ndarray], np.ndarray]:
+    """The checkpoint's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
+    import torch
+
+    actor = deterministic_actor(load_module(checkpoint)).eval()
 
     def policy(obs: np.ndarray) -> np.ndarray:
         with torch.no_grad():

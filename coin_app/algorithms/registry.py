@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ class AlgorithmEntry:
     description: str
     build: Callable[[str, dict[str, Any], dict[str, Any], int], Any]  # (scenario, env_cfg, algo_cfg, seed) -> config
     keys: Callable[[], tuple[str, ...]]  # the algorithm's --set keys
+    quick: dict[str, Any] = field(default_factory=dict)  # hyper-parameters of the small QUICK scenario
 
 
 def _cig_td3_config(itd3: bool) -> Callable[[str, dict[str, Any], dict[str, Any], int], Any]:
@@ -47,14 +48,24 @@ def _cig_td3_keys() -> tuple[str, ...]:
     return (*HYPERPARAMETERS, "gamma", "train_batch_size_per_learner", "rollout_fragment_length")
 
 
+def _ippo_build(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> Any:
+    from coin_app.algorithms.ppo_family.config import build_ippo_config
+
+    return build_ippo_config(scenario, env_cfg, algo_cfg, seed)
+
+
+def _ppo_keys() -> tuple[str, ...]:
+    from coin_app.algorithms.ppo_family.config import ppo_hyperparameter_keys
+
+    return ppo_hyperparameter_keys()
+
+
 ALGORITHMS: dict[str, AlgorithmEntry] = {}
 
 # A small bottleneck setting that learns within minutes on a laptop CPU (CI learning test,
 # benchmarks/learning_curves.py): four agents, small networks, faster learning rates.
-QUICK_SETTINGS: dict[str, Any] = {
-    "num_agents": 4,
-    "horizon": 300,
-    "max_agent_steps": 300,
+QUICK_SCENARIO: dict[str, Any] = {"num_agents": 4, "horizon": 300, "max_agent_steps": 300}
+QUICK_TD3: dict[str, Any] = {
     "warmup_steps": 500,
     "train_batch_size_per_learner": 128,
     "hidden": 64,
@@ -66,6 +77,7 @@ QUICK_SETTINGS: dict[str, Any] = {
     "central_critic_lr": 1e-3,
     "eval_every": 0,
 }
+QUICK_SETTINGS: dict[str, Any] = {**QUICK_SCENARIO, **QUICK_TD3}  # CIG-TD3 / ITD3 on the quick scenario
 
 
 def register(entry: AlgorithmEntry) -> None:
@@ -80,8 +92,13 @@ def get(name: str) -> AlgorithmEntry:
     return ALGORITHMS[name]
 
 
-register(AlgorithmEntry("cig_td3", "COIN: CIG-TD3 with the interaction-aware centralized critic", _cig_td3_config(False), _cig_td3_keys))
-register(AlgorithmEntry("itd3", "ITD3: independent TD3 with parameter sharing", _cig_td3_config(True), _cig_td3_keys))
+register(
+    AlgorithmEntry(
+        "cig_td3", "COIN: CIG-TD3 with the interaction-aware centralized critic", _cig_td3_config(False), _cig_td3_keys, QUICK_TD3
+    )
+)
+register(AlgorithmEntry("itd3", "ITD3: independent TD3 with parameter sharing", _cig_td3_config(True), _cig_td3_keys, QUICK_TD3))
+register(AlgorithmEntry("ippo", "IPPO: PPO with one shared policy, value on the own observation", _ippo_build, _ppo_keys, {"hidden": 64}))
 
 
 def split_overrides(name: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -105,7 +122,46 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
     make_config(scenario, env_cfg.get("preset", "paper"), **{k: v for k, v in env_cfg.items() if k != "preset"})
     cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed)
     cfg.validate()
+    from coin_app.envs.rllib_env import register_envs
+
+    register_envs()  # the coin-<scenario>-v0 names the config refers to
     return cfg
+
+
+def scenario_config_of(config: Any) -> ScenarioConfig:
+    """The scenario config an RLlib algorithm config trains on (its registered env id and ``env_config``)."""
+    from coin_app.envs.rllib_env import ENV_IDS
+
+    if config.env not in ENV_IDS:
+        raise ValueError(f"env {config.env!r} is not a coin_app scenario; allowed: {', '.join(ENV_IDS)}")
+    env_cfg = dict(config.env_config or {})
+    env_cfg.pop("scenario", None)
+    return make_config(ENV_IDS[config.env], env_cfg.pop("preset", "paper"), **env_cfg)
+
+
+def evaluate_algorithm(algo: Any, seeds: list[int]) -> dict[str, float]:
+    """Mean metrics of an algorithm's current deterministic actor on ``seeds`` (either backend)."""
+    import numpy as np
+    import torch
+
+    from coin_app.algorithms.checkpoints import deterministic_actor
+    from coin_app.envs.rllib_env import SHARED_MODULE_ID
+    from coin_app.evaluation.evaluate import evaluate_policy
+    from coin_app.evaluation.metrics import aggregate
+
+    actor = deterministic_actor(algo.learner_group._learner.module[SHARED_MODULE_ID].unwrapped())
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return actor(torch.as_tensor(np.asarray(obs, dtype=np.float32))).numpy()
+
+    per_episode = evaluate_policy(policy, scenario_config_of(algo.config), seeds)
+    return {k: v["mean"] for k, v in aggregate(per_episode).items()}
+
+
+def quick_settings(name: str) -> dict[str, Any]:
+    """Settings of algorithm ``name`` on the small quick scenario (learning test, learning curves)."""
+    return {**QUICK_SCENARIO, **get(name).quick}
 
 
 def save(algo: Any, checkpoint: Path, meta: dict[str, Any]) -> None:
@@ -165,7 +221,7 @@ def train(
         log(
             f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
             f"episode return {runners.get('episode_return_mean', float('nan')):8.2f}  "
-            f"critic loss {learner.get('local_critic_loss', float('nan')):8.4f}"
+            f"critic loss {learner.get('local_critic_loss', learner.get('vf_loss', float('nan'))):8.4f}"
         )
         if "coin_eval" in result:
             last_eval = result["coin_eval"]

@@ -1,7 +1,7 @@
 """The numpy export format: an actor MLP as plain ``.npz`` weights and a numpy forward pass.
 
 File layout (``np.savez``): ``format`` = ``"coin_app.numpy_mlp.v1"``, ``activations`` = one
-name per layer (``relu`` | ``tanh`` | ``leaky_relu`` | ``identity``), ``W<k>`` (out, in) and
+name per layer (``relu`` | ``tanh`` | ``leaky_relu`` | ``clip`` (to [-1, 1]) | ``identity``), ``W<k>`` (out, in) and
 ``b<k>`` (out,) for each linear layer k, and optional ``meta`` (a JSON string: algorithm,
 scenario, observation size). Loading needs only numpy: no torch, no Ray.
 """
@@ -20,6 +20,7 @@ _ACTIVATIONS = {
     "tanh": np.tanh,
     "leaky_relu": lambda x: np.where(x > 0, x, 0.01 * x),
     "identity": lambda x: x,
+    "clip": lambda x: np.clip(x, -1.0, 1.0),
 }
 
 
@@ -62,7 +63,7 @@ def _layers(module: Any) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]
     seq = next((m for m in module.modules() if isinstance(m, nn.Sequential)), None)
     if seq is None:
         raise ValueError(f"cannot export {type(module).__name__}: no nn.Sequential MLP inside")
-    names = {nn.ReLU: "relu", nn.Tanh: "tanh", nn.LeakyReLU: "leaky_relu", nn.Identity: "identity"}
+    names = {nn.ReLU: "relu", nn.Tanh: "tanh", nn.LeakyReLU: "leaky_relu", nn.Identity: "identity", nn.Hardtanh: "clip"}
     weights, biases, acts = [], [], []
     for layer in seq:
         if isinstance(layer, nn.Linear):
@@ -72,9 +73,11 @@ def _layers(module: Any) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]
         elif type(layer) in names and weights:
             if type(layer) is nn.LeakyReLU and layer.negative_slope != 0.01:
                 raise ValueError(f"LeakyReLU slope {layer.negative_slope} not supported; allowed: 0.01")
+            if type(layer) is nn.Hardtanh and (layer.min_val, layer.max_val) != (-1.0, 1.0):
+                raise ValueError(f"Hardtanh bounds ({layer.min_val}, {layer.max_val}) not supported; allowed: (-1, 1)")
             acts[-1] = names[type(layer)]
         else:
-            raise ValueError(f"cannot export layer {layer!r}; allowed: Linear, ReLU, Tanh, LeakyReLU(0.01), Identity")
+            raise ValueError(f"cannot export layer {layer!r}; allowed: Linear, ReLU, Tanh, LeakyReLU(0.01), Hardtanh(-1, 1), Identity")
     return weights, biases, acts
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import torch
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.execution.rollout_ops import synchronous_parallel_sample
@@ -36,8 +35,7 @@ from coin_app.algorithms.cig_td3.config import CigTd3Config
 from coin_app.algorithms.cig_td3.replay import JointStepReplayBuffer, episodes_to_transitions
 from coin_app.algorithms.cig_td3.rl_module import STATE_DIM
 from coin_app.envs.rllib_env import SHARED_MODULE_ID, register_envs
-from coin_app.evaluation.evaluate import evaluate_policy, validation_seeds
-from coin_app.evaluation.metrics import aggregate
+from coin_app.evaluation.evaluate import validation_seeds
 
 REPLAY_STATE_KEY = "cig_td3_replay"
 
@@ -124,14 +122,9 @@ class CigTd3(Algorithm):
 
     def evaluate_actor(self, seeds: list[int]) -> dict[str, float]:
         """Mean of the six metrics (and counts) of the current deterministic actor over ``seeds``."""
-        actor = self.learner_group._learner.module[SHARED_MODULE_ID].unwrapped().actor
+        from coin_app.algorithms.registry import evaluate_algorithm
 
-        def policy(obs: np.ndarray) -> np.ndarray:
-            with torch.no_grad():
-                return actor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
-
-        per_episode = evaluate_policy(policy, self.config.scenario_config(), seeds)
-        return {k: v["mean"] for k, v in aggregate(per_episode).items()}
+        return evaluate_algorithm(self, seeds)
 
     # ------------------------------------------------------------------ checkpoints
     def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
