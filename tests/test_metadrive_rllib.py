@@ -94,3 +94,15 @@ def test_cli_trains_on_metadrive_exports_and_evaluates_on_both_backends(tmp_path
     assert [e["episode_return"] for e in results["npz"]] == pytest.approx([e["episode_return"] for e in results["ckpt"]], abs=1e-3)
     assert [e["num_vehicles"] for e in results["npz"]] == [e["num_vehicles"] for e in results["ckpt"]]
     assert [e["num_vehicles"] for e in results["native"]] and results["native"] != results["ckpt"]
+
+
+def test_ippo_iteration_on_metadrive():
+    settings = {**SMALL, "train_batch_size_per_learner": 100, "minibatch_size": 50, "num_epochs": 1, "hidden": 16}
+    algo = build_config("ippo", "bottleneck", settings, 0).build_algo()
+    try:
+        result = algo.train()
+        assert math.isfinite(float(result["learners"]["shared"]["vf_loss"]))
+        assert algo.config.env_config["backend"] == "metadrive"
+    finally:
+        algo.stop()
+    assert not open_in_this_process()
