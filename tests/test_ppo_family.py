@@ -107,3 +107,24 @@ def test_ippo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
         assert main(["evaluate", str(source), "--seeds", "3", "--out", str(tmp_path / "e.json")]) == 0
         episodes = json.loads((tmp_path / "e.json").read_text())["episodes"]
         assert episodes[0]["num_vehicles"] >= 3
+
+
+@pytest.mark.parametrize("variant", ["cppo", "mfpo"])
+def test_centralized_variants_train(ray_session, variant):
+    from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS
+
+    algo = build_config(variant, "bottleneck", TINY, 0).build_algo()
+    try:
+        learner = algo.learner_group._learner
+        pieces = [type(p).__name__ for p in learner._learner_connector.connectors]
+        assert pieces[-3:] == ["CriticInputs", "GeneralAdvantageEstimation", "OldValuePredictions"]
+        module = learner.module["shared"].unwrapped()
+        dim = 91 + 4 * 93 if variant == "cppo" else 2 * 91 + 2
+        assert module.central_vf[0].in_features == dim
+        assert not hasattr(algo.env_runner.module["shared"], "central_vf")  # env runners: policy only
+        for _ in range(2):
+            stats = algo.train()["learners"]["shared"]
+            assert math.isfinite(float(stats["vf_loss"])) and math.isfinite(float(stats["policy_loss"]))
+        assert module.compute_values({CRITIC_OBS: torch.zeros(3, dim)}).shape == (3,)
+    finally:
+        algo.stop()

@@ -48,16 +48,22 @@ def _cig_td3_keys() -> tuple[str, ...]:
     return (*HYPERPARAMETERS, "gamma", "train_batch_size_per_learner", "rollout_fragment_length")
 
 
-def _ippo_build(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> Any:
-    from coin_app.algorithms.ppo_family.config import build_ippo_config
+def _ppo_build(variant: str) -> Callable[[str, dict[str, Any], dict[str, Any], int], Any]:
+    def build(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> Any:
+        from coin_app.algorithms.ppo_family.config import build_ppo_config
 
-    return build_ippo_config(scenario, env_cfg, algo_cfg, seed)
+        return build_ppo_config(variant, scenario, env_cfg, algo_cfg, seed)
+
+    return build
 
 
-def _ppo_keys() -> tuple[str, ...]:
-    from coin_app.algorithms.ppo_family.config import ppo_hyperparameter_keys
+def _ppo_keys(variant: str) -> Callable[[], tuple[str, ...]]:
+    def keys() -> tuple[str, ...]:
+        from coin_app.algorithms.ppo_family.config import ppo_hyperparameter_keys
 
-    return ppo_hyperparameter_keys()
+        return ppo_hyperparameter_keys(variant)
+
+    return keys
 
 
 ALGORITHMS: dict[str, AlgorithmEntry] = {}
@@ -98,7 +104,21 @@ register(
     )
 )
 register(AlgorithmEntry("itd3", "ITD3: independent TD3 with parameter sharing", _cig_td3_config(True), _cig_td3_keys, QUICK_TD3))
-register(AlgorithmEntry("ippo", "IPPO: PPO with one shared policy, value on the own observation", _ippo_build, _ppo_keys, {"hidden": 64}))
+register(
+    AlgorithmEntry(
+        "ippo", "IPPO: PPO with one shared policy, value on the own observation", _ppo_build("ippo"), _ppo_keys("ippo"), {"hidden": 64}
+    )
+)
+register(
+    AlgorithmEntry(
+        "cppo", "CPPO: PPO, value on own + 4 nearest neighbours' (obs, action)", _ppo_build("cppo"), _ppo_keys("cppo"), {"hidden": 64}
+    )
+)
+register(
+    AlgorithmEntry(
+        "mfpo", "MFPO: PPO, value on own obs + mean neighbour obs and action", _ppo_build("mfpo"), _ppo_keys("mfpo"), {"hidden": 64}
+    )
+)
 
 
 def split_overrides(name: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

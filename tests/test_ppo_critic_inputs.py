@@ -1,0 +1,90 @@
+"""The CPPO / MFPO critic inputs of real sampled episodes (respawns, chunks) equal brute-force vectors per env step."""
+
+import numpy as np
+import pytest
+import ray
+import torch
+
+from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS, CriticInputs
+from coin_app.algorithms.registry import build_config
+from coin_app.envs.road_map import load_map
+
+# cars that leave the road fast (no brakes) so that vehicles respawn within the sample
+NO_BRAKES = {"brake_linear": 0.0, "brake_sat_intercept": 0.0, "brake_sat_slope": 0.0, "coast_decel": 0.0, "throttle_accel": 8.0}
+SETTINGS = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
+SETTINGS |= {"train_batch_size_per_learner": 100}
+SETTINGS |= {"minibatch_size": 50, "num_epochs": 1, "hidden": 8}
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    torch.set_num_threads(1)
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    try:
+        algo = build_config("cppo", "intersection", SETTINGS, 0).build_algo()
+        eps = algo.env_runner.sample(num_timesteps=150, random_actions=True)
+        algo.stop()
+    finally:
+        ray.shutdown()
+    return eps
+
+
+def brute_force_rows(episodes, scale, radius, k):
+    """Per batch row: the own obs and the sorted neighbours [(dist, obs, action)] at its env step of its episode."""
+    present = {}  # episode id -> [(env_step, agent, obs, action, pos)] over every row of the episode
+    for ma in episodes:
+        for aid, sa in ma.agent_episodes.items():
+            infos = sa.get_infos(slice(0, len(sa)))
+            for t in range(len(sa)):
+                pos = np.asarray(infos[t]["state"][:2]) * scale
+                present.setdefault(ma.id_, []).append((infos[t]["env_step"], aid, sa.get_observations(t), sa.get_actions(t), pos))
+    rows = []
+    for sa in CriticInputs(mode="concat", radius=1, num_neighbours=1, position_scale=1).single_agent_episode_iterator(episodes, False):
+        infos = sa.get_infos(slice(0, len(sa)))
+        for t in range(len(sa)):
+            step, me = infos[t]["env_step"], np.asarray(infos[t]["state"][:2]) * scale
+            cand = [
+                (np.linalg.norm(p - me), o, a)
+                for s, other, o, a, p in present[sa.multi_agent_episode_id]
+                if s == step and other != sa.agent_id
+            ]
+            rows.append((sa.get_observations(t), sorted((c for c in cand if c[0] < radius), key=lambda c: c[0])[:k]))
+    return rows
+
+
+def run_piece(episodes, mode, radius, k):
+    piece = CriticInputs(mode=mode, radius=radius, num_neighbours=k, position_scale=load_map("intersection").scale)
+    obs = np.concatenate(
+        [np.asarray(sa.get_observations(slice(0, len(sa)))) for sa in piece.single_agent_episode_iterator(episodes, False)]
+    )
+    return piece(rl_module=None, batch={"shared": {"obs": obs}}, episodes=episodes)["shared"][CRITIC_OBS]
+
+
+def test_concat_input_equals_brute_force(episodes):
+    assert any(len(ma.agent_episodes) > 5 for ma in episodes)  # respawned vehicles are in the sample
+    scale = load_map("intersection").scale
+    got = run_piece(episodes, "concat", 40.0, 4)
+    rows = brute_force_rows(episodes, scale, 40.0, 4)
+    assert len(got) == len(rows) and any(len(nb) > 0 for _, nb in rows)
+    for vec, (own, nb) in zip(got, rows):
+        want = np.zeros(91 + 4 * 93, np.float32)
+        want[:91] = own
+        for j, (_, o, a) in enumerate(nb):
+            want[91 + 93 * j : 91 + 93 * j + 91] = o
+            want[91 + 93 * j + 91 : 91 + 93 * (j + 1)] = a
+        np.testing.assert_allclose(vec, want, atol=1e-6)
+
+
+def test_mean_field_input_equals_brute_force(episodes):
+    scale = load_map("intersection").scale
+    got = run_piece(episodes, "mean_field", 10.0, 4)
+    rows = brute_force_rows(episodes, scale, 10.0, 10_000)
+    for vec, (own, nb) in zip(got, rows):
+        mean = np.mean([np.concatenate([o, a]) for _, o, a in nb], 0) if nb else np.zeros(93)
+        np.testing.assert_allclose(vec, np.concatenate([own, mean]), atol=1e-5)
+
+
+def test_misaligned_batch_is_refused(episodes):
+    piece = CriticInputs(mode="concat", radius=40.0, num_neighbours=4, position_scale=1.0)
+    with pytest.raises(RuntimeError, match="not aligned"):
+        piece(rl_module=None, batch={"shared": {"obs": np.zeros((3, 91), np.float32)}}, episodes=episodes)
