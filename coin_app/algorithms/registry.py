@@ -148,24 +148,13 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
     return cfg
 
 
-def scenario_config_of(config: Any) -> ScenarioConfig:
-    """The scenario config an RLlib algorithm config trains on (its registered env id and ``env_config``)."""
-    from coin_app.envs.rllib_env import ENV_IDS
-
-    if config.env not in ENV_IDS:
-        raise ValueError(f"env {config.env!r} is not a coin_app scenario; allowed: {', '.join(ENV_IDS)}")
-    env_cfg = dict(config.env_config or {})
-    env_cfg.pop("scenario", None)
-    return make_config(ENV_IDS[config.env], env_cfg.pop("preset", "paper"), **env_cfg)
-
-
 def evaluate_algorithm(algo: Any, seeds: list[int]) -> dict[str, float]:
     """Mean metrics of an algorithm's current deterministic actor on ``seeds`` (either backend)."""
     import numpy as np
     import torch
 
     from coin_app.algorithms.checkpoints import deterministic_actor
-    from coin_app.envs.rllib_env import SHARED_MODULE_ID
+    from coin_app.envs.rllib_env import SHARED_MODULE_ID, scenario_config_of
     from coin_app.evaluation.evaluate import evaluate_policy
     from coin_app.evaluation.metrics import aggregate
 

@@ -39,7 +39,7 @@ from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.env.multi_agent_env import MultiAgentEnv
 from ray.tune.registry import register_env
 
-from coin_app.envs.config import make_config
+from coin_app.envs.config import ScenarioConfig, make_config
 from coin_app.envs.driving_env import make_driving_env
 
 SHARED_MODULE_ID = "shared"
@@ -126,6 +126,15 @@ def register_envs() -> list[str]:
 def policy_mapping_fn(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
     """Map every agent to the one shared module."""
     return SHARED_MODULE_ID
+
+
+def scenario_config_of(config: AlgorithmConfig) -> ScenarioConfig:
+    """The scenario config an RLlib algorithm config trains on (its registered env id and ``env_config``)."""
+    if not isinstance(config.env, str) or config.env not in ENV_IDS:
+        raise ValueError(f"coin_app algorithms need one of the registered envs {sorted(ENV_IDS)}, got env={config.env!r}")
+    env_cfg = dict(config.env_config or {})
+    env_cfg.pop("scenario", None)
+    return make_config(ENV_IDS[config.env], env_cfg.pop("preset", "paper"), **env_cfg)
 
 
 def backend_errors(config: AlgorithmConfig) -> list[str]:

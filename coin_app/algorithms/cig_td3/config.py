@@ -12,8 +12,8 @@ from typing import Any
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig, NotProvided
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from coin_app.envs.config import ScenarioConfig, make_config
-from coin_app.envs.rllib_env import ENV_IDS, SHARED_MODULE_ID, backend_errors, policy_mapping_fn
+from coin_app.envs.config import ScenarioConfig
+from coin_app.envs.rllib_env import ENV_IDS, SHARED_MODULE_ID, backend_errors, policy_mapping_fn, scenario_config_of
 from coin_app.envs.road_map import load_map
 from coin_app.envs.simulator import MAX_RESPAWN_PER_STEP
 
@@ -82,12 +82,7 @@ class CigTd3Config(AlgorithmConfig):
     # ---------------------------------------------------------------- env facts
     def scenario_config(self) -> ScenarioConfig:
         """The scenario config this algorithm trains on (from ``env`` and ``env_config``; native or MetaDrive backend)."""
-        if not isinstance(self.env, str) or self.env not in ENV_IDS:
-            raise ValueError(f"CIG-TD3 needs one of the registered envs {sorted(ENV_IDS)}, got env={self.env!r}")
-        overrides = dict(self.env_config or {})
-        overrides.pop("scenario", None)
-        preset = overrides.pop("preset", "paper")
-        return make_config(ENV_IDS[self.env], preset, **overrides)
+        return scenario_config_of(self)
 
     @property
     def max_others(self) -> int:
