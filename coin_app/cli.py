@@ -127,13 +127,13 @@ def cmd_train(args: argparse.Namespace) -> int:
 def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any]) -> Any:
     """The scenario config to evaluate ``source`` on: its training scenario (checkpoint / export metadata) plus overrides."""
     from coin_app.algorithms.checkpoints import scenario_of
-    from coin_app.envs.config import make_config
+    from coin_app.envs.config import config_from_dict
 
     if source.is_dir():
-        meta_scenario = scenario_of(source).scenario
-        if scenario is not None and scenario != meta_scenario:
-            raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {meta_scenario}")
-        return scenario_of(source, **overrides)
+        config = scenario_of(source, **overrides)
+        if scenario is not None and scenario != config.scenario:
+            raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {config.scenario}")
+        return config
     if not source.is_file():
         raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported .npz file")
     from coin_app.inference import load_policy
@@ -142,9 +142,7 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
     scenario = scenario or meta.get("scenario")
     if scenario is None:
         raise ValueError(f"{source} does not say which scenario it was trained on; pass --scenario")
-    env_cfg = {**meta.get("env_config", {}), **overrides}
-    preset = env_cfg.pop("preset", "paper")
-    return make_config(scenario, preset, **env_cfg)
+    return config_from_dict(scenario, {**meta.get("env_config", {}), **overrides})
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:

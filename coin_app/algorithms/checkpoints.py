@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.envs.config import ScenarioConfig, make_config
+from coin_app.envs.config import ScenarioConfig, config_from_dict
 from coin_app.envs.rllib_env import SHARED_MODULE_ID
 
 META_FILE = "coin_app.json"
@@ -40,9 +40,7 @@ def read_metadata(checkpoint: Path) -> dict[str, Any]:
 def scenario_of(checkpoint: Path, **overrides: Any) -> ScenarioConfig:
     """The scenario config a checkpoint was trained on, with ``overrides`` (e.g. num_agents) applied."""
     meta = read_metadata(checkpoint)
-    env_cfg = {**meta.get("env_config", {}), **overrides}
-    preset = env_cfg.pop("preset", "paper")
-    return make_config(meta["scenario"], preset, **env_cfg)
+    return config_from_dict(meta["scenario"], {**meta.get("env_config", {}), **overrides})
 
 
 def deterministic_actor(module: Any) -> Any:
@@ -80,14 +78,19 @@ def load_module(checkpoint: Path) -> Any:
     return RLModule.from_checkpoint(str(Path(checkpoint).resolve().joinpath(*MODULE_PATH)))
 
 
-def load_policy(checkpoint: Path) -> Callable[[np.ndarray], np.ndarray]:
-    """The checkpoint's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
+def actor_policy(module: Any) -> Callable[[np.ndarray], np.ndarray]:
+    """A module's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
     import torch
 
-    actor = deterministic_actor(load_module(checkpoint)).eval()
+    actor = deterministic_actor(module).eval()
 
     def policy(obs: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return actor(torch.as_tensor(np.asarray(obs, dtype=np.float32))).numpy()
 
     return policy
+
+
+def load_policy(checkpoint: Path) -> Callable[[np.ndarray], np.ndarray]:
+    """The checkpoint's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
+    return actor_policy(load_module(checkpoint))

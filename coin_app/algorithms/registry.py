@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from coin_app.envs.config import ScenarioConfig, make_config
+from coin_app.envs.config import ScenarioConfig, config_from_dict
 
 
 @dataclass(frozen=True)
@@ -139,7 +139,7 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
     """A validated RLlib config of algorithm ``name`` on ``scenario``."""
     entry = get(name)
     env_cfg, algo_cfg = split_overrides(name, overrides)
-    make_config(scenario, env_cfg.get("preset", "paper"), **{k: v for k, v in env_cfg.items() if k != "preset"})
+    config_from_dict(scenario, env_cfg)  # refuses bad scenario values before any work
     cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed)
     cfg.validate()
     from coin_app.envs.rllib_env import register_envs
@@ -150,20 +150,12 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
 
 def evaluate_algorithm(algo: Any, seeds: list[int]) -> dict[str, float]:
     """Mean metrics of an algorithm's current deterministic actor on ``seeds`` (either backend)."""
-    import numpy as np
-    import torch
-
-    from coin_app.algorithms.checkpoints import deterministic_actor
+    from coin_app.algorithms.checkpoints import actor_policy
     from coin_app.envs.rllib_env import SHARED_MODULE_ID, scenario_config_of
     from coin_app.evaluation.evaluate import evaluate_policy
     from coin_app.evaluation.metrics import aggregate
 
-    actor = deterministic_actor(algo.learner_group._learner.module[SHARED_MODULE_ID].unwrapped())
-
-    def policy(obs: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            return actor(torch.as_tensor(np.asarray(obs, dtype=np.float32))).numpy()
-
+    policy = actor_policy(algo.learner_group._learner.module[SHARED_MODULE_ID].unwrapped())
     per_episode = evaluate_policy(policy, scenario_config_of(algo.config), seeds)
     return {k: v["mean"] for k, v in aggregate(per_episode).items()}
 

@@ -201,6 +201,12 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)
 
 
+def config_from_dict(scenario: str, env_config: dict[str, Any]) -> ScenarioConfig:
+    """``make_config`` from a flat dict of overrides that may hold ``preset`` (env_config, checkpoint metadata)."""
+    values = dict(env_config)
+    return make_config(scenario, values.pop("preset", "paper"), **values)
+
+
 def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:
     """Refuse keys MetaDrive cannot honour; give the bottleneck MetaDrive's 96-dim observation."""
     default = ScenarioConfig()

@@ -39,7 +39,7 @@ from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.env.multi_agent_env import MultiAgentEnv
 from ray.tune.registry import register_env
 
-from coin_app.envs.config import ScenarioConfig, make_config
+from coin_app.envs.config import ScenarioConfig, config_from_dict
 from coin_app.envs.driving_env import make_driving_env
 
 SHARED_MODULE_ID = "shared"
@@ -62,9 +62,7 @@ class CoinMultiAgentEnv(MultiAgentEnv):
     def __init__(self, config: Mapping[str, Any] | None = None):
         super().__init__()
         overrides = dict(config or {})
-        scenario = overrides.pop("scenario", "intersection")
-        preset = overrides.pop("preset", "paper")
-        self.config = make_config(scenario, preset, **overrides)
+        self.config = config_from_dict(overrides.pop("scenario", "intersection"), overrides)
         self.driving_env = make_driving_env(self.config)
         self.metadata = {"render_modes": [], "render_fps": round(1.0 / self.config.dynamics.dt)}
         self.possible_agents = list(self.driving_env.possible_agents)
@@ -134,7 +132,7 @@ def scenario_config_of(config: AlgorithmConfig) -> ScenarioConfig:
         raise ValueError(f"coin_app algorithms need one of the registered envs {sorted(ENV_IDS)}, got env={config.env!r}")
     env_cfg = dict(config.env_config or {})
     env_cfg.pop("scenario", None)
-    return make_config(ENV_IDS[config.env], env_cfg.pop("preset", "paper"), **env_cfg)
+    return config_from_dict(ENV_IDS[config.env], env_cfg)
 
 
 def backend_errors(config: AlgorithmConfig) -> list[str]:

@@ -56,7 +56,7 @@ def build_ppo_config(variant: str, scenario: str, env_cfg: dict[str, Any], algo_
 
     from coin_app.algorithms.ppo_family.centralized import CentralizedCriticPPOLearner, CentralizedCriticPPOModule, critic_input_dim
     from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
-    from coin_app.envs.config import make_config
+    from coin_app.envs.config import config_from_dict
     from coin_app.envs.road_map import load_map
 
     algo_cfg = dict(algo_cfg)
@@ -77,9 +77,7 @@ def build_ppo_config(variant: str, scenario: str, env_cfg: dict[str, Any], algo_
             raise ValueError(f"bad value for 'neighbour_radius': {radius!r}; allowed: a number of metres > 0")
         if not (isinstance(k, int) and not isinstance(k, bool) and k >= 1):
             raise ValueError(f"bad value for 'num_neighbours': {k!r}; allowed: an integer >= 1")
-        env_keys = dict(env_cfg)
-        scenario_cfg = make_config(scenario, env_keys.pop("preset", "paper"), **env_keys)
-        dim = critic_input_dim(mode, scenario_cfg.obs_dim, 2, k)
+        dim = critic_input_dim(mode, config_from_dict(scenario, env_cfg).obs_dim, 2, k)
         model = {**dataclasses.asdict(model), "critic_input_dim": dim}
         learner_extra = {"critic_mode": mode, "neighbour_radius": float(radius), "num_neighbours": k}
         learner_extra["position_scale"] = load_map(scenario).scale
