@@ -238,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
 
     tr = sub.add_parser("train", help="train cig_td3 | itd3 | ippo on a scenario, with checkpoints and --resume")
-    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | ippo")
+    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | ippo | cppo | mfpo | copo")
     tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck")
     tr.add_argument("--num-agents", type=int, default=None)
     tr.add_argument("--backend", default="native", help="native | metadrive (needs requirements-metadrive.txt)")

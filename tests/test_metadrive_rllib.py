@@ -96,9 +96,10 @@ def test_cli_trains_on_metadrive_exports_and_evaluates_on_both_backends(tmp_path
     assert [e["num_vehicles"] for e in results["native"]] and results["native"] != results["ckpt"]
 
 
-def test_ippo_iteration_on_metadrive():
+@pytest.mark.parametrize("algorithm", ["ippo", "cppo", "mfpo", "copo"])
+def test_ppo_family_iteration_on_metadrive(algorithm):
     settings = {**SMALL, "train_batch_size_per_learner": 100, "minibatch_size": 50, "num_epochs": 1, "hidden": 16}
-    algo = build_config("ippo", "bottleneck", settings, 0).build_algo()
+    algo = build_config(algorithm, "bottleneck", settings, 0).build_algo()
     try:
         result = algo.train()
         assert math.isfinite(float(result["learners"]["shared"]["vf_loss"]))

@@ -1,5 +1,7 @@
 """The CPPO / MFPO critic inputs of real sampled episodes (respawns, chunks) equal brute-force vectors per env step."""
 
+import copy
+
 import numpy as np
 import pytest
 import ray
@@ -17,16 +19,24 @@ SETTINGS |= {"minibatch_size": 50, "num_epochs": 1, "hidden": 8}
 
 
 @pytest.fixture(scope="module")
-def episodes():
+def sampled():
+    """Sampled episodes, and the train batch the CPPO learner's connector pipeline makes of them."""
     torch.set_num_threads(1)
     ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     try:
         algo = build_config("cppo", "intersection", SETTINGS, 0).build_algo()
         eps = algo.env_runner.sample(num_timesteps=150, random_actions=True)
+        learner = algo.learner_group._learner
+        batch = learner._learner_connector(rl_module=learner.module, batch={}, episodes=copy.deepcopy(eps), shared_data={})
         algo.stop()
     finally:
         ray.shutdown()
-    return eps
+    return eps, batch["shared"]
+
+
+@pytest.fixture(scope="module")
+def episodes(sampled):
+    return sampled[0]
 
 
 def brute_force_rows(episodes, scale, radius, k):
@@ -73,6 +83,21 @@ def test_concat_input_equals_brute_force(episodes):
             want[91 + 93 * j : 91 + 93 * j + 91] = o
             want[91 + 93 * j + 91 : 91 + 93 * (j + 1)] = a
         np.testing.assert_allclose(vec, want, atol=1e-6)
+
+
+def test_pipeline_rows_ignore_the_artificial_bootstrap_rows(sampled):
+    """In the learner pipeline every episode gets one artificial last row repeating its last info; real rows never see them."""
+    episodes, batch = sampled
+    real = batch["loss_mask"].numpy()
+    assert (~real).sum() == sum(len(ma.agent_episodes) for ma in episodes)  # one artificial row per agent episode
+    got = batch[CRITIC_OBS].numpy()[real]
+    rows = brute_force_rows(episodes, load_map("intersection").scale, 40.0, 4)
+    assert len(got) == len(rows)
+    for vec, (own, nb) in zip(got, rows):
+        assert np.count_nonzero(vec[91:]) == 0 if not nb else np.allclose(vec[91 : 91 + 91], nb[0][1], atol=1e-6)
+        np.testing.assert_allclose(vec[:91], own, atol=1e-6)
+        for j in range(len(nb), 4):  # no extra neighbour beyond the brute-force ones
+            assert not vec[91 + 93 * j : 91 + 93 * (j + 1)].any()
 
 
 def test_mean_field_input_equals_brute_force(episodes):

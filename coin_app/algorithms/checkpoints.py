@@ -48,7 +48,9 @@ def deterministic_actor(module: Any) -> Any:
 
     CIG-TD3 / ITD3: the tanh actor. PPO family: the Gaussian policy's mean (actor encoder and
     ``pi`` head, the head cut to the mean outputs), clipped to the action bounds [-1, 1] as the
-    env clips actions.
+    env clips actions. CoPO: its policy reads the agent's LCF as a last observation feature; the
+    actor returned takes the plain observation and acts with the learned mean LCF (a constant
+    folded into the first layer's bias), so it runs in any evaluation env.
     """
     import torch
     from torch import nn
@@ -66,8 +68,27 @@ def deterministic_actor(module: Any) -> Any:
         with torch.no_grad():
             mean.weight.copy_(last.weight[:act_dim])
             mean.bias.copy_(last.bias[:act_dim])
-        return nn.Sequential(*layers[:-1], mean, nn.Hardtanh(-1.0, 1.0)).eval()
+        layers = [*layers[:-1], mean, nn.Hardtanh(-1.0, 1.0)]
+        if hasattr(module, "lcf_params"):
+            layers[0] = _fold_lcf(layers[0], module.lcf_distribution()[0])
+        return nn.Sequential(*layers).eval()
     raise ValueError(f"cannot extract a deterministic actor from {type(module).__name__}")
+
+
+def _fold_lcf(first: Any, lcf: float) -> Any:
+    """A copy of ``first`` (Linear on [obs, LCF feature]) acting on obs alone with the LCF feature fixed."""
+    import torch
+    from torch import nn
+
+    from coin_app.envs.lcf import encode
+
+    if not isinstance(first, nn.Linear):
+        raise ValueError(f"cannot fold the LCF into {first!r}; expected a Linear first layer")
+    folded = nn.Linear(first.in_features - 1, first.out_features)
+    with torch.no_grad():
+        folded.weight.copy_(first.weight[:, :-1])
+        folded.bias.copy_(first.bias + first.weight[:, -1] * float(encode(lcf)))
+    return folded
 
 
 def load_module(checkpoint: Path) -> Any:

@@ -120,6 +120,16 @@ register(
     )
 )
 
+register(
+    AlgorithmEntry(
+        "copo",
+        "CoPO: PPO on LCF-coordinated ego/neighbour advantages, LCF meta-gradient",
+        _ppo_build("copo"),
+        _ppo_keys("copo"),
+        {"hidden": 64},
+    )
+)
+
 
 def split_overrides(name: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """Route ``--set`` keys to (scenario config, algorithm config); unknown keys are refused."""

@@ -23,6 +23,9 @@ Contract of :class:`CoinMultiAgentEnv` (``shared/reference/rllib_2_60.md`` secti
   ``terminated=True``.
 * ``infos`` only has agents that have an observation in the same return; ``rewards`` /
   per-agent flags only agents that acted in the step.
+* ``config["lcf"] = {"mean": m, "std": s}`` (CoPO) gives every agent a local coordination
+  factor at spawn, appended to its observation (``coin_app.envs.lcf``);
+  ``set_lcf_distribution`` moves the distribution for agents spawned later.
 * RLlib's env checker (``disable_env_checking=False``) steps once after ``reset(seed=42)``
   and requires every returned id to still be in ``agents``; it fails if an agent is done
   on that very first step (not the case for the shipped scenarios).
@@ -41,8 +44,10 @@ from ray.tune.registry import register_env
 
 from coin_app.envs.config import ScenarioConfig, config_from_dict
 from coin_app.envs.driving_env import make_driving_env
+from coin_app.envs.lcf import LocalCoordination
 
 SHARED_MODULE_ID = "shared"
+ADAPTER_KEYS = ("scenario", "lcf")  # env_config keys of the adapter itself, not of the scenario
 ENV_IDS: dict[str, str] = {
     "coin-intersection-v0": "intersection",
     "coin-roundabout-v0": "roundabout",
@@ -55,18 +60,25 @@ class CoinMultiAgentEnv(MultiAgentEnv):
 
     ``config`` holds ``scenario`` (default ``"intersection"``), ``preset`` (default
     ``"paper"``) and any :class:`~coin_app.envs.config.ScenarioConfig` field as an
-    override (``backend="metadrive"`` runs MetaDrive itself); an unknown key raises
+    override (``backend="metadrive"`` runs MetaDrive itself), and optionally ``lcf``
+    (``{"mean", "std"}``: CoPO's local coordination factors); an unknown key raises
     ``ValueError`` naming it and the allowed keys.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None):
         super().__init__()
         overrides = dict(config or {})
+        lcf = overrides.pop("lcf", None)
         self.config = config_from_dict(overrides.pop("scenario", "intersection"), overrides)
+        if lcf is not None and not (isinstance(lcf, Mapping) and set(lcf) <= {"mean", "std"}):
+            raise ValueError(f"bad env_config lcf {lcf!r}; allowed: None or a dict with keys 'mean' and 'std'")
+        self.lcf = None if lcf is None else LocalCoordination(**lcf)
         self.driving_env = make_driving_env(self.config)
         self.metadata = {"render_modes": [], "render_fps": round(1.0 / self.config.dynamics.dt)}
         self.possible_agents = list(self.driving_env.possible_agents)
         obs_space, act_space = self.driving_env.observation_space, self.driving_env.action_space
+        if self.lcf is not None:
+            obs_space = self.lcf.observation_space(obs_space)
         self.observation_spaces = dict.fromkeys(self.possible_agents, obs_space)
         self.action_spaces = dict.fromkeys(self.possible_agents, act_space)
         self.agents = []
@@ -78,6 +90,9 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         obs, infos = self.driving_env.reset(seed)
         self.agents = list(self.driving_env.agents)
         self._over = False
+        if self.lcf is not None:
+            self.lcf.reset(seed)
+            obs, infos = self.lcf.augment(obs, infos)
         return obs, infos
 
     def step(self, action_dict: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -97,7 +112,15 @@ class CoinMultiAgentEnv(MultiAgentEnv):
             self.agents = list(self.driving_env.agents)
         terms["__all__"] = over
         truncs["__all__"] = over and all(truncs[a] for a in ended)
+        if self.lcf is not None:
+            obs, infos = self.lcf.augment(obs, infos)
         return obs, rewards, terms, truncs, infos
+
+    def set_lcf_distribution(self, mean: float, std: float) -> None:
+        """Draw the LCFs of agents spawned from now on from N(mean, std) (an env with LCFs only)."""
+        if self.lcf is None:
+            raise RuntimeError("this env has no local coordination factors (env_config has no 'lcf')")
+        self.lcf.set_distribution(mean, std)
 
     def close(self) -> None:
         """Release the backend (shuts a MetaDrive engine down)."""
@@ -130,9 +153,15 @@ def scenario_config_of(config: AlgorithmConfig) -> ScenarioConfig:
     """The scenario config an RLlib algorithm config trains on (its registered env id and ``env_config``)."""
     if not isinstance(config.env, str) or config.env not in ENV_IDS:
         raise ValueError(f"coin_app algorithms need one of the registered envs {sorted(ENV_IDS)}, got env={config.env!r}")
-    env_cfg = dict(config.env_config or {})
-    env_cfg.pop("scenario", None)
+    env_cfg = {k: v for k, v in dict(config.env_config or {}).items() if k not in ADAPTER_KEYS}
     return config_from_dict(ENV_IDS[config.env], env_cfg)
+
+
+def coin_envs(env_runner: Any) -> list[CoinMultiAgentEnv]:
+    """The ``CoinMultiAgentEnv`` instances an RLlib env runner steps (one per vectorized sub-env)."""
+    env = getattr(env_runner, "env", None)
+    subs = getattr(env, "envs", [env]) if env is not None else []
+    return [e.unwrapped for e in subs if isinstance(e.unwrapped, CoinMultiAgentEnv)]
 
 
 def backend_errors(config: AlgorithmConfig) -> list[str]:

@@ -3,7 +3,7 @@
 ``CriticInputs`` is a learner-connector piece inserted before RLlib's GAE piece. For every
 agent row of the train batch it finds the agents present at the same env step of the same
 episode (the env's ``env_step`` info and multi-agent episode id, never row order, so it is
-exact across respawns and episode chunks), selects neighbours by distance (positions from the
+exact across respawns and episode chunks; see ``rows.py``), selects neighbours by distance (positions from the
 ``state`` info) and writes the critic input (``neighbours.py``) as column ``CRITIC_OBS``. It
 checks that its rows are the batch's rows (same observations) and refuses otherwise.
 ``CentralizedCriticPPOModule`` is RLlib's default PPO module whose ``compute_values`` reads
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import torch
 from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 from ray.rllib.connectors.connector_v2 import ConnectorV2
@@ -24,6 +23,7 @@ from torch import nn
 
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
 from coin_app.algorithms.ppo_family.neighbours import concat_critic_input, mean_field_critic_input, neighbour_indices
+from coin_app.algorithms.ppo_family.rows import check_aligned, episode_rows, like
 
 CRITIC_OBS = "coin_critic_obs"
 MODES = ("concat", "mean_field")
@@ -32,6 +32,15 @@ MODES = ("concat", "mean_field")
 def critic_input_dim(mode: str, obs_dim: int, act_dim: int, num_neighbours: int) -> int:
     """Length of the critic input of ``mode``."""
     return obs_dim + num_neighbours * (obs_dim + act_dim) if mode == "concat" else 2 * obs_dim + act_dim
+
+
+def value_mlp(in_dim: int, widths: list[int]) -> nn.Sequential:
+    """A value network: tanh hidden layers of ``widths``, then one linear output."""
+    sizes = [in_dim, *widths]
+    layers: list[nn.Module] = []
+    for a, b in zip(sizes[:-1], sizes[1:]):
+        layers += [nn.Linear(a, b), nn.Tanh()]
+    return nn.Sequential(*layers, nn.Linear(sizes[-1], 1))
 
 
 class CriticInputs(ConnectorV2):
@@ -45,29 +54,16 @@ class CriticInputs(ConnectorV2):
 
     def __call__(self, *, rl_module: Any, batch: dict[str, Any], episodes: list[Any], **kwargs: Any) -> dict[str, Any]:
         """Add ``CRITIC_OBS`` to each module's batch."""
-        obs, act, pos, group = [], [], [], []
-        episode_ids: dict[str, int] = {}
-        for sa in self.single_agent_episode_iterator(episodes, agents_that_stepped_only=False):
-            n = len(sa)
-            infos = sa.get_infos(slice(0, n))
-            obs.append(np.asarray(sa.get_observations(slice(0, n)), np.float32))
-            act.append(np.asarray(sa.get_actions(slice(0, n)), np.float32))
-            pos.append(np.array([info["state"][:2] for info in infos], float) * self.scale)
-            eid = episode_ids.setdefault(sa.multi_agent_episode_id, len(episode_ids))
-            group.append(np.array([eid * 10_000_000 + int(info["env_step"]) for info in infos], np.int64))
-        if not obs:
+        mask = next((b.get(Columns.LOSS_MASK) for b in batch.values()), None)
+        rows = episode_rows(self, episodes, self.scale, mask)
+        if rows is None:
             return batch
-        obs_a, act_a = np.concatenate(obs), np.concatenate(act)
-        nbr = neighbour_indices(np.concatenate(pos), np.concatenate(group), self.radius, self.k if self.mode == "concat" else None)
+        nbr = neighbour_indices(rows.positions, rows.group, self.radius, self.k if self.mode == "concat" else None)
         fuse = concat_critic_input if self.mode == "concat" else mean_field_critic_input
-        critic = fuse(obs_a, act_a, nbr)
+        critic = fuse(rows.obs, rows.actions, nbr)
         for module_batch in batch.values():
-            got = module_batch[Columns.OBS]
-            got = got.detach().cpu().numpy() if isinstance(got, torch.Tensor) else np.asarray(got)
-            if got.shape != obs_a.shape or not np.array_equal(got, obs_a):
-                raise RuntimeError("critic inputs are not aligned with the train batch rows (RLlib changed its batch order?)")
-            ref = module_batch[Columns.OBS]
-            module_batch[CRITIC_OBS] = torch.as_tensor(critic, device=ref.device) if isinstance(ref, torch.Tensor) else critic
+            check_aligned(module_batch, rows)
+            module_batch[CRITIC_OBS] = like(module_batch[Columns.OBS], critic)
         return batch
 
 
@@ -78,12 +74,11 @@ class CentralizedCriticPPOModule(DefaultPPOTorchRLModule):
         """Build the default module, plus the centralized value MLP on learner copies."""
         super().setup()
         if not self.inference_only:
-            width = self.model_config["fcnet_hiddens"]
-            sizes = [int(self.model_config["critic_input_dim"]), *width]
-            layers: list[nn.Module] = []
-            for a, b in zip(sizes[:-1], sizes[1:]):
-                layers += [nn.Linear(a, b), nn.Tanh()]
-            self.central_vf = nn.Sequential(*layers, nn.Linear(sizes[-1], 1))
+            self.central_vf = value_mlp(int(self.model_config["critic_input_dim"]), self.model_config["fcnet_hiddens"])
+
+    def get_non_inference_attributes(self) -> list[str]:
+        """The centralized value network is not needed to act."""
+        return [*super().get_non_inference_attributes(), "central_vf"]
 
     def compute_values(self, batch: dict[str, Any], embeddings: Any = None) -> torch.Tensor:
         """V(critic input) of shape (B,)."""

@@ -46,6 +46,12 @@ class ClippedValuePPOLearner(PPOTorchLearner):
         if self._learner_connector is not None:
             self._learner_connector.append(OldValuePredictions())
 
+    def value_loss(self, module: Any, batch: dict[str, Any], fwd_out: dict[str, Any], config: Any) -> tuple[torch.Tensor, ...]:
+        """(clipped value loss, values, value targets, extra metrics) of the value function."""
+        values = module.compute_values(batch, embeddings=fwd_out.get(Columns.EMBEDDINGS))
+        targets = batch[Postprocessing.VALUE_TARGETS]
+        return clipped_value_loss(values, batch[OLD_VALUES], targets, config.vf_clip_param), values, targets, {}
+
     def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any], fwd_out: dict[str, Any]) -> torch.Tensor:
         """Clipped surrogate + c_V * clipped value loss - entropy bonus + beta * KL."""
         module = self.module[module_id].unwrapped()
@@ -58,9 +64,7 @@ class ClippedValuePPOLearner(PPOTorchLearner):
         logp = dist.logp(batch[Columns.ACTIONS])
         adv = batch[Postprocessing.ADVANTAGES]
         pi_loss = surrogate_loss(logp, batch[Columns.ACTION_LOGP], adv, config.clip_param)
-        values = module.compute_values(batch, embeddings=fwd_out.get(Columns.EMBEDDINGS))
-        targets = batch[Postprocessing.VALUE_TARGETS]
-        vf_loss = clipped_value_loss(values, batch[OLD_VALUES], targets, config.vf_clip_param)
+        vf_loss, values, targets, extra = self.value_loss(module, batch, fwd_out, config)
         entropy = dist.entropy().mean()
         kl = old_dist.kl(dist).mean() if config.use_kl_loss else torch.zeros(())
         entropy_coeff = self.entropy_coeff_schedulers_per_module[module_id].get_current_value()
@@ -74,6 +78,7 @@ class ClippedValuePPOLearner(PPOTorchLearner):
                 LEARNER_RESULTS_VF_EXPLAINED_VAR_KEY: explained_variance(targets, values),
                 ENTROPY_KEY: entropy,
                 LEARNER_RESULTS_KL_KEY: kl,
+                **extra,
             },
             key=module_id,
             window=1,

@@ -1,0 +1,1 @@
+"""CoPO: coordinated policy optimization with local coordination factors (LCF) and an LCF meta-gradient."""
