@@ -154,7 +154,9 @@ def test_bad_env_config_key_names_the_key():
 
 def test_register_envs_merges_overrides_onto_the_scenario():
     ids = register_envs()
-    assert ids == ["coin-intersection-v0", "coin-roundabout-v0", "coin-bottleneck-v0"]
+    assert ids == ["coin-intersection-v0", "coin-roundabout-v0", "coin-bottleneck-v0", "coin-arena-v0"]
+    arena = _global_registry.get(ENV_CREATOR, "coin-arena-v0")({"num_vehicles": 2, "num_obstacles": 1})
+    assert arena.driving_env.scenario == "arena" and arena.config.num_vehicles == 2 and len(arena.possible_agents) == 2
     for env_id, scenario in zip(ids, ["intersection", "roundabout", "bottleneck"]):
         env = _global_registry.get(ENV_CREATOR, env_id)({"num_agents": 3, "preset": "metadrive_compat"})
         assert isinstance(env, CoinMultiAgentEnv)

@@ -83,3 +83,16 @@ def footprint_samples(center: np.ndarray, heading: np.ndarray, half_len: float, 
     fwd, left = box_axes(heading)
     coefs = np.array([[0, 0], [1, 1], [1, -1], [-1, 1], [-1, -1], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=float)
     return center[:, None, :] + coefs[None, :, 0:1] * half_len * fwd[:, None, :] + coefs[None, :, 1:2] * half_wid * left[:, None, :]
+
+
+def box_circle_overlap(center: np.ndarray, heading: np.ndarray, half: np.ndarray, circle: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Whether oriented boxes overlap circles (row-aligned): the circle centre's distance to the box is <= its radius.
+
+    ``half`` is (N, 2) half extents (along, across); ``circle`` (N, 2) centres; ``radius`` (N,).
+    """
+    c, s = np.cos(heading), np.sin(heading)
+    dx, dy = circle[:, 0] - center[:, 0], circle[:, 1] - center[:, 1]
+    u, w = c * dx + s * dy, -s * dx + c * dy  # circle centre in the box frame
+    ex = np.maximum(np.abs(u) - half[:, 0], 0.0)
+    ey = np.maximum(np.abs(w) - half[:, 1], 0.0)
+    return ex**2 + ey**2 <= np.asarray(radius) ** 2

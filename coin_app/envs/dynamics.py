@@ -67,3 +67,31 @@ def bicycle_step(
     direction = heading_new + beta
     pos_new = pos + (v_new * dt)[:, None] * np.stack([np.cos(direction), np.sin(direction)], axis=1)
     return pos_new, heading_new, v_new, r_new
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def friction_bicycle_step(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    pedal: np.ndarray,
+    steer: np.ndarray,
+    dt: float,
+    wheelbase: float,
+    friction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of the seed-2 paper's kinematic bicycle with friction (Eq. 1) for N vehicles.
+
+    Semi-implicit order, as the paper's text describes (the action acts on the very next
+    position): ``v' = friction * v + pedal * dt``; ``psi' = psi + v' * tan(steer) * dt / L``
+    (wrapped to [-pi, pi)); ``(x, y)' = (x, y) + v' * dt * (cos psi', sin psi')``. The speed
+    may be negative (reversing).
+    """
+    v_new = friction * speed + pedal * dt
+    heading_new = wrap_angle(heading + v_new * np.tan(steer) * dt / wheelbase)
+    pos_new = pos + (v_new * dt)[:, None] * np.stack([np.cos(heading_new), np.sin(heading_new)], axis=1)
+    return pos_new, heading_new, v_new

@@ -25,7 +25,7 @@ from coin_app.envs.driving_env import make_driving_env
 
 
 class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
-    """A COIN driving scenario as a PettingZoo ``ParallelEnv`` with respawning agents.
+    """A COIN driving scenario (or the ``"arena"``) as a PettingZoo ``ParallelEnv`` with respawning agents.
 
     ``possible_agents`` is the whole id pool of an episode (``agent0`` .. ``agentK``); ids
     restart at ``agent0`` after every ``reset`` and are never reused within an episode.
@@ -39,21 +39,31 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
 
     def __init__(
         self,
-        scenario: str | ScenarioConfig = "intersection",
+        scenario: Any = "intersection",
         preset: str | None = None,
         render_mode: str | None = None,
         **overrides: Any,
     ):
-        if isinstance(scenario, ScenarioConfig):
+        from coin_app.envs.arena.config import ArenaConfig, make_arena_config
+        from coin_app.envs.arena.env import ArenaEnv
+
+        config: Any
+        if isinstance(scenario, (ScenarioConfig, ArenaConfig)):
             if preset is not None or overrides:
-                raise ValueError("pass either a ScenarioConfig or scenario/preset/overrides, not both")
+                raise ValueError("pass either a config or scenario/preset/overrides, not both")
             config = scenario
+        elif scenario == "arena":
+            if preset is not None:
+                raise ValueError(f"the arena has no presets (got preset={preset!r})")
+            config = make_arena_config(**overrides)
         else:
             config = make_config(scenario, preset or "paper", **overrides)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unknown render_mode {render_mode!r}; allowed: {', '.join(self.metadata['render_modes'])} or None")
+        if render_mode is not None and isinstance(config, ArenaConfig):
+            raise ValueError(f"render_mode {render_mode!r} is not available for the arena; allowed: None")
         self.render_mode = render_mode
-        self.driving_env = make_driving_env(config)
+        self.driving_env = ArenaEnv(config) if isinstance(config, ArenaConfig) else make_driving_env(config)
         self.config = config
         self.possible_agents: list[str] = list(self.driving_env.possible_agents)
         self._pool = frozenset(self.possible_agents)

@@ -1,0 +1,64 @@
+"""The arena observation (paper §III-C): the vehicle's own frame, its target, and the one closest entity.
+
+13 numbers per vehicle, in its own frame (x forward, y left; positions / 25 m, speeds / 10 m/s,
+the top steady-state speed at full pedal and friction 0.99):
+
+    0-1   target position (x, y)
+    2-3   target heading relative to the vehicle's (sin, cos)
+    4     own speed (negative when reversing)
+    5     own steering angle / max steering
+    6-7   closest other vehicle or obstacle: centre (x, y)
+    8-9   its heading relative to the vehicle's (sin, cos); (0, 1) for an obstacle (a circle)
+    10    its size: bounding radius / 3 m (obstacle: its radius; vehicle: half its diagonal)
+    11    its speed (0 for an obstacle or a parked vehicle)
+    12    1 if there is any other entity, else 0 (then 6-11 are 0, 0, 0, 1, 0, 0)
+
+"Closest" is by clearance between bounding circles, so a large obstacle counts as near
+before its centre does. Parked (succeeded) vehicles are entities like any other.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+POSITION_SCALE = 25.0
+SPEED_SCALE = 10.0
+SIZE_SCALE = 3.0
+
+
+def to_frame(points: np.ndarray, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """World points (N, 2) in the frames of N poses (x forward, y left)."""
+    c, s = np.cos(heading), np.sin(heading)
+    d = points - pos
+    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+
+
+def observe(sim: Any) -> np.ndarray:
+    """Observations (N, 13) of every vehicle of an ``ArenaSimulator``."""
+    cfg, layout = sim.config, sim.layout
+    n, m = sim.num_vehicles, len(layout.obstacles)
+    out = np.zeros((n, 13), np.float32)
+    out[:, 0:2] = to_frame(layout.targets[:, :2], sim.pos, sim.heading) / POSITION_SCALE
+    rel = layout.targets[:, 2] - sim.heading
+    out[:, 2], out[:, 3] = np.sin(rel), np.cos(rel)
+    out[:, 4] = sim.speed / SPEED_SCALE
+    out[:, 5] = sim.steer / cfg.max_steer
+    out[:, 9] = 1.0
+    if n + m <= 1:
+        return out
+    clearance = sim.entity_clearance()
+    j = np.argmin(clearance, axis=1)  # (N,) index among vehicles, then obstacles
+    centres = np.concatenate([sim.pos, layout.obstacles[:, :2]])
+    headings = np.concatenate([sim.heading, np.zeros(m)])
+    radii = np.concatenate([np.full(n, cfg.vehicle_radius), layout.obstacles[:, 2]])
+    speeds = np.concatenate([sim.speed, np.zeros(m)])
+    vehicle = j < n
+    out[:, 6:8] = to_frame(centres[j], sim.pos, sim.heading) / POSITION_SCALE
+    rel = np.where(vehicle, headings[j] - sim.heading, 0.0)
+    out[:, 8], out[:, 9] = np.sin(rel), np.cos(rel)
+    out[:, 10] = radii[j] / SIZE_SCALE
+    out[:, 11] = speeds[j] / SPEED_SCALE
+    out[:, 12] = 1.0
+    return out

@@ -1,0 +1,296 @@
+"""The navigation-and-parking arena: dynamics, reward terms, success test, observation, generator, env, heuristic."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from coin_app.envs.arena.config import RewardConfig, make_arena_config
+from coin_app.envs.arena.env import ArenaEnv, arena_metrics
+from coin_app.envs.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
+from coin_app.envs.arena.heuristic import heuristic_actions
+from coin_app.envs.arena.reward import angle_reward, distance_reward, obstacle_reward, step_reward, time_reward
+from coin_app.envs.dynamics import friction_bicycle_step
+
+CFG = make_arena_config()
+R_VEH = math.hypot(2.5, 1.0) / 2  # a vehicle's bounding radius
+
+
+# ---------------------------------------------------------------- dynamics (Eq. 1)
+
+
+def test_friction_bicycle_step_by_hand():
+    pos, heading, speed = np.array([[1.0, 2.0]]), np.array([0.3]), np.array([2.0])
+    p, h, v = friction_bicycle_step(pos, heading, speed, np.array([1.0]), np.array([0.3]), 0.1, 2.0, 0.99)
+    v_want = 0.99 * 2.0 + 1.0 * 0.1  # 2.08
+    h_want = 0.3 + v_want * math.tan(0.3) * 0.1 / 2.0
+    assert v[0] == pytest.approx(v_want) and h[0] == pytest.approx(h_want)
+    np.testing.assert_allclose(p[0], [1.0 + v_want * 0.1 * math.cos(h_want), 2.0 + v_want * 0.1 * math.sin(h_want)])
+    # reversing: the speed goes negative and the car moves backwards
+    p, h, v = friction_bicycle_step(pos, heading, np.array([0.0]), np.array([-1.0]), np.array([0.0]), 0.1, 2.0, 0.99)
+    assert v[0] == pytest.approx(-0.1) and p[0] @ [math.cos(0.3), math.sin(0.3)] < pos[0] @ [math.cos(0.3), math.sin(0.3)]
+
+
+def test_friction_sets_the_speed_limit_and_the_coasting_decay():
+    v = np.array([0.0])
+    pos, h = np.zeros((1, 2)), np.zeros(1)
+    for _ in range(300):  # full pedal: v_n = (p dt / (1 - beta)) (1 - beta^n) -> 10 m/s
+        pos, h, v = friction_bicycle_step(pos, h, v, np.array([1.0]), np.array([0.0]), 0.1, 2.0, 0.99)
+    assert v[0] == pytest.approx(10.0 * (1 - 0.99**300))
+    for _ in range(50):  # coasting: v_n = beta^n v_0
+        pos, h, v = friction_bicycle_step(pos, h, v, np.array([0.0]), np.array([0.0]), 0.1, 2.0, 0.99)
+    assert v[0] == pytest.approx(10.0 * (1 - 0.99**300) * 0.99**50)
+
+
+def test_constant_speed_and_steering_drive_a_circle_of_radius_l_over_tan():
+    steer, v0 = 0.4, 3.0
+    radius = 2.0 / math.tan(steer)
+    pos, h, v = np.zeros((1, 2)), np.zeros(1), np.array([v0])
+    pedal = np.array([(1 - 0.99) * v0 / 0.1])  # holds the speed against friction
+    points = []
+    for _ in range(200):
+        pos, h, v = friction_bicycle_step(pos, h, v, pedal, np.array([steer]), 0.1, 2.0, 0.99)
+        points.append(pos[0].copy())
+    pts = np.array(points)
+    # each step is a chord of length v dt turning by v dt / R: the points are the vertices of a
+    # regular polygon of circumradius (v dt / 2) / sin(v dt / (2 R))
+    fit = np.linalg.lstsq(np.column_stack([2 * pts, np.ones(len(pts))]), (pts**2).sum(1), rcond=None)[0]
+    chord_radius = (v0 * 0.1 / 2) / math.sin(v0 * 0.1 / radius / 2)
+    np.testing.assert_allclose(np.linalg.norm(pts - fit[:2], axis=1), chord_radius, rtol=1e-6)
+
+
+# ---------------------------------------------------------------- reward terms (Eqs. 2-6)
+
+RC = RewardConfig()
+
+
+def test_distance_reward_sign_and_floor():
+    r_hat = RC.distance_scale * (RC.distance_offset - 20.0)  # 0.5 at 20 m
+    got = distance_reward(RC, np.array([20.0, 20.0, 3.0, 200.0, 200.0]), np.array([20.5, 19.5, 2.5, 201.0, 199.0]))
+    # closer: +r_hat; away: -r_hat; away but inside d_c: +; far: the floor gamma, signed
+    gamma = RC.min_distance_reward
+    np.testing.assert_allclose(got, [r_hat, -r_hat, RC.distance_scale * (RC.distance_offset - 3.0), gamma, -gamma])
+
+
+def test_angle_reward_inside_its_radius_only():
+    r_dis = np.array([0.6, -0.6, 0.6, 0.6])
+    got = angle_reward(RC, np.array([2.0, 2.0, 2.0, 6.0]), np.array([0.0, 0.0, math.pi, 0.0]), r_dis)
+    np.testing.assert_allclose(got, [0.5 * 0.6, 0.5 * 0.6, -0.5 * 0.6, 0.0])  # |r_dis|, 0 outside d_a_min
+
+
+def test_obstacle_penalty_band():
+    contact = np.array([[True, False, False, False, False]])
+    clearance = np.array([[-0.5, 1.0, 0.1, 5.0, np.inf]])
+    band = RC.proximity_scale * RC.collision_reward
+    want = RC.collision_reward + band / 1.0 + band / RC.collision_clearance  # overlap, 1 m, capped 1/d, beyond d_min, itself
+    assert obstacle_reward(RC, contact, clearance)[0] == pytest.approx(want)
+
+
+def test_time_success_and_truncation_terms():
+    assert time_reward(RC, 150, 0.1) == pytest.approx(-RC.time_scale * 0.1 * 150)
+    args = (np.array([10.0] * 3), np.array([10.5] * 3), np.zeros(3), np.zeros((3, 1), bool), np.full((3, 1), np.inf), 7, 0.1)
+    r = step_reward(RC, *args, np.array([True, False, False]), np.array([False, True, False]))
+    shaped = RC.distance_scale * (RC.distance_offset - 10.0) - RC.time_scale * 0.1 * 7
+    np.testing.assert_allclose(r, [RC.success_reward, RC.truncation_reward, shaped])
+
+
+# ---------------------------------------------------------------- the simulator on constructed layouts
+
+
+def layout(starts, targets, obstacles=()):
+    return Layout(np.array(starts, float), np.array(targets, float), np.array(obstacles, float).reshape(-1, 3))
+
+
+def test_success_needs_position_heading_and_speed():
+    env = ArenaEnv(CFG)
+    # parked exactly on the target: the first (zero) action keeps it there -> success, terminated, r_succ
+    obs, _ = env.reset(options={"layout": layout([[3.0, 4.0, 0.5]], [[3.0, 4.0, 0.5]])})
+    _, rew, term, trunc, info = env.step({"agent0": np.zeros(2)})
+    assert term["agent0"] and not trunc["agent0"] and rew["agent0"] == RC.success_reward and info["agent0"]["success"]
+    assert env.episode_over and env.agents == []
+    sim = env.sim
+    for dx, dh, v, ok in (
+        (1.2, 0.0, 0.0, True),
+        (1.3, 0.0, 0.0, False),
+        (0.0, 0.19, 0.0, True),
+        (0.0, 0.21, 0.0, False),
+        (0.0, 0.0, 0.04, True),
+        (0.0, 0.0, -0.06, False),
+    ):
+        sim.pos = np.array([[3.0 + dx, 4.0]])
+        sim.heading = np.array([0.5 + dh])
+        sim.speed = np.array([v])
+        assert bool(sim.is_success()[0]) is ok, (dx, dh, v)
+
+
+def test_reward_through_the_simulator_with_an_obstacle_in_the_band():
+    # vehicle at the origin heading +x, target 30 m ahead; an obstacle of radius 1 whose centre is 4 m to the left
+    env = ArenaEnv(CFG)
+    env.reset(options={"layout": layout([[0.0, 0.0, 0.0]], [[30.0, 0.0, 0.0]], [[0.0, 4.0, 1.0]])})
+    _, rew, _, _, info = env.step({"agent0": np.array([0.0, 1.0])})
+    x = 0.1 * 0.1  # v' = 0.1, one step of 0.1 s
+    d = 30.0 - x
+    clearance = math.hypot(x, 4.0) - 1.0 - R_VEH
+    want = RC.distance_scale * (RC.distance_offset - d) + RC.proximity_scale * RC.collision_reward / clearance - RC.time_scale * 0.1 * 1
+    assert rew["agent0"] == pytest.approx(want) and info["agent0"]["collisions"] == 0
+
+
+def test_collision_events_are_rising_edges_and_the_rate_is_per_metre():
+    # two vehicles overlapping side by side: one event each, no more while they stay in contact
+    env = ArenaEnv(CFG)
+    env.reset(options={"layout": layout([[0.0, 0.0, 0.0], [0.0, 0.8, 0.0]], [[20.0, 0.0, 0.0], [20.0, 10.0, 0.0]])})
+    for _ in range(5):
+        _, rew, _, _, info = env.step({a: np.zeros(2) for a in env.agents})
+    assert [info[a]["collisions"] for a in ("agent0", "agent1")] == [1, 1] and info["agent0"]["collided"]
+    assert rew["agent0"] < RC.collision_reward + 1.0  # the overlap penalty is in the reward every step
+    # drive one car away (no contact), then back into the other: a second event
+    sim = env.sim
+    sim.pos[1] = [0.0, 3.0]
+    env.step({a: np.zeros(2) for a in env.agents})
+    sim.pos[1] = [0.0, 0.8]
+    env.step({a: np.zeros(2) for a in env.agents})
+    m = arena_metrics(sim)
+    assert m["collisions"] == 4 and m["distance"] == 0.0 and m["collision_rate"] == 0.0
+    sim.distance[:] = [2.0, 3.0]
+    assert arena_metrics(sim)["collision_rate"] == pytest.approx(4 / 5.0)
+    assert arena_metrics(sim)["success_to_goal_rate"] == 0.0
+
+
+def test_step_limit_truncates_with_r_trunc():
+    env = ArenaEnv(make_arena_config(max_steps=3))
+    env.reset(options={"layout": layout([[0.0, 0.0, 0.0]], [[20.0, 0.0, 0.0]])})
+    for _ in range(3):
+        _, rew, term, trunc, _ = env.step({"agent0": np.zeros(2)})
+    assert trunc == {"agent0": True} and term == {"agent0": False} and rew["agent0"] == RC.truncation_reward and env.episode_over
+
+
+# ---------------------------------------------------------------- observation
+
+
+def test_observation_target_and_closest_entity_on_constructed_layouts():
+    env = ArenaEnv(CFG)
+    # ego at the origin heading +y; target at (3, 4) heading 0.5; a vehicle at (-5, 0) heading 0; obstacle r 1 at (0, 10)
+    obs, _ = env.reset(options={"layout": layout([[0, 0, math.pi / 2], [-5, 0, 0]], [[3, 4, 0.5], [-20, 0, 0]], [[0, 10, 1]])})
+    o = obs["agent0"]
+    np.testing.assert_allclose(o[0:2], [4 / 25, -3 / 25], atol=1e-6)  # (3, 4) seen from a car facing +y
+    np.testing.assert_allclose(o[2:4], [math.sin(0.5 - math.pi / 2), math.cos(0.5 - math.pi / 2)], atol=1e-6)
+    np.testing.assert_allclose(o[4:6], [0.0, 0.0])
+    # clearances: vehicle 5 - 2 R_VEH = 2.31 m beats the obstacle's 10 - 1 - R_VEH = 7.65 m
+    np.testing.assert_allclose(o[6:13], [0.0, 5 / 25, -1.0, 0.0, R_VEH / 3, 0.0, 1.0], atol=1e-6)
+    # a large obstacle is nearer by clearance than a small one whose centre is nearer
+    obs, _ = env.reset(options={"layout": layout([[0, 0, 0]], [[20, 0, 0]], [[7.0, 0, 3.0], [0, -5.5, 1.0]])})
+    np.testing.assert_allclose(obs["agent0"][6:13], [7 / 25, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0], atol=1e-6)
+    # alone: the entity slots are empty
+    obs, _ = env.reset(options={"layout": layout([[0, 0, 0]], [[20, 0, 0]])})
+    np.testing.assert_allclose(obs["agent0"][6:13], [0, 0, 0, 1, 0, 0, 0])
+    assert env.observation_space.shape == (13,)
+
+
+# ---------------------------------------------------------------- generator
+
+
+def pairwise_min(points):
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    return np.min(d[np.triu_indices(len(points), 1)]) if len(points) > 1 else np.inf
+
+
+@pytest.mark.parametrize("side", ["left", "both"])
+def test_generator_guarantees(side):
+    cfg = make_arena_config(obstacle_side=side)
+    lefts = []
+    for n, m in ((2, 4), (4, 8), (10, 8), (20, 4), (1, 12)):
+        for k in range(6):
+            lay = generate(heldout_rng(n, m, k), cfg, n, m)
+            assert lay.starts.shape == (n, 3) and lay.targets.shape == (n, 3) and lay.obstacles.shape == (m, 3)
+            assert pairwise_min(lay.starts[:, :2]) >= 5.0 and pairwise_min(lay.targets[:, :2]) >= 5.0
+            assert np.all(np.abs(lay.starts[:, 2]) <= math.pi) and np.all(np.abs(lay.targets[:, 2]) <= math.pi)
+            if n == 1:
+                assert np.all(np.abs(np.concatenate([lay.starts[:, :2], lay.targets[:, :2]])) <= 25.0)
+            pts = np.concatenate([lay.starts[:, :2], lay.targets[:, :2]])
+            for x, y, r in lay.obstacles:
+                assert 1.0 <= r <= 3.0
+                assert np.min(np.linalg.norm(pts - [x, y], axis=1)) >= r + 5.0
+                if n > 4:  # dense scenes may widen the ranges (3 m per 100 failed draws): clearance only
+                    continue
+                # on (or beside) some vehicle's straight path: along in [-7, d + 7], lateral within 7 m
+                ok = []
+                for s, t in zip(lay.starts[:, :2], lay.targets[:, :2]):
+                    u = (t - s) / np.linalg.norm(t - s)
+                    along, lateral = (np.array([x, y]) - s) @ u, (np.array([x, y]) - s) @ [-u[1], u[0]]
+                    ok.append((-7 <= along <= np.linalg.norm(t - s) + 7, lateral))
+                assert any(a and abs(lat) <= 7.0 for a, lat in ok)
+                lefts.append(any(a and 0 <= lat <= 7.0 for a, lat in ok))
+    assert all(lefts) if side == "left" else not all(lefts)
+
+
+def test_short_generator_starts_near_the_targets():
+    cfg = make_arena_config(generator="short")
+    for k in range(20):
+        lay = generate(training_rng(k), cfg, 8, 8)
+        d = np.linalg.norm(lay.starts[:, :2] - lay.targets[:, :2], axis=1)
+        assert np.all(d >= 1.0) and pairwise_min(lay.starts[:, :2]) >= 5.0
+        assert np.all(d <= 7.5 + 3.0 * 5)  # 7.5 m unless the widening rule had to step in
+
+
+def test_test_sets_are_fixed_and_disjoint_from_training():
+    assert len(PAPER_CASES) == 24 and len(set(PAPER_CASES)) == 24
+    assert (20, 8) in PAPER_CASES and (6, 12) not in PAPER_CASES
+    code = (
+        "from coin_app.envs.arena.generator import *; from coin_app.envs.arena.config import make_arena_config as m; import numpy as np\n"
+    )
+    code += "print(np.round(generate(heldout_rng(4, 4, 3), m(), 4, 4).obstacles, 9).tolist())"
+    other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert other == str(np.round(generate(heldout_rng(4, 4, 3), CFG, 4, 4).obstacles, 9).tolist())  # same in a fresh process
+    test = {generate(heldout_rng(4, 4, k), CFG, 4, 4).starts.tobytes() for k in range(30)}
+    train = {generate(training_rng(k), CFG, 4, 4).starts.tobytes() for k in range(30)}
+    assert not test & train
+
+
+# ---------------------------------------------------------------- env and heuristic
+
+
+def test_env_reset_is_seeded_and_counts_vary_within_the_ranges():
+    env = ArenaEnv(make_arena_config(num_vehicles=1, max_vehicles=8, num_obstacles=0, max_obstacles=8))
+    assert len(env.possible_agents) == 8
+    sizes = set()
+    for seed in range(30):
+        obs, _ = env.reset(seed)
+        sizes.add((len(obs), len(env.sim.layout.obstacles)))
+        again, _ = ArenaEnv(env.config).reset(seed)
+        assert all(np.array_equal(obs[a], again[a]) for a in obs)
+    assert len({n for n, _ in sizes}) > 4 and len({m for _, m in sizes}) > 4 and max(sizes)[0] <= 8
+
+
+def test_heuristic_parks_a_lone_vehicle_every_time():
+    results = []
+    for seed in range(10):
+        env = ArenaEnv(make_arena_config(num_vehicles=1, num_obstacles=0))
+        obs, _ = env.reset(seed)
+        while env.agents:
+            actions = heuristic_actions(np.stack([obs[a] for a in env.agents]))
+            obs, _, _, _, _ = env.step(dict(zip(env.agents, actions)))
+        results.append(arena_metrics(env.sim))
+    assert all(r["success_to_goal_rate"] == 1.0 for r in results)
+    assert all(r["steps"] < 400 for r in results)
+
+
+def test_arena_passes_pettingzoo_and_rllib_env_checks():
+    from pettingzoo.test import parallel_api_test
+    from ray.rllib.utils.pre_checks.env import check_multiagent_environments
+
+    from coin_app.envs.pettingzoo_env import CoinParallelEnv
+    from coin_app.envs.rllib_env import CoinMultiAgentEnv
+
+    parallel_api_test(CoinParallelEnv("arena", num_vehicles=3, num_obstacles=2, max_steps=30), num_cycles=40)
+    env = CoinMultiAgentEnv({"scenario": "arena", "num_vehicles": 3, "num_obstacles": 2, "max_steps": 30})
+    check_multiagent_environments(env)
+    obs, _ = env.reset(seed=1)
+    done = False
+    while not done:
+        obs, _, term, trunc, _ = env.step({a: env.action_spaces[a].sample() for a in env.agents})
+        done = term["__all__"]
+    assert trunc["__all__"] and env.agents == []  # every vehicle hit the 30-step limit
+    with pytest.raises(ValueError, match="not available for the arena"):
+        CoinParallelEnv("arena", render_mode="rgb_array")
