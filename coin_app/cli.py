@@ -130,6 +130,10 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
     from coin_app.envs.config import config_from_dict
 
     if source.is_dir():
+        from coin_app.algorithms.checkpoints import read_metadata
+
+        if read_metadata(source).get("scenario") == "arena" or scenario == "arena":
+            raise ValueError(f"{source} is an arena policy; evaluate it with: python -m coin_app evaluate-arena {source}")
         config = scenario_of(source, **overrides)
         if scenario is not None and scenario != config.scenario:
             raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {config.scenario}")
@@ -140,6 +144,8 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
 
     meta = load_policy(source).meta
     scenario = scenario or meta.get("scenario")
+    if scenario == "arena":
+        raise ValueError(f"{source} is an arena policy; evaluate it with: python -m coin_app evaluate-arena {source}")
     if scenario is None:
         raise ValueError(f"{source} does not say which scenario it was trained on; pass --scenario")
     return config_from_dict(scenario, {**meta.get("env_config", {}), **overrides})
@@ -200,6 +206,40 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_pair(args: argparse.Namespace) -> int:
+    """Write a switching-policy file: the short-range policy inside --switch-radius of the target, the long-range one outside."""
+    from coin_app.evaluation.policies import as_policy
+    from coin_app.inference.switching import write_pair
+
+    out = write_pair(args.out, args.long, args.short, args.switch_radius)
+    policy = as_policy(out)  # loads both parts: a bad source fails now, not in the evaluation
+    print(f"pair: long {args.long} + short {args.short}, switch at {policy.switch_radius} m -> {out}")
+    return 0
+
+
+def cmd_evaluate_arena(args: argparse.Namespace) -> int:
+    """Run the seed-2 evaluation suite (Tables I and II) on a policy; writes per-scenario rows and the case table."""
+    from coin_app.evaluation.arena_suite import evaluate_suite, markdown_table, parse_cases, summarize
+
+    cases = parse_cases(args.cases)
+    out = Path(args.out)
+    print(f"evaluate-arena: {args.policy}, {len(cases)} cases x {args.scenarios_per_case} scenarios, up to {args.max_steps} steps -> {out}")
+    t0 = time.perf_counter()
+    rows = evaluate_suite(args.policy, cases, args.scenarios_per_case, args.max_steps, args.workers)
+    out.mkdir(parents=True, exist_ok=True)
+    import pandas as pd
+
+    pd.DataFrame(rows).to_csv(out / "arena_scenarios.csv", index=False)
+    summary = summarize(rows)
+    summary.to_csv(out / "arena_cases.csv", index=False)
+    table = markdown_table(summary)
+    (out / "arena_table.md").write_text(f"Policy: `{args.policy}`; {args.scenarios_per_case} test scenarios per case.\n\n" + table)
+    print(f"\n{len(rows)} scenarios in {time.perf_counter() - t0:.0f} s")
+    print(table)
+    print(f"  per-scenario rows: {out / 'arena_scenarios.csv'}\n  case table: {out / 'arena_table.md'} (and arena_cases.csv)")
+    return 0
+
+
 def cmd_scenarios(args: argparse.Namespace) -> int:
     """List the scenarios, presets and every config key with its default."""
     from dataclasses import fields
@@ -237,9 +277,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
     demo.set_defaults(func=cmd_demo)
 
-    tr = sub.add_parser("train", help="train cig_td3 | itd3 | ippo on a scenario, with checkpoints and --resume")
-    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | ippo | cppo | mfpo | copo")
-    tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck")
+    tr = sub.add_parser("train", help="train an algorithm (cig_td3, itd3, ippo, cppo, mfpo, copo, nav_ppo) with checkpoints and --resume")
+    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | ippo | cppo | mfpo | copo | nav_ppo (arena)")
+    tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck | arena (nav_ppo)")
     tr.add_argument("--num-agents", type=int, default=None)
     tr.add_argument("--backend", default="native", help="native | metadrive (needs requirements-metadrive.txt)")
     tr.add_argument("--steps", type=int, default=1_000_000, help="env steps to train for")
@@ -266,6 +306,22 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--format", default="numpy", help="numpy (plain .npz weights + numpy forward pass)")
     ex.add_argument("--out", required=True, help="output file, e.g. policy.npz")
     ex.set_defaults(func=cmd_export)
+
+    pa = sub.add_parser("pair", help="combine a long- and a short-range arena policy into one switching policy file")
+    pa.add_argument("long", help="long-range policy: checkpoint directory or exported .npz")
+    pa.add_argument("short", help="short-range (parking) policy: checkpoint directory or exported .npz")
+    pa.add_argument("--switch-radius", type=float, default=7.5, help="metres to the target below which the short-range policy acts")
+    pa.add_argument("--out", required=True, help="pair file to write (.json)")
+    pa.set_defaults(func=cmd_pair)
+
+    ea = sub.add_parser("evaluate-arena", help="the seed-2 paper's 24-case arena test suite (Tables I and II) for a policy")
+    ea.add_argument("policy", help="heuristic | checkpoint directory | exported .npz | switching pair .json")
+    ea.add_argument("--cases", default="all", help="all (the paper's 24) or e.g. 4x3,20x8")
+    ea.add_argument("--scenarios-per-case", type=int, default=100, help="fixed test scenarios per case (the paper: 4062)")
+    ea.add_argument("--max-steps", type=int, default=400, help="steps per scenario (400 = 40 s)")
+    ea.add_argument("--workers", type=int, default=2, help="worker processes (one CPU thread each)")
+    ea.add_argument("--out", default="runs/arena_eval", help="output directory")
+    ea.set_defaults(func=cmd_evaluate_arena)
 
     scen = sub.add_parser("scenarios", help="list scenarios, presets and config keys")
     scen.set_defaults(func=cmd_scenarios)

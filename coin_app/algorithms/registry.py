@@ -26,6 +26,7 @@ class AlgorithmEntry:
     build: Callable[[str, dict[str, Any], dict[str, Any], int], Any]  # (scenario, env_cfg, algo_cfg, seed) -> config
     keys: Callable[[], tuple[str, ...]]  # the algorithm's --set keys
     quick: dict[str, Any] = field(default_factory=dict)  # hyper-parameters of the small QUICK scenario
+    scenarios: tuple[str, ...] = ("intersection", "roundabout", "bottleneck")  # what it can train on
 
 
 def _cig_td3_config(itd3: bool) -> Callable[[str, dict[str, Any], dict[str, Any], int], Any]:
@@ -131,9 +132,52 @@ register(
 )
 
 
-def split_overrides(name: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+def _nav_ppo_build(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> Any:
+    from coin_app.algorithms.nav_ppo.config import build_nav_ppo_config
+
+    return build_nav_ppo_config(scenario, env_cfg, algo_cfg, seed)
+
+
+def _nav_ppo_keys() -> tuple[str, ...]:
+    from coin_app.algorithms.nav_ppo.config import nav_ppo_keys
+
+    return nav_ppo_keys()
+
+
+register(
+    AlgorithmEntry(
+        "nav_ppo",
+        "seed-2 paper: PPO-Clip navigation (--set stage=long) and parking (stage=short) policies on the arena",
+        _nav_ppo_build,
+        _nav_ppo_keys,
+        {"hidden": 64},
+        scenarios=("arena",),
+    )
+)
+
+
+def scenario_keys(scenario: str) -> set[str]:
+    """The ``--set`` keys of a scenario's config."""
+    if scenario == "arena":
+        from coin_app.envs.arena.config import ArenaConfig
+
+        return {f.name for f in fields(ArenaConfig)}
+    return {f.name for f in fields(ScenarioConfig)} - {"scenario"} | {"preset"}
+
+
+def check_scenario_config(scenario: str, env_cfg: dict[str, Any]) -> None:
+    """Refuse bad scenario values before any work (a ValueError naming them)."""
+    if scenario == "arena":
+        from coin_app.envs.arena.config import make_arena_config
+
+        make_arena_config(**env_cfg)
+    else:
+        config_from_dict(scenario, env_cfg)
+
+
+def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "intersection") -> tuple[dict[str, Any], dict[str, Any]]:
     """Route ``--set`` keys to (scenario config, algorithm config); unknown keys are refused."""
-    env_keys = {f.name for f in fields(ScenarioConfig)} - {"scenario"} | {"preset"}
+    env_keys = scenario_keys(scenario)
     algo_keys = set(get(name).keys())
     env_cfg = {k: v for k, v in overrides.items() if k in env_keys}
     algo_cfg = {k: v for k, v in overrides.items() if k in algo_keys}
@@ -148,8 +192,10 @@ def split_overrides(name: str, overrides: dict[str, Any]) -> tuple[dict[str, Any
 def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int) -> Any:
     """A validated RLlib config of algorithm ``name`` on ``scenario``."""
     entry = get(name)
-    env_cfg, algo_cfg = split_overrides(name, overrides)
-    config_from_dict(scenario, env_cfg)  # refuses bad scenario values before any work
+    if scenario not in entry.scenarios:
+        raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(entry.scenarios)}")
+    env_cfg, algo_cfg = split_overrides(name, overrides, scenario)
+    check_scenario_config(scenario, env_cfg)  # refuses bad scenario values before any work
     cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed)
     cfg.validate()
     from coin_app.envs.rllib_env import register_envs
@@ -214,7 +260,7 @@ def train(
             raise ValueError(f"--resume {resume} is not a checkpoint directory (no rllib_checkpoint.json)")
         algo.restore_from_path(str(resume.resolve()))
         log(f"resumed from {resume}")
-    env_cfg, _ = split_overrides(name, overrides)
+    env_cfg, _ = split_overrides(name, overrides, scenario)
     meta = {"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides, "env_config": env_cfg}
     (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
     t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""One policy interface for evaluation: an RLlib checkpoint, an exported policy file, or a callable.
+"""One policy interface for evaluation: an RLlib checkpoint, an exported policy file, a switching pair, or a callable.
 
 :func:`as_policy` turns any of the three into a callable ``(N, obs_dim) -> (N, 2)`` that
 :func:`~coin_app.evaluation.evaluate.evaluate_policy` runs on either backend.
@@ -16,7 +16,7 @@ Policy = Callable[[np.ndarray], np.ndarray]
 
 
 def as_policy(source: Any) -> Policy:
-    """A batch policy from a callable, a coin_app checkpoint directory or an exported ``.npz`` file."""
+    """A batch policy from a callable, a checkpoint directory, an exported ``.npz`` or a switching pair ``.json``."""
     if callable(source):
         return source
     if not isinstance(source, (str, Path)):
@@ -26,6 +26,10 @@ def as_policy(source: Any) -> Policy:
         from coin_app.algorithms.checkpoints import load_policy as load_checkpoint
 
         return load_checkpoint(path)
+    if path.is_file() and path.suffix == ".json":
+        from coin_app.inference.switching import load_pair
+
+        return load_pair(path, as_policy)
     if path.is_file():
         from coin_app.inference import load_policy as load_exported
 

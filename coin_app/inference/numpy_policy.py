@@ -92,11 +92,15 @@ def export_numpy(actor: Any, path: str | Path, meta: dict[str, Any] | None = Non
     return path
 
 
-def load_policy(path: str | Path) -> NumpyPolicy:
-    """Load an exported actor file as a callable policy (numpy only)."""
+def load_policy(path: str | Path) -> Any:
+    """Load an exported actor file (``.npz``) or a switching pair of them (``.json``) as a callable policy (numpy only)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"policy file {path} does not exist")
+    if path.suffix == ".json":
+        from coin_app.inference.switching import load_pair
+
+        return load_pair(path, load_policy)
     try:
         data = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as exc:

@@ -1,0 +1,81 @@
+"""nav_ppo: RLlib PPO (new API stack, one shared policy) on the arena, one training stage at a time.
+
+The paper (§III-C, §IV) trains two PPO-Clip models with ``[256, 256]`` networks: a long-range
+one on scenarios of 4 vehicles and 3 obstacles, and a short-range (parking) one on 1–8 vehicles
+and 0–8 obstacles; at run time the short-range one drives inside ``switch_radius`` of the
+target (``coin_app.inference.switching``). ``--set stage=long|short`` picks the stage; its
+scenario mix is ``STAGES[stage]`` (any arena key in ``--set`` overrides it). The short stage
+starts vehicles within the switching radius of their targets (``generator="short"``), the
+part of the task that policy will see.
+
+The paper gives no PPO hyper-parameters beyond the loss (clip + value + entropy, no KL term);
+ours are Stable-Baselines3's defaults (the suggested defaults of
+``decentralized_nav_and_agnn.md`` §4) with a larger minibatch for speed, all in
+``HYPERPARAMETERS``. Where the paper trains one "primary" vehicle and copies its policy to
+the others, every vehicle here trains the one shared policy (parameter sharing): the same
+policy for all, without discarding the other vehicles' experience.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ray.rllib.algorithms.ppo import PPOConfig
+from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
+
+from coin_app.envs.rllib_env import shared_policy_config
+
+STAGES: dict[str, dict[str, Any]] = {
+    "long": {"num_vehicles": 4, "num_obstacles": 3, "generator": "agnn"},
+    "short": {"num_vehicles": 1, "max_vehicles": 8, "num_obstacles": 0, "max_obstacles": 8, "generator": "short"},
+}
+
+# name -> (default, meaning)
+HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
+    "stage": ("long", "training stage: 'long' (4 vehicles, 3 obstacles) or 'short' (1-8 vehicles, 0-8 obstacles, starts near targets)"),
+    "lr": (3e-4, "Adam learning rate"),
+    "gamma": (0.99, "discount"),
+    "lambda_": (0.95, "GAE lambda"),
+    "clip_param": (0.2, "PPO ratio clip (epsilon)"),
+    "vf_loss_coeff": (0.5, "c1, weight of the value loss"),
+    "entropy_coeff": (0.0, "c2, entropy bonus"),
+    "train_batch_size_per_learner": (2048, "env steps per training batch"),
+    "minibatch_size": (256, "SGD minibatch (agent transitions)"),
+    "num_epochs": (10, "SGD passes over each batch"),
+    "hidden": (256, "width of the two tanh layers of the separate policy and value networks (paper: 256)"),
+    "num_env_runners": (0, "remote env runners (0 = sample in the training process)"),
+    "num_envs_per_env_runner": (1, "arena copies each env runner steps"),
+}
+
+
+def nav_ppo_keys() -> tuple[str, ...]:
+    """The ``--set`` keys of nav_ppo."""
+    return tuple(HYPERPARAMETERS)
+
+
+def build_nav_ppo_config(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
+    """RLlib PPO-Clip on the arena for one stage (see module doc)."""
+    from coin_app.envs.arena.config import make_arena_config
+
+    if scenario != "arena":
+        raise ValueError(f"nav_ppo trains on the arena only, got scenario {scenario!r}; allowed: arena")
+    hp = {k: v for k, (v, _) in HYPERPARAMETERS.items()} | dict(algo_cfg)
+    stage = hp.pop("stage")
+    if stage not in STAGES:
+        raise ValueError(f"bad value for 'stage': {stage!r}; allowed: {', '.join(STAGES)}")
+    for key in ("hidden", "num_envs_per_env_runner"):
+        if not (isinstance(hp[key], int) and not isinstance(hp[key], bool) and hp[key] >= 1):
+            raise ValueError(f"bad value for {key!r}: {hp[key]!r}; allowed: an integer >= 1")
+    env_config = {**STAGES[stage], **env_cfg}
+    make_arena_config(**env_config)  # refuses bad arena values before any work
+    model = DefaultModelConfig(fcnet_hiddens=[hp.pop("hidden")] * 2, fcnet_activation="tanh", vf_share_layers=False, head_fcnet_hiddens=[])
+    cfg = (
+        PPOConfig()
+        .environment("coin-arena-v0", env_config=env_config)
+        .env_runners(num_env_runners=hp.pop("num_env_runners"), num_envs_per_env_runner=hp.pop("num_envs_per_env_runner"))
+        .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
+        .rl_module(model_config=model)
+        .debugging(seed=seed)
+        .evaluation(evaluation_interval=None)
+    )
+    return shared_policy_config(cfg)

@@ -1,0 +1,231 @@
+"""The seed-2 paper's evaluation suite: 24 (vehicles, obstacles) cases of fixed arena test scenarios (Tables I, II).
+
+Test scenario ``k`` of case (n, m) is ``generate(heldout_rng(n, m, k))`` with the A-GNN test
+settings (obstacles on the left of the paths, ``generator.py``): fixed forever and never
+drawn in training. Every vehicle acts at once, one batch per step, deterministically, for up
+to ``max_steps`` (400 = 40 s, the A-GNN evaluation's horizon). Per case:
+
+* **success-to-goal rate**: vehicles that reached their target state (1.25 m, 0.2 rad,
+  < 0.05 m/s) without any collision before, over all vehicles of the case;
+* **collision rate**: collision events over metres driven, summed over the case (Table I);
+* **step time**: the mean wall time of the policy call that computes every vehicle's action
+  of a step in one batch, on one CPU thread (Table II).
+
+Cases run in worker processes (one CPU thread each); each loads the policy from its source.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coin_app.envs.arena.config import ArenaConfig, make_arena_config
+from coin_app.envs.arena.env import ArenaEnv, arena_metrics
+from coin_app.envs.arena.generator import PAPER_CASES, generate, heldout_rng
+
+# Table I: (our agent success, A-GNN success, our agent collision rate, A-GNN collision rate); None where the paper has "-"
+PAPER_TABLE_I: dict[tuple[int, int], tuple[float, float, float | None, float | None]] = {
+    (1, 0): (0.93822, 0.9963, None, None),
+    (1, 4): (0.8943, 0.6829, 1.07e-3, 6.74e-4),
+    (1, 8): (0.8223, 0.8114, 3.83e-3, 4.69e-4),
+    (1, 12): (0.7657, 0.792, 6.87e-3, 7.73e-4),
+    (2, 0): (0.9121, 0.9974, 2.69e-4, 0.0),
+    (2, 4): (0.9226, 0.6384, 2.46e-3, 3.62e-4),
+    (2, 8): (0.9221, 0.3832, 2.10e-3, 9.86e-4),
+    (2, 12): (0.8895, 0.2768, 4.06e-3, 1.60e-3),
+    (4, 0): (0.9084, 0.9905, 5.68e-4, 5.09e-5),
+    (4, 4): (0.8839, 0.8564, 2.18e-3, 8.42e-4),
+    (4, 8): (0.8896, 0.7052, 1.77e-3, 1.91e-3),
+    (4, 12): (0.8789, 0.5871, 2.61e-3, 3.35e-3),
+    (6, 0): (0.8824, 0.9665, 9.78e-4, 3.60e-4),
+    (6, 4): (0.8760, 0.8689, 1.12e-3, 1.38e-3),
+    (6, 8): (0.867, 0.7654, 1.64e-3, 2.77e-3),
+    (10, 0): (0.85, 0.852, 1.02e-3, 1.91e-3),
+    (10, 4): (0.842, 0.7724, 1.31e-3, 3.04e-3),
+    (10, 8): (0.8399, 0.6978, 1.52e-3, 4.33e-3),
+    (15, 0): (0.839, 0.6029, 8.29e-4, 5.12e-3),
+    (15, 4): (0.8356, 0.5231, 9.88e-4, 6.42e-3),
+    (15, 8): (0.7711, 0.4689, 3.05e-3, 7.54e-3),
+    (20, 0): (0.8297, 0.3161, 8.10e-4, 9.99e-3),
+    (20, 4): (0.7925, 0.2563, 1.74e-3, 1.15e-2),
+    (20, 8): (0.7567, 0.2153, 2.83e-3, 1.29e-2),
+}
+# Table II: seconds per step (our agent, A-GNN), Ryzen 7 7800X3D, batched on one CPU
+PAPER_TABLE_II: dict[tuple[int, int], tuple[float, float]] = {
+    (1, 0): (1.69e-4, 1.93e-3),
+    (1, 8): (2.12e-4, 2.61e-3),
+    (2, 0): (2.20e-4, 2.41e-3),
+    (2, 8): (2.17e-4, 2.80e-3),
+    (4, 0): (2.20e-4, 2.71e-3),
+    (4, 8): (2.20e-4, 3.19e-3),
+    (6, 0): (2.33e-4, 2.99e-3),
+    (6, 8): (2.27e-4, 3.74e-3),
+    (10, 0): (2.37e-4, 3.83e-3),
+    (10, 8): (2.37e-4, 4.82e-3),
+    (15, 0): (2.52e-4, 5.09e-3),
+    (15, 8): (2.47e-4, 6.31e-3),
+    (20, 0): (2.47e-4, 6.50e-3),
+    (20, 8): (2.54e-4, 7.67e-3),
+}
+
+
+def parse_cases(spec: str) -> list[tuple[int, int]]:
+    """``"all"`` (the paper's 24) or a comma list of ``VEHICLESxOBSTACLES`` such as ``"4x3,20x8"``."""
+    if spec == "all":
+        return list(PAPER_CASES)
+    cases = []
+    for part in spec.split(","):
+        try:
+            n, m = (int(x) for x in part.lower().split("x"))
+        except ValueError:
+            raise ValueError(f"bad case {part!r}; allowed: 'all' or VEHICLESxOBSTACLES like 4x3, comma separated") from None
+        if n < 1 or m < 0:
+            raise ValueError(f"bad case {part!r}; allowed: >= 1 vehicle and >= 0 obstacles")
+        cases.append((n, m))
+    return cases
+
+
+def suite_config(max_steps: int = 400) -> ArenaConfig:
+    """The arena settings of the test suite (the A-GNN test generator: obstacles on the left)."""
+    return make_arena_config(generator="agnn", obstacle_side="left", max_steps=max_steps)
+
+
+def load_arena_policy(source: str | Path) -> Callable[[np.ndarray], np.ndarray]:
+    """``"heuristic"`` (the scripted driver) or any policy source of ``as_policy`` (checkpoint, .npz, pair .json)."""
+    if str(source) == "heuristic":
+        from coin_app.envs.arena.heuristic import heuristic_actions
+
+        return heuristic_actions
+    from coin_app.evaluation.policies import as_policy
+
+    return as_policy(source)
+
+
+def run_scenario(policy: Callable[[np.ndarray], np.ndarray], env: ArenaEnv, layout: Any) -> dict[str, float]:
+    """One deterministic episode on ``layout``: the paper's metrics and the mean policy time per step."""
+    obs, _ = env.reset(options={"layout": layout})
+    times = []
+    while env.agents:
+        batch = np.stack([obs[a] for a in env.agents])
+        t0 = time.perf_counter()
+        actions = np.asarray(policy(batch))
+        times.append(time.perf_counter() - t0)
+        obs, _, _, _, _ = env.step(dict(zip(env.agents, actions)))
+    return {**arena_metrics(env.sim), "step_time_s": float(np.mean(times)), "policy_calls": len(times)}
+
+
+def evaluate_case(job: tuple[str, tuple[int, int], list[int], int]) -> list[dict[str, Any]]:
+    """Rows (one per scenario) of test scenarios ``indices`` of one case (a worker job)."""
+    source, (n, m), indices, max_steps = job
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    policy = load_arena_policy(source)
+    cfg = suite_config(max_steps)
+    env = ArenaEnv(cfg)
+    rows = []
+    for k in indices:
+        layout = generate(heldout_rng(n, m, k), cfg, n, m)
+        rows.append({"case": f"{n}x{m}", "scenario": k, **run_scenario(policy, env, layout)})
+    return rows
+
+
+def evaluate_suite(
+    source: str | Path,
+    cases: list[tuple[int, int]],
+    scenarios_per_case: int,
+    max_steps: int = 400,
+    workers: int = 2,
+    log: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Per-scenario rows of every case (deterministic: the same rows on every run)."""
+    import multiprocessing as mp
+
+    if scenarios_per_case < 1:
+        raise ValueError(f"bad scenarios per case {scenarios_per_case}; allowed: an integer >= 1")
+    if workers < 1:
+        raise ValueError(f"bad workers {workers}; allowed: an integer >= 1")
+    load_arena_policy(source)  # a bad source fails here, before any work
+    chunk = max(1, min(scenarios_per_case, 25))
+    jobs = [
+        (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps)
+        for case in cases
+        for i in range(0, scenarios_per_case, chunk)
+    ]
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")  # one CPU thread per worker (the step times of Table II)
+    rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    if workers == 1:
+        results = map(evaluate_case, jobs)
+    else:
+        pool = mp.get_context("spawn").Pool(workers)
+        results = pool.imap(evaluate_case, jobs)
+    try:
+        for i, part in enumerate(results, 1):
+            rows.extend(part)
+            if i % max(1, len(jobs) // 10) == 0 or i == len(jobs):
+                log(f"  {i}/{len(jobs)} jobs, {len(rows)} scenarios, {time.perf_counter() - t0:.0f} s")
+    finally:
+        if workers > 1:
+            pool.close()
+            pool.join()
+    return rows
+
+
+def summarize(rows: list[dict[str, Any]]) -> Any:
+    """Per case: scenarios, vehicles, success-to-goal rate, collision rate (events / metres), mean step time; next to the paper's."""
+    import pandas as pd
+
+    df = pd.DataFrame(rows)
+    out = []
+    for case, g in df.groupby("case", sort=False):
+        n, m = (int(x) for x in str(case).split("x"))
+        paper = PAPER_TABLE_I.get((n, m), (np.nan,) * 4)
+        paper_time = PAPER_TABLE_II.get((n, m), (np.nan, np.nan))
+        vehicles = int(g["vehicles"].sum())
+        metres = float(g["distance"].sum())
+        out.append(
+            {
+                "vehicles": n,
+                "obstacles": m,
+                "scenarios": len(g),
+                "success_to_goal_rate": float((g["success_to_goal_rate"] * g["vehicles"]).sum() / vehicles),
+                "collision_rate": float(g["collisions"].sum() / metres) if metres > 0 else np.nan,
+                "step_time_s": float((g["step_time_s"] * g["policy_calls"]).sum() / g["policy_calls"].sum()),
+                "paper_success": paper[0],
+                "paper_agnn_success": paper[1],
+                "paper_collision_rate": np.nan if paper[2] is None else paper[2],
+                "paper_agnn_collision_rate": np.nan if paper[3] is None else paper[3],
+                "paper_step_time_s": paper_time[0],
+            }
+        )
+    return pd.DataFrame(out)
+
+
+def markdown_table(summary: Any) -> str:
+    """The per-case summary as a Markdown table, ours next to the paper's Table I / II."""
+    lines = [
+        "| vehicles | obstacles | scenarios | success (ours) | success (paper) | A-GNN (paper) "
+        "| collisions/m (ours) | collisions/m (paper) | step time ms (ours) | step time ms (paper) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+
+    def f(x: float, fmt: str) -> str:
+        return "–" if x is None or (isinstance(x, float) and np.isnan(x)) else format(x, fmt)
+
+    for r in summary.to_dict("records"):
+        lines.append(
+            f"| {r['vehicles']} | {r['obstacles']} | {r['scenarios']} | {f(r['success_to_goal_rate'], '.3f')} | "
+            f"{f(r['paper_success'], '.3f')} | {f(r['paper_agnn_success'], '.3f')} | {f(r['collision_rate'], '.2e')} | "
+            f"{f(r['paper_collision_rate'], '.2e')} | {f(r['step_time_s'] * 1e3, '.3f')} | {f(r['paper_step_time_s'] * 1e3, '.3f')} |"
+        )
+    return "\n".join(lines) + "\n"
