@@ -59,7 +59,7 @@ class ArenaEnv:
         obs = self.sim.reset(layout)
         self.agents = [f"agent{i}" for i in range(self.sim.num_vehicles)]
         self.episode_over = False
-        return {a: obs[i] for i, a in enumerate(self.agents)}, {a: self._info(i) for i, a in enumerate(self.agents)}
+        return {a: obs[i] for i, a in enumerate(self.agents)}, self._infos(self.agents)
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Apply one (steering, pedal) action per driving vehicle; returns obs, rewards, terminations, truncations, infos."""
@@ -76,23 +76,29 @@ class ArenaEnv:
             {a: float(res.reward[i]) for a, i in zip(ids, idx)},
             {a: bool(res.success[i]) for a, i in zip(ids, idx)},
             {a: bool(res.truncated[i]) for a, i in zip(ids, idx)},
-            {a: self._info(i) for a, i in zip(ids, idx)},
+            self._infos(ids),
         )
         self.agents = [f"agent{i}" for i in np.nonzero(self.sim.driving)[0]]
         self.episode_over = not self.agents
         return out
 
-    def _info(self, i: int) -> dict[str, Any]:
+    def _infos(self, ids: list[str]) -> dict[str, dict[str, Any]]:
+        """Infos of the vehicles ``ids`` (see module doc)."""
         sim = self.sim
-        return {
-            "success": bool(sim.succeeded[i]),
-            "collided": bool(sim.collided[i]),
-            "collisions": int(sim.collision_events[i]),
-            "distance": float(sim.distance[i]),
-            "target_distance": float(np.linalg.norm(sim.layout.targets[i, :2] - sim.pos[i])),
-            "heading_error": float(sim.heading_error()[i]),
-            "env_step": int(sim.t),
-        }
+        dist, heading_error = sim.target_distance(), sim.heading_error()
+        out = {}
+        for aid in ids:
+            i = int(aid[5:])
+            out[aid] = {
+                "success": bool(sim.succeeded[i]),
+                "collided": bool(sim.collided[i]),
+                "collisions": int(sim.collision_events[i]),
+                "distance": float(sim.distance[i]),
+                "target_distance": float(dist[i]),
+                "heading_error": float(heading_error[i]),
+                "env_step": int(sim.t),
+            }
+        return out
 
     def close(self) -> None:
         """Nothing to release."""
