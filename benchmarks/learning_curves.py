@@ -4,6 +4,10 @@ Usage: python benchmarks/learning_curves.py [--algos cig_td3 itd3] [--steps 2000
                                             [--seeds 0 1 2] [--scenario intersection] [--set key=value ...]
                                             [--out runs/curves]
 
+``--algos`` takes any registered driving algorithm: cig_td3, itd3, ippo, cppo, mfpo, copo
+(e.g. ``--algos ippo cppo mfpo copo --steps 100000 --eval-every 10000`` for the PPO family,
+which samples 1024 env steps per update).
+
 The small scenario is the algorithm's quick settings (``registry.quick_settings``: 4 agents,
 horizon 300, small networks). The intersection is the default: vehicles first arrive there after
 ~15k env steps, while the bottleneck (the hardest COIN map; IPPO reaches 24 % after 1M steps in
