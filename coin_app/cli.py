@@ -237,6 +237,11 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     print(f"\n{len(rows)} scenarios in {time.perf_counter() - t0:.0f} s")
     print(table)
     print(f"  per-scenario rows: {out / 'arena_scenarios.csv'}\n  case table: {out / 'arena_table.md'} (and arena_cases.csv)")
+    if args.plots:
+        from coin_app.evaluation.arena_suite import plot_scenarios
+
+        plots = plot_scenarios(args.policy, cases, args.plots, out / "plots", args.max_steps)
+        print(f"  trajectory plots: {len(plots)} in {out / 'plots'}")
     return 0
 
 
@@ -321,6 +326,7 @@ def build_parser() -> argparse.ArgumentParser:
     ea.add_argument("--max-steps", type=int, default=400, help="steps per scenario (400 = 40 s)")
     ea.add_argument("--workers", type=int, default=2, help="worker processes (one CPU thread each)")
     ea.add_argument("--out", default="runs/arena_eval", help="output directory")
+    ea.add_argument("--plots", type=int, default=0, help="trajectory plots of the first K test scenarios of each case")
     ea.set_defaults(func=cmd_evaluate_arena)
 
     scen = sub.add_parser("scenarios", help="list scenarios, presets and config keys")

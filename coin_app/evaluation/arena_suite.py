@@ -106,9 +106,11 @@ def load_arena_policy(source: str | Path) -> Callable[[np.ndarray], np.ndarray]:
     return as_policy(source)
 
 
-def run_scenario(policy: Callable[[np.ndarray], np.ndarray], env: ArenaEnv, layout: Any) -> dict[str, float]:
-    """One deterministic episode on ``layout``: the paper's metrics and the mean policy time per step."""
+def run_scenario(policy: Callable[[np.ndarray], np.ndarray], env: ArenaEnv, layout: Any, trace: Any = None) -> dict[str, float]:
+    """One deterministic episode on ``layout``: the paper's metrics and the mean policy time per step (``trace`` records it)."""
     obs, _ = env.reset(options={"layout": layout})
+    if trace is not None:
+        trace.start(env.sim)
     times = []
     while env.agents:
         batch = np.stack([obs[a] for a in env.agents])
@@ -116,7 +118,28 @@ def run_scenario(policy: Callable[[np.ndarray], np.ndarray], env: ArenaEnv, layo
         actions = np.asarray(policy(batch))
         times.append(time.perf_counter() - t0)
         obs, _, _, _, _ = env.step(dict(zip(env.agents, actions)))
+        if trace is not None:
+            trace.record(env.sim.last_new_collisions)
     return {**arena_metrics(env.sim), "step_time_s": float(np.mean(times)), "policy_calls": len(times)}
+
+
+def plot_scenarios(source: str | Path, cases: list[tuple[int, int]], count: int, out: Path, max_steps: int = 400) -> list[Path]:
+    """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores)."""
+    from coin_app.envs.arena.rendering import ArenaTrace, plot_arena_episode
+
+    policy = load_arena_policy(source)
+    cfg = suite_config(max_steps)
+    env = ArenaEnv(cfg)
+    paths = []
+    for n, m in cases:
+        for k in range(count):
+            trace = ArenaTrace()
+            res = run_scenario(policy, env, generate(heldout_rng(n, m, k), cfg, n, m), trace)
+            title = (
+                f"{n} vehicles, {m} obstacles, test scenario {k}: success {res['success_to_goal_rate']:.2f}, {res['collisions']} collisions"
+            )
+            paths.append(plot_arena_episode(trace, out / f"arena_{n}x{m}_{k}.png", title))
+    return paths
 
 
 def evaluate_case(job: tuple[str, tuple[int, int], list[int], int]) -> list[dict[str, Any]]:

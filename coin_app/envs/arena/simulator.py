@@ -129,6 +129,7 @@ class ArenaSimulator:
         new = (contact & ~self.contact).sum(1) * acted
         self.contact = contact
         self.collision_events += new
+        self.last_new_collisions = new
         self.collided |= contact.any(1) & acted
         dist = self.target_distance()
         success = self.is_success() & acted
