@@ -143,11 +143,14 @@ def test_both_stages_train_export_pair_and_evaluate(ray_session, tmp_path, capsy
                 "60",
                 "--out",
                 str(out),
+                "--plots",
+                "1",
             ]
         )
         == 0
     )
     text = capsys.readouterr().out
     assert "| 2 | 1 | 2 |" in text and (out / "arena_table.md").exists() and (out / "arena_scenarios.csv").exists()
+    assert (out / "plots" / "arena_2x1_0.png").stat().st_size > 10_000
     assert main(["evaluate", str(tmp_path / "long" / "checkpoint")]) != 0
     assert "is an arena policy; evaluate it with: python -m coin_app evaluate-arena" in capsys.readouterr().err
