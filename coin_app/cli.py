@@ -115,8 +115,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{args.algo}_{args.scenario}_s{args.seed}")
     resume = Path(args.resume) if args.resume else None
     print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
-    summary = train(args.algo, args.scenario, args.steps, args.seed, overrides, out, args.checkpoint_every, resume)
-    print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations")
+    summary = train(
+        args.algo, args.scenario, args.steps, args.seed, overrides, out, args.checkpoint_every, resume, max_minutes=args.max_minutes
+    )
+    print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations, {summary['wall_s']:.0f} s")
     print(f"  checkpoint: {summary['checkpoint']}")
     if summary.get("eval"):
         print("  last periodic evaluation (validation seeds):")
@@ -292,6 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario or algorithm overrides (see docs)")
     tr.add_argument("--out", default=None, help="run directory (default runs/<algo>_<scenario>_s<seed>)")
     tr.add_argument("--checkpoint-every", type=int, default=10, help="checkpoint every K training iterations")
+    tr.add_argument("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this much wall time")
     tr.add_argument("--resume", default=None, help="checkpoint directory to continue from")
     tr.set_defaults(func=cmd_train)
 

@@ -239,14 +239,17 @@ def train(
     checkpoint_every: int = 10,
     resume: Path | None = None,
     log: Callable[[str], None] = print,
+    max_minutes: float | None = None,
 ) -> dict[str, Any]:
-    """Train until ``steps`` env steps; checkpoints every ``checkpoint_every`` iterations and at the end."""
+    """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end."""
     import ray
 
     from coin_app.envs.rllib_env import register_envs
 
     if steps < 1:
         raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
+    if max_minutes is not None and not max_minutes > 0:
+        raise ValueError(f"bad max_minutes {max_minutes}; allowed: a number > 0 or None")
     if checkpoint_every < 1:
         raise ValueError(f"bad checkpoint_every {checkpoint_every}; allowed: an integer >= 1")
     cfg = build_config(name, scenario, overrides, seed)
@@ -268,7 +271,7 @@ def train(
     result: dict[str, Any] = {}
     last_eval: dict[str, float] = {}
     ckpt = out / "checkpoint"
-    while sampled < steps:
+    while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
         result = algo.train()
         sampled = int(result.get("num_env_steps_sampled_lifetime", result.get("env_runners", {}).get("num_env_steps_sampled_lifetime", 0)))
         it = int(result["training_iteration"])
@@ -290,6 +293,12 @@ def train(
             save(algo, ckpt, meta)
     save(algo, ckpt, meta)
     algo.stop()
-    summary = {"checkpoint": str(ckpt), "env_steps": sampled, "iterations": int(result.get("training_iteration", 0)), "eval": last_eval}
+    summary = {
+        "checkpoint": str(ckpt),
+        "env_steps": sampled,
+        "iterations": int(result.get("training_iteration", 0)),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "eval": last_eval,
+    }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
