@@ -80,7 +80,7 @@ class CoPOLearner(ClippedValuePPOLearner):
 
     def value_loss(self, module: Any, batch: dict[str, Any], fwd_out: dict[str, Any], config: Any) -> tuple[torch.Tensor, ...]:
         """Sum of the clipped ego, neighbour and global value losses (ego values and targets for the metrics)."""
-        v_ego, v_nei, v_glob = module.compute_all_values(batch)
+        v_ego, v_nei, v_glob = module.compute_all_values(batch, fwd_out.get(Columns.EMBEDDINGS))
         clip = config.vf_clip_param
         ego = clipped_value_loss(v_ego, batch[OLD_VALUES], batch[Postprocessing.VALUE_TARGETS], clip)
         nei = clipped_value_loss(v_nei, batch[OLD_NEI_VALUES], batch[NEI_TARGETS], clip)

@@ -33,10 +33,10 @@ class CoPOModule(DefaultPPOTorchRLModule):
         """Value networks are not needed to act."""
         return [*super().get_non_inference_attributes(), "nei_vf", "global_vf"]
 
-    def compute_all_values(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(ego, neighbour, global) values of the batch's observations, each of shape (B,)."""
+    def compute_all_values(self, batch: dict[str, Any], embeddings: Any = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(ego, neighbour, global) values of the batch's observations, each of shape (B,) (``embeddings``: the critic encoder's)."""
         obs = batch["obs"]
-        return self.compute_values(batch), self.nei_vf(obs).squeeze(-1), self.global_vf(obs).squeeze(-1)
+        return self.compute_values(batch, embeddings), self.nei_vf(obs).squeeze(-1), self.global_vf(obs).squeeze(-1)
 
     def lcf_distribution(self) -> tuple[float, float]:
         """The current LCF (mean, std)."""

@@ -48,8 +48,9 @@ def observe(sim: Any) -> np.ndarray:
     out[:, 9] = 1.0
     if n + m <= 1:
         return out
-    clearance = sim.entity_clearance()
-    j = np.argmin(clearance, axis=1)  # (N,) index among vehicles, then obstacles
+    j = np.argmin(
+        sim.clearance, axis=1
+    )  # the step's clearances (ArenaSimulator.entity_clearance)  # (N,) index among vehicles, then obstacles
     centres = np.concatenate([sim.pos, layout.obstacles[:, :2]])
     headings = np.concatenate([sim.heading, np.zeros(m)])
     radii = np.concatenate([np.full(n, cfg.vehicle_radius), layout.obstacles[:, 2]])

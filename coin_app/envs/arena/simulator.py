@@ -66,6 +66,7 @@ class ArenaSimulator:
         self.steps = np.zeros(n, int)
         self.contact = np.zeros((n, n + m), bool)
         self.prev_dist = self.target_distance()
+        self.clearance = self.entity_clearance()
         return observe(self)
 
     def target_distance(self) -> np.ndarray:
@@ -134,8 +135,9 @@ class ArenaSimulator:
         dist = self.target_distance()
         success = self.is_success() & acted
         truncated = acted & ~success & (self.t >= cfg.max_steps)
+        self.clearance = self.entity_clearance()
         reward = step_reward(
-            cfg.reward, dist, self.prev_dist, self.heading_error(), contact, self.entity_clearance(), self.t, cfg.dt, success, truncated
+            cfg.reward, dist, self.prev_dist, self.heading_error(), contact, self.clearance, self.t, cfg.dt, success, truncated
         )
         self.prev_dist = dist
         self.succeeded |= success
