@@ -263,6 +263,17 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
         if f.name not in ("scenario", "dynamics"):
             print(f"  {f.name:<20} {getattr(cfg, f.name)!r}")
     print("  dynamics             a dict of DynamicsConfig fields, e.g. --set \"dynamics={'max_speed_kmh': 60}\"")
+    from coin_app.envs.arena.config import ArenaConfig
+
+    arena = ArenaConfig()
+    print(
+        f"arena          {arena.num_vehicles:>3} vehicles, {arena.num_obstacles} obstacles  obs {arena.obs_dim}  registered as coin-arena-v0 (nav_ppo)"
+    )
+    print("arena keys (--set key=value):")
+    for f in fields(ArenaConfig):
+        if f.name != "reward":
+            print(f"  {f.name:<20} {getattr(arena, f.name)!r}")
+    print("  reward               a dict of RewardConfig fields (Eqs. 2-6), e.g. --set \"reward={'success_reward': 100}\"")
     return 0
 
 
