@@ -266,9 +266,7 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     from coin_app.envs.arena.config import ArenaConfig
 
     arena = ArenaConfig()
-    print(
-        f"arena          {arena.num_vehicles:>3} vehicles, {arena.num_obstacles} obstacles  obs {arena.obs_dim}  registered as coin-arena-v0 (nav_ppo)"
-    )
+    print(f"arena          {arena.num_vehicles:>3} vehicles, {arena.num_obstacles} obstacles  obs {arena.obs_dim}  coin-arena-v0 (nav_ppo)")
     print("arena keys (--set key=value):")
     for f in fields(ArenaConfig):
         if f.name != "reward":
