@@ -117,10 +117,12 @@ def test_both_stages_train_export_pair_and_evaluate(ray_session, tmp_path, capsy
     assert cfg.env_config["generator"] == "short" and cfg.env_config["max_vehicles"] == 8 and not cfg.use_kl_loss
     assert cfg.model_config["fcnet_hiddens"] == [256, 256]
     exported = {}
-    for stage in ("long", "short"):
+    for stage, budget in (("long", ["--steps", "400"]), ("short", ["--steps", "1000000000", "--max-minutes", "0.0001"])):
         out = tmp_path / stage
-        args = ["train", "--algo", "nav_ppo", "--scenario", "arena", "--steps", "400", "--out", str(out), "--set", f"stage={stage}", *TINY]
+        args = ["train", "--algo", "nav_ppo", "--scenario", "arena", *budget, "--out", str(out), "--set", f"stage={stage}", *TINY]
         assert main(args) == 0
+        # one 400-step batch either way: the wall-time budget stops the short stage after its first iteration
+        assert json.loads((out / "summary.json").read_text())["env_steps"] == 400
         exported[stage] = tmp_path / f"{stage}.npz"
         assert main(["export", str(out / "checkpoint"), "--out", str(exported[stage])]) == 0
     capsys.readouterr()
@@ -152,5 +154,7 @@ def test_both_stages_train_export_pair_and_evaluate(ray_session, tmp_path, capsy
     text = capsys.readouterr().out
     assert "| 2 | 1 | 2 |" in text and (out / "arena_table.md").exists() and (out / "arena_scenarios.csv").exists()
     assert (out / "plots" / "arena_2x1_0.png").stat().st_size > 10_000
+    assert main(["train", "--algo", "nav_ppo", "--scenario", "arena", "--max-minutes", "0", "--out", str(tmp_path / "x")]) != 0
+    assert "bad max_minutes 0.0" in capsys.readouterr().err
     assert main(["evaluate", str(tmp_path / "long" / "checkpoint")]) != 0
     assert "is an arena policy; evaluate it with: python -m coin_app evaluate-arena" in capsys.readouterr().err
