@@ -294,3 +294,24 @@ def test_arena_passes_pettingzoo_and_rllib_env_checks():
     assert trunc["__all__"] and env.agents == []  # every vehicle hit the 30-step limit
     with pytest.raises(ValueError, match="not available for the arena"):
         CoinParallelEnv("arena", render_mode="rgb_array")
+
+
+def test_hovering_near_the_target_earns_less_than_parking_at_any_step():
+    """The time penalty must outgrow the near-target shaping (the paper's reason for Eq. 6).
+
+    A vehicle 2 m behind its target, aligned and still, collects the distance reward (inside d_c
+    it is positive even without progress) and the angle reward every step; compare hovering to
+    the step limit (then r_trunc) with hovering k - 1 steps and parking at step k, for every k.
+    """
+    limit, d = CFG.max_steps, 2.0
+    hover = distance_reward(RC, np.array([d]), np.array([d]))[0]
+    hover += angle_reward(RC, np.array([d]), np.array([0.0]), np.array([hover]))[0]
+    steps = np.arange(1, limit + 1)
+    per_step = hover + np.array([time_reward(RC, t, CFG.dt) for t in steps])
+    hover_to_limit = per_step[:-1].sum() + RC.truncation_reward
+    park_at = np.concatenate([[0.0], np.cumsum(per_step[:-1])]) + RC.success_reward  # hover k - 1 steps, park at k
+    assert hover > 0.5 and park_at.min() > hover_to_limit + 50.0
+    # the same check catches a time penalty too weak for the success reward
+    weak = RewardConfig(time_scale=0.01, success_reward=50.0)
+    per_weak = hover + np.array([time_reward(weak, t, CFG.dt) for t in steps])
+    assert (np.concatenate([[0.0], np.cumsum(per_weak[:-1])]) + weak.success_reward).min() < per_weak[:-1].sum() + weak.truncation_reward

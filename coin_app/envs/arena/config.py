@@ -5,11 +5,12 @@ Defaults are the seed-2 paper's where it gives numbers (Δt 0.1 s, success 1.25 
 ``decentralized_nav_and_agnn.md`` ("Suggested defaults") elsewhere: wheelbase 2.0 m, friction
 0.99, pedal ±1 m/s², steering ±0.8 rad, 1.0 × 2.5 m vehicles, obstacles of radius 1–3 m, a
 ±25 m map, the semi-implicit update order. The reward coefficients (Eqs. 2–6) are left
-symbolic by the paper; ours are chosen so one step's shaping stays below ~1 while success,
-collision and truncation are an order of magnitude larger (see ``RewardConfig``): the
-distance reward is at most 0.7 per step; the time penalty reaches 0.4 per step at the 400-step
-limit (80 in all, against 50 for success); the proximity penalty is 0.2 per entity at 1 m
-clearance and at most 0.8.
+symbolic by the paper; ours keep one step's shaping near 1 (the distance reward is at most
+0.7, the angle reward half of it, the proximity penalty 0.2 per entity at 1 m clearance) and
+make the time penalty (2 per step at the 400-step limit) outgrow it, as the paper intends:
+hovering near the target until the limit, collecting distance and angle rewards, must earn
+less than parking at any step (tested). A time penalty of 0.01 with a success reward of 50
+fails that test: the first trained pair learnt to hover.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ class RewardConfig:
     proximity_scale: float = 0.02  # [alpha_obs]: penalty alpha_obs * r_coll / d inside the band
     proximity_radius: float = 3.0  # [d_min] m of clearance: no proximity penalty beyond it
     collision_clearance: float = 0.25  # [d_coll] m: the band's 1/d is capped at 1/d_coll
-    time_scale: float = 0.01  # [alpha_time]: r_time = -alpha_time * dt * t (t = the vehicle's step)
-    success_reward: float = 50.0  # [r_succ]
+    time_scale: float = 0.05  # [alpha_time]: r_time = -alpha_time * dt * t (t = the vehicle's step)
+    success_reward: float = 100.0  # [r_succ]
     truncation_reward: float = -20.0  # [r_trunc] at the step limit without success
 
 
