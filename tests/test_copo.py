@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-import ray
 import torch
 
 from coin_app.algorithms.copo.advantages import (
@@ -187,14 +186,6 @@ def test_gradient_dot_by_hand():
 
 
 # ---------------------------------------------------------------- with RLlib
-
-
-@pytest.fixture(scope="module")
-def ray_session():
-    torch.set_num_threads(1)
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-    yield
-    ray.shutdown()
 
 
 def gae(rewards, values, bootstrap, gamma, lam):

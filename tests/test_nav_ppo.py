@@ -6,7 +6,6 @@ import sys
 
 import numpy as np
 import pytest
-import ray
 import torch
 from torch import nn
 
@@ -99,14 +98,6 @@ def test_case_specs_and_refusals():
         build_config("nav_ppo", "arena", {"stage": "medium"}, 0)
     with pytest.raises(ValueError, match="unknown --set key"):
         build_config("nav_ppo", "arena", {"num_agents": 3}, 0)
-
-
-@pytest.fixture(scope="module")
-def ray_session():
-    torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-    yield
-    ray.shutdown()
 
 
 TINY = ["train_batch_size_per_learner=400", "minibatch_size=200", "num_epochs=2", "hidden=16", "max_steps=60"]

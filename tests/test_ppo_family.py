@@ -6,7 +6,6 @@ import re
 
 import numpy as np
 import pytest
-import ray
 import torch
 
 from coin_app.algorithms.checkpoints import deterministic_actor, load_module
@@ -36,14 +35,6 @@ def test_clipped_value_loss_by_hand():
 
 TINY = {"num_agents": 3, "horizon": 40, "max_agent_steps": 40, "train_batch_size_per_learner": 100}
 TINY |= {"minibatch_size": 50, "num_epochs": 2, "rollout_fragment_length": 50, "hidden": 16}
-
-
-@pytest.fixture(scope="module")
-def ray_session():
-    torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-    yield
-    ray.shutdown()
 
 
 def test_ippo_trains_with_the_paper_hyperparameters(ray_session):
