@@ -165,16 +165,6 @@ def scenario_keys(scenario: str) -> set[str]:
     return {f.name for f in fields(ScenarioConfig)} - {"scenario"} | {"preset"}
 
 
-def check_scenario_config(scenario: str, env_cfg: dict[str, Any]) -> None:
-    """Refuse bad scenario values before any work (a ValueError naming them)."""
-    if scenario == "arena":
-        from coin_app.envs.arena.config import make_arena_config
-
-        make_arena_config(**env_cfg)
-    else:
-        config_from_dict(scenario, env_cfg)
-
-
 def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "intersection") -> tuple[dict[str, Any], dict[str, Any]]:
     """Route ``--set`` keys to (scenario config, algorithm config); unknown keys are refused."""
     env_keys = scenario_keys(scenario)
@@ -195,7 +185,7 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
     if scenario not in entry.scenarios:
         raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(entry.scenarios)}")
     env_cfg, algo_cfg = split_overrides(name, overrides, scenario)
-    check_scenario_config(scenario, env_cfg)  # refuses bad scenario values before any work
+    config_from_dict(scenario, env_cfg)  # refuses bad scenario values before any work
     cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed)
     cfg.validate()
     from coin_app.envs.rllib_env import register_envs

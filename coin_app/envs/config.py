@@ -99,6 +99,11 @@ class ScenarioConfig:
         return (24 if self.obs_layout == "bottleneck96" else 19) + self.lidar_beams
 
     @property
+    def dt(self) -> float:
+        """Seconds per env step."""
+        return self.dynamics.dt
+
+    @property
     def max_speed(self) -> float:
         """Maximum speed in m/s."""
         return self.dynamics.max_speed_kmh / 3.6
@@ -201,9 +206,19 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)
 
 
-def config_from_dict(scenario: str, env_config: dict[str, Any]) -> ScenarioConfig:
-    """``make_config`` from a flat dict of overrides that may hold ``preset`` (env_config, checkpoint metadata)."""
+def config_from_dict(scenario: str, env_config: dict[str, Any]) -> Any:
+    """The config of ``scenario`` from a flat dict of overrides (env_config, checkpoint metadata, ``--set``).
+
+    Driving scenarios: ``make_config`` (the dict may hold ``preset``); ``"arena"``: an
+    :class:`~coin_app.envs.arena.config.ArenaConfig` (no presets).
+    """
     values = dict(env_config)
+    if scenario == "arena":
+        from coin_app.envs.arena.config import make_arena_config
+
+        if "preset" in values:
+            raise ValueError(f"the arena has no presets (got preset={values['preset']!r})")
+        return make_arena_config(**values)
     return make_config(scenario, values.pop("preset", "paper"), **values)
 
 

@@ -70,8 +70,14 @@ class DrivingEnv:
         """Nothing to release (the MetaDrive backend's ``close`` shuts its engine down)."""
 
 
-def make_driving_env(config: ScenarioConfig) -> Any:
-    """The dict-API env of ``config`` on its backend: a native :class:`DrivingEnv` or a ``MetaDriveDrivingEnv``."""
+def make_driving_env(config: Any) -> Any:
+    """The dict-API env of ``config``: a native :class:`DrivingEnv`, a ``MetaDriveDrivingEnv`` or (an arena config) an ``ArenaEnv``."""
+    from coin_app.envs.arena.config import ArenaConfig
+
+    if isinstance(config, ArenaConfig):
+        from coin_app.envs.arena.env import ArenaEnv
+
+        return ArenaEnv(config)
     if config.backend == "metadrive":
         from coin_app.envs.metadrive_env import MetaDriveDrivingEnv
 

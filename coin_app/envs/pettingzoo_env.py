@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from coin_app.envs.config import ScenarioConfig, make_config
+from coin_app.envs.config import ScenarioConfig, config_from_dict
 from coin_app.envs.driving_env import make_driving_env
 
 
@@ -44,26 +44,21 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         render_mode: str | None = None,
         **overrides: Any,
     ):
-        from coin_app.envs.arena.config import ArenaConfig, make_arena_config
-        from coin_app.envs.arena.env import ArenaEnv
+        from coin_app.envs.arena.config import ArenaConfig
 
         config: Any
         if isinstance(scenario, (ScenarioConfig, ArenaConfig)):
             if preset is not None or overrides:
                 raise ValueError("pass either a config or scenario/preset/overrides, not both")
             config = scenario
-        elif scenario == "arena":
-            if preset is not None:
-                raise ValueError(f"the arena has no presets (got preset={preset!r})")
-            config = make_arena_config(**overrides)
         else:
-            config = make_config(scenario, preset or "paper", **overrides)
+            config = config_from_dict(scenario, overrides if preset is None else {**overrides, "preset": preset})
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unknown render_mode {render_mode!r}; allowed: {', '.join(self.metadata['render_modes'])} or None")
         if render_mode is not None and isinstance(config, ArenaConfig):
             raise ValueError(f"render_mode {render_mode!r} is not available for the arena; allowed: None")
         self.render_mode = render_mode
-        self.driving_env = ArenaEnv(config) if isinstance(config, ArenaConfig) else make_driving_env(config)
+        self.driving_env = make_driving_env(config)
         self.config = config
         self.possible_agents: list[str] = list(self.driving_env.possible_agents)
         self._pool = frozenset(self.possible_agents)

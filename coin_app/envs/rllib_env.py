@@ -54,7 +54,6 @@ ENV_IDS: dict[str, str] = {
     "coin-bottleneck-v0": "bottleneck",
     "coin-arena-v0": "arena",
 }
-ARENA = "arena"  # the seed-2 navigation-and-parking arena (coin_app.envs.arena): its own config
 
 
 class CoinMultiAgentEnv(MultiAgentEnv):
@@ -72,22 +71,12 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         super().__init__()
         overrides = dict(config or {})
         lcf = overrides.pop("lcf", None)
-        scenario = overrides.pop("scenario", "intersection")
-        if scenario == ARENA:
-            from coin_app.envs.arena.config import make_arena_config
-            from coin_app.envs.arena.env import ArenaEnv
-
-            self.config: Any = make_arena_config(**overrides)
-            self.driving_env: Any = ArenaEnv(self.config)
-            dt = self.config.dt
-        else:
-            self.config = config_from_dict(scenario, overrides)
-            self.driving_env = make_driving_env(self.config)
-            dt = self.config.dynamics.dt
+        self.config = config_from_dict(overrides.pop("scenario", "intersection"), overrides)
+        self.driving_env = make_driving_env(self.config)
         if lcf is not None and not (isinstance(lcf, Mapping) and set(lcf) <= {"mean", "std"}):
             raise ValueError(f"bad env_config lcf {lcf!r}; allowed: None or a dict with keys 'mean' and 'std'")
         self.lcf = None if lcf is None else LocalCoordination(**lcf)
-        self.metadata = {"render_modes": [], "render_fps": round(1.0 / dt)}
+        self.metadata = {"render_modes": [], "render_fps": round(1.0 / self.config.dt)}
         self.possible_agents = list(self.driving_env.possible_agents)
         obs_space, act_space = self.driving_env.observation_space, self.driving_env.action_space
         if self.lcf is not None:

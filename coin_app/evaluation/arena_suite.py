@@ -176,7 +176,8 @@ def evaluate_suite(
         raise ValueError(f"bad scenarios per case {scenarios_per_case}; allowed: an integer >= 1")
     if workers < 1:
         raise ValueError(f"bad workers {workers}; allowed: an integer >= 1")
-    load_arena_policy(source)  # a bad source fails here, before any work
+    suite_config(max_steps)  # a bad step limit fails here, before any work
+    load_arena_policy(source)  # and so does a bad source
     chunk = max(1, min(scenarios_per_case, 25))
     jobs = [
         (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps)
