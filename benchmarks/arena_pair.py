@@ -2,15 +2,17 @@
 
 Usage: python benchmarks/arena_pair.py [--minutes 40] [--steps 30000000] [--seed 0]
                                        [--scenarios-per-case 50] [--out runs/arena_pair] [--docs docs/arena]
-                                       [--set key=value ...]
+                                       [--set key=value ...] [--resume]
 
 Both stages train at once (``python -m coin_app train --algo nav_ppo --scenario arena
 --set stage=long|short``), one process and one CPU thread each, until ``--steps`` env steps or
 ``--minutes`` of wall time, whichever comes first. Then each checkpoint is exported to ``.npz``,
 the two are paired (``python -m coin_app pair``, switch radius 7.5 m) and the pair, and the
 scripted heuristic for reference, run the 24-case suite (``python -m coin_app evaluate-arena``).
-``--docs`` receives the case table next to the paper's Tables I and II, the settings and budget,
-and trajectory plots of test scenario 0 of a few cases.
+``--resume`` continues both stages from the checkpoints of an interrupted run in ``--out``
+(``train --resume``; the logs are appended to). ``--docs`` receives the case table next to the
+paper's Tables I and II, the settings and budget, and trajectory plots of test scenario 0 of a
+few cases.
 """
 
 from __future__ import annotations
@@ -27,9 +29,9 @@ from pathlib import Path
 PLOT_CASES = "1x4,4x4,10x8,20x8"
 
 
-def run(cmd: list[str], log: Path | None = None, env: dict | None = None) -> subprocess.Popen:
+def run(cmd: list[str], log: Path | None = None, env: dict | None = None, append: bool = False) -> subprocess.Popen:
     """Start ``python -m coin_app ...`` with output to ``log`` (or inherited)."""
-    out = open(log, "w") if log else None
+    out = open(log, "a" if append else "w") if log else None
     return subprocess.Popen([sys.executable, "-m", "coin_app", *cmd], stdout=out, stderr=subprocess.STDOUT if out else None, env=env)
 
 
@@ -43,6 +45,7 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="nav_ppo or arena overrides for both stages")
     ap.add_argument("--out", default="runs/arena_pair")
     ap.add_argument("--docs", default=None, help="copy the table, settings and plots here")
+    ap.add_argument("--resume", action="store_true", help="continue both stages from their checkpoints in --out (a new --minutes budget)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -52,7 +55,11 @@ def main() -> None:
     for stage in ("long", "short"):
         cmd = ["train", "--algo", "nav_ppo", "--scenario", "arena", "--seed", str(args.seed), "--steps", str(args.steps)]
         cmd += ["--max-minutes", str(args.minutes), "--out", str(out / stage), "--set", f"stage={stage}", *args.set]
-        procs[stage] = run(cmd, out / f"train_{stage}.log", env)
+        if args.resume:
+            if not (out / stage / "checkpoint" / "rllib_checkpoint.json").is_file():
+                sys.exit(f"--resume: no checkpoint of stage {stage} in {out / stage / 'checkpoint'}")
+            cmd += ["--resume", str(out / stage / "checkpoint")]
+        procs[stage] = run(cmd, out / f"train_{stage}.log", env, append=args.resume)
         print(f"training {stage}: log {out / f'train_{stage}.log'}", flush=True)
     while any(p.poll() is None for p in procs.values()):
         time.sleep(60)

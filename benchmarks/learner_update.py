@@ -91,7 +91,7 @@ def time_loop(cfg: CigTd3Config, steps: int) -> float:
     """Env steps per second of ``algo.train()`` after the warm-up (updates every env step)."""
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     cfg = cfg.copy(copy_frozen=False).training(warmup_steps=steps, learner_threads=torch.get_num_threads())
     cfg = cfg.reporting(min_sample_timesteps_per_iteration=steps)
     algo = cfg.build_algo()

@@ -42,7 +42,7 @@ def run_one(job: tuple[str, int, str, int, int, dict, int, int]) -> list[dict]:
     from coin_app.evaluation.evaluate import validation_seeds
 
     torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
     # the algorithm's quick settings; --set keys apply to every algorithm (unknown ones are refused)
     settings = {**quick_settings(algo_name), **overrides}
     if "learner_threads" in get(algo_name).keys():

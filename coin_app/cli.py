@@ -11,6 +11,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 METRIC_ROWS = (
     ("success_rate", "success rate", "{:.3f}"),
     ("collision_rate", "collision rate", "{:.3f}"),
@@ -141,7 +143,7 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
             raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {config.scenario}")
         return config
     if not source.is_file():
-        raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported .npz file")
+        raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx)")
     from coin_app.inference import load_policy
 
     meta = load_policy(source).meta
@@ -188,23 +190,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    """Export a checkpoint's deterministic actor to a Ray-free file."""
-    import torch
+    """Export a checkpoint's deterministic actor to a Ray-free file and check it against the RLModule."""
+    from coin_app.algorithms.checkpoints import deterministic_actor, inference_actions, load_module, read_metadata
+    from coin_app.inference import export_policy, load_policy
+    from coin_app.inference.formats import check_format
 
-    from coin_app.algorithms.checkpoints import deterministic_actor, load_module, read_metadata
-    from coin_app.inference import export_numpy, load_policy
-
-    if args.format != "numpy":
-        raise ValueError(f"unknown --format {args.format!r}; allowed: numpy")
+    check_format(args.format, args.out)  # before loading anything
     checkpoint = Path(args.checkpoint)
     meta = read_metadata(checkpoint)
-    actor = deterministic_actor(load_module(checkpoint))
-    out = export_numpy(actor, args.out, meta={k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta})
+    module = load_module(checkpoint)
+    actor = deterministic_actor(module)
+    keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
+    out = export_policy(actor, args.out, args.format, meta=keep | {"checkpoint": str(checkpoint.resolve())})
     exported = load_policy(out)
-    obs = torch.rand(64, exported.obs_dim)
-    with torch.no_grad():
-        gap = float(abs(actor(obs).numpy() - exported(obs.numpy())).max())
-    print(f"export: {checkpoint} -> {out} ({args.format}, obs {exported.obs_dim}); max |action difference| on 64 random obs {gap:.1e}")
+    obs = np.random.default_rng(0).uniform(0.0, 1.0, (256, exported.obs_dim)).astype(np.float32)
+    gap = float(np.abs(inference_actions(module, obs) - exported(obs)).max())
+    print(f"export: {checkpoint} -> {out} ({args.format}, {out.stat().st_size / 1024:.0f} KiB, obs {exported.obs_dim})")
+    print(f"  parity: max |action - RLModule.forward_inference| on 256 random obs = {gap:.1e}")
+    if gap > 1e-5:
+        raise ValueError(f"exported {args.format} actor differs from the RLModule by {gap:.1e} (> 1e-5); {out} is not trustworthy")
     return 0
 
 
@@ -244,6 +248,83 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
 
         plots = plot_scenarios(args.policy, cases, args.plots, out / "plots", args.max_steps)
         print(f"  trajectory plots: {len(plots)} in {out / 'plots'}")
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Run or resume a Tune sweep of one paper experiment; print where results went and each trial's figures."""
+    from tuning.sweep import run_sweep
+
+    summary = run_sweep(
+        args.experiment,
+        scenario=args.scenario,
+        scale="smoke" if args.smoke else "paper",
+        methods=tuple(args.algos) if args.algos else None,
+        seeds=tuple(args.seeds) if args.seeds else None,
+        steps=args.steps,
+        overrides=parse_overrides(args.set),
+        storage=args.storage,
+        name=args.name,
+        address=args.address,
+        max_concurrent=args.max_concurrent,
+        resume=args.resume,
+        num_cpus=args.num_cpus,
+    )
+    print(f"\nsweep summary: {summary['experiment_dir']} ({summary['wall_s']:.0f} s, {summary['errors']} errored trials)")
+    for t in summary.get("trials", []):
+        state = "done" if t["finished"] else "UNFINISHED"
+        print(
+            f"  {t['name']:<28} {state:<10} env steps {t['env_steps']:>9}  train success {t['train_success_rate']:.3f}  "
+            f"eval success {t['eval_success_rate']:.3f}  {t['checkpoint']}"
+        )
+    if "generalization_csv" in summary:
+        print(f"  generalization table: {summary['generalization_csv']}")
+    unfinished = [t["name"] for t in summary.get("trials", []) if not t["finished"]]
+    if summary["errors"] or unfinished:
+        print(f"  not finished: {', '.join(unfinished) or summary['errors']}; continue with --resume")
+        return 1
+    return 0
+
+
+def cmd_generalize(args: argparse.Namespace) -> int:
+    """Evaluate every final checkpoint of a sweep at each agent count; write the tidy generalization CSV."""
+    from tuning.sweep import write_generalization
+
+    out = write_generalization(Path(args.experiment_dir), counts=args.counts, test_seeds=args.test_seeds)
+    print(f"generalization table: {out}")
+    return 0
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    """Submit a coin_app command as a Ray job; print the job id (and follow it with --wait)."""
+    from coin_app import jobs
+
+    command = args.command[1:] if args.command[:1] == ["--"] else args.command
+    address = args.address or jobs.DEFAULT_ADDRESS
+    job_id = jobs.submit(command, address, args.install, args.submission_id)
+    print(f"submitted job {job_id} to {address}: python -m coin_app {' '.join(command)}")
+    print(f"  follow it: python -m coin_app job logs {job_id} --address {address}")
+    if not args.wait:
+        print(job_id)
+        return 0
+    state = jobs.wait(job_id, address, args.timeout)
+    print(f"\njob {job_id} ended: {state}")
+    return 0 if state == "SUCCEEDED" else 1
+
+
+def cmd_job(args: argparse.Namespace) -> int:
+    """Status, logs or stop of a submitted job (``ray job status|logs|stop``)."""
+    from coin_app import jobs
+
+    try:
+        if args.action == "status":
+            print(jobs.status(args.job_id, args.address))
+        elif args.action == "logs":
+            print(jobs.logs(args.job_id, args.address), end="")
+        else:
+            print(f"stop requested for {args.job_id}" if jobs.stop(args.job_id, args.address) else f"{args.job_id} was not running")
+    except RuntimeError as exc:  # the job server's answer for an unknown id
+        raise ValueError(f"job {args.job_id}: {exc}") from exc
     return 0
 
 
@@ -320,8 +401,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     ex = sub.add_parser("export", help="export a checkpoint's actor for Ray-free inference")
     ex.add_argument("checkpoint")
-    ex.add_argument("--format", default="numpy", help="numpy (plain .npz weights + numpy forward pass)")
-    ex.add_argument("--out", required=True, help="output file, e.g. policy.npz")
+    ex.add_argument(
+        "--format",
+        default="numpy",
+        help="numpy (.npz weights, numpy forward pass), torchscript (.pt, needs torch) or onnx (.onnx, needs requirements-onnx.txt)",
+    )
+    ex.add_argument("--out", required=True, help="output file with the format's suffix: policy.npz, policy.pt or policy.onnx")
     ex.set_defaults(func=cmd_export)
 
     pa = sub.add_parser("pair", help="combine a long- and a short-range arena policy into one switching policy file")
@@ -340,6 +425,43 @@ def build_parser() -> argparse.ArgumentParser:
     ea.add_argument("--out", default="runs/arena_eval", help="output directory")
     ea.add_argument("--plots", type=int, default=0, help="trajectory plots of the first K test scenarios of each case")
     ea.set_defaults(func=cmd_evaluate_arena)
+
+    sw = sub.add_parser("sweep", help="run (or --resume) a Ray Tune sweep: seeds | ablations | generalization")
+    sw.add_argument("experiment", help="seeds, ablations or generalization (tuning/)")
+    sw.add_argument("--scenario", default="intersection", help="intersection, roundabout or bottleneck")
+    sw.add_argument("--algos", nargs="*", default=None, help="methods to sweep (default: the experiment's, cig_td3)")
+    sw.add_argument("--seeds", type=int, nargs="*", default=None, help="training seeds (default: 0..7, smoke: fewer)")
+    sw.add_argument("--steps", type=int, default=None, help="env steps per trial (default: 1,000,000; smoke: 1000)")
+    sw.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides for every trial")
+    sw.add_argument("--smoke", action="store_true", help="tiny scale: quick scenario, small networks, few seeds (tests, CI)")
+    sw.add_argument("--address", default=None, help="Ray cluster to run on: auto, HOST:PORT or ray://HOST:PORT (default: a local Ray)")
+    sw.add_argument("--storage", default=None, help="results root: a path or a URI such as s3://bucket/sweeps (default runs/sweeps)")
+    sw.add_argument("--name", default=None, help="experiment directory name (default <experiment>-<scenario>[-smoke])")
+    sw.add_argument("--max-concurrent", type=int, default=None, help="trials running at once (default: as many as fit)")
+    sw.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
+    sw.add_argument("--resume", action="store_true", help="continue the named sweep: finished trials stay, others resume")
+    sw.set_defaults(func=cmd_sweep)
+
+    ge = sub.add_parser("generalize", help="evaluate a sweep's final checkpoints at other agent counts (tidy CSV)")
+    ge.add_argument("experiment_dir")
+    ge.add_argument("--counts", type=int, nargs="*", default=None, help="agent counts (default: the sweep's grid)")
+    ge.add_argument("--test-seeds", type=int, default=None, help="episodes per checkpoint and count (default: the sweep's, 20)")
+    ge.set_defaults(func=cmd_generalize)
+
+    sb = sub.add_parser("submit", help="submit a coin_app command to a Ray cluster as a job (ray job submit); prints the job id")
+    sb.add_argument("--address", default=None, help="job server URL (the dashboard), default http://127.0.0.1:8265")
+    sb.add_argument("--install", default="pip", choices=["pip", "none"], help="pip: install requirements.txt's pins in the job env")
+    sb.add_argument("--submission-id", default=None, help="job id to use (default: one from Ray)")
+    sb.add_argument("--wait", action="store_true", help="follow the job's logs until it ends; exit 0 only if it succeeded")
+    sb.add_argument("--timeout", type=float, default=24 * 3600.0, help="seconds --wait follows the job at most")
+    sb.add_argument("command", nargs=argparse.REMAINDER, help="-- then the coin_app command, e.g. -- sweep seeds --smoke")
+    sb.set_defaults(func=cmd_submit)
+
+    jb = sub.add_parser("job", help="status, logs or stop of a submitted job")
+    jb.add_argument("action", choices=["status", "logs", "stop"])
+    jb.add_argument("job_id")
+    jb.add_argument("--address", default=None, help="job server URL, default http://127.0.0.1:8265")
+    jb.set_defaults(func=cmd_job)
 
     scen = sub.add_parser("scenarios", help="list scenarios, presets and config keys")
     scen.set_defaults(func=cmd_scenarios)

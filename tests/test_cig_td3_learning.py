@@ -22,7 +22,7 @@ from coin_app.evaluation.metrics import aggregate
 
 def test_cig_td3_beats_random_policy():
     torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     try:
         cfg = build_config("cig_td3", "bottleneck", QUICK_SETTINGS, seed=0).reporting(min_sample_timesteps_per_iteration=500)
         algo = cfg.build_algo()

@@ -24,7 +24,7 @@ SMALL = {"backend": "metadrive", "num_agents": 4, "horizon": 40, "max_agent_step
 @pytest.fixture(scope="module", autouse=True)
 def ray_session():
     torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     register_envs()
     yield
     ray.shutdown()

@@ -22,7 +22,7 @@ SETTINGS |= {"minibatch_size": 50, "num_epochs": 1, "hidden": 8}
 def sampled():
     """Sampled episodes, and the train batch the CPPO learner's connector pipeline makes of them."""
     torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     try:
         algo = build_config("cppo", "intersection", SETTINGS, 0).build_algo()
         eps = algo.env_runner.sample(num_timesteps=150, random_actions=True)

@@ -174,3 +174,23 @@ def test_every_agent_maps_to_the_shared_module():
     cfg = shared_policy_config(PPOConfig())
     assert set(cfg.policies) == {"shared"}
     assert cfg.policy_mapping_fn("agent17", None) == "shared"
+
+
+def test_outcome_counts_match_the_episode_metrics():
+    """The adapter's per-agent outcome counts (logged each iteration) equal the evaluation recorder's on one episode."""
+    from coin_app.envs.heuristic import HeuristicDriver
+    from coin_app.evaluation.metrics import EpisodeRecorder
+
+    env = CoinMultiAgentEnv({"scenario": "intersection", "num_agents": 12, "horizon": 400})
+    obs, infos = env.reset(seed=3)
+    driver = HeuristicDriver(env.driving_env)
+    recorder = EpisodeRecorder()
+    recorder.reset(infos)
+    while True:
+        obs, rew, term, trunc, infos = env.step(driver.actions())
+        recorder.step(infos, {a: v for a, v in term.items() if a != "__all__"}, {a: v for a, v in trunc.items() if a != "__all__"}, rew)
+        if term["__all__"]:
+            break
+    m = recorder.metrics()
+    assert env.outcomes == {"finished": m["num_vehicles"], "succeeded": m["num_arrived"], "collided": m["num_crashed"]}
+    assert m["num_arrived"] > 0 and m["num_crashed"] > 0  # the heuristic both arrives and crashes in dense traffic

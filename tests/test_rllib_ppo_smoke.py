@@ -26,7 +26,7 @@ TRAIN_BATCH = 200
 @pytest.fixture(scope="module")
 def ray_session():
     torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
     register_envs()
     yield
     ray.shutdown()

@@ -91,6 +91,29 @@ def _fold_lcf(first: Any, lcf: float) -> Any:
     return folded
 
 
+def inference_actions(module: Any, obs: np.ndarray) -> np.ndarray:
+    """The actions (N, act_dim) of the module's own ``forward_inference`` on ``obs``, as the env applies them.
+
+    CIG-TD3 / ITD3 return actions; the PPO family returns Gaussian inputs, whose deterministic
+    action is the mean, clipped to [-1, 1] as the env clips; CoPO's module reads the learned
+    mean LCF feature appended to each observation.
+    """
+    import torch
+    from ray.rllib.core.columns import Columns
+
+    x = torch.as_tensor(np.asarray(obs, dtype=np.float32))
+    if hasattr(module, "lcf_params"):
+        from coin_app.envs.lcf import encode
+
+        x = torch.cat([x, torch.full((len(x), 1), float(encode(module.lcf_distribution()[0])))], dim=1)
+    with torch.no_grad():
+        out = module.forward_inference({Columns.OBS: x})
+    if Columns.ACTIONS in out:
+        return out[Columns.ACTIONS].numpy()
+    inputs = out[Columns.ACTION_DIST_INPUTS]
+    return inputs[:, : inputs.shape[1] // 2].clamp(-1.0, 1.0).numpy()
+
+
 def load_module(checkpoint: Path) -> Any:
     """The shared RLModule stored in a coin_app checkpoint."""
     from ray.rllib.core.rl_module.rl_module import RLModule

@@ -186,12 +186,26 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
         raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(entry.scenarios)}")
     env_cfg, algo_cfg = split_overrides(name, overrides, scenario)
     config_from_dict(scenario, env_cfg)  # refuses bad scenario values before any work
-    cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed)
+    from coin_app.envs.rllib_env import AgentOutcomes, register_envs
+
+    cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed).callbacks(AgentOutcomes)
     cfg.validate()
-    from coin_app.envs.rllib_env import register_envs
 
     register_envs()  # the coin-<scenario>-v0 names the config refers to
     return cfg
+
+
+def fresh_module(name: str, scenario: str | None = None, overrides: dict[str, Any] | None = None, seed: int = 0) -> Any:
+    """An untrained shared RLModule of algorithm ``name`` as its config builds it (no Ray session needed)."""
+    from coin_app.envs.rllib_env import SHARED_MODULE_ID, make_env
+
+    scenario = scenario or get(name).scenarios[0]
+    cfg = build_config(name, scenario, dict(overrides or {}), seed)
+    env = make_env(scenario, cfg.env_config)
+    agent = env.possible_agents[0]
+    spaces = {SHARED_MODULE_ID: (env.observation_spaces[agent], env.action_spaces[agent])}
+    env.close()
+    return cfg.get_multi_rl_module_spec(spaces=spaces).build()[SHARED_MODULE_ID]
 
 
 def evaluate_algorithm(algo: Any, seeds: list[int]) -> dict[str, float]:
@@ -206,9 +220,50 @@ def evaluate_algorithm(algo: Any, seeds: list[int]) -> dict[str, float]:
     return {k: v["mean"] for k, v in aggregate(per_episode).items()}
 
 
+def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
+    """The flat per-iteration figures coin_app logs and reports to Tune, from an RLlib ``algo.train()`` result.
+
+    ``env_steps``, ``episode_return_mean``, ``episode_len_mean``, the agent outcomes of the
+    iteration (``agents_finished``, ``train_success_rate``, ``train_collision_rate``; NaN when
+    no agent ended), every scalar learner metric of the shared module (``learner/<name>``) and
+    the last periodic evaluation on validation seeds (``eval/<metric>``), if any.
+    """
+    runners = result.get("env_runners", {})
+    sampled = result.get("num_env_steps_sampled_lifetime", runners.get("num_env_steps_sampled_lifetime", 0))
+    finished = float(runners.get("agents_finished", 0) or 0)
+    out = {
+        "env_steps": int(sampled),
+        "episode_return_mean": float(runners.get("episode_return_mean", float("nan"))),
+        "episode_len_mean": float(runners.get("episode_len_mean", float("nan"))),
+        "agents_finished": finished,
+        "train_success_rate": runners.get("agents_succeeded", 0) / finished if finished else float("nan"),
+        "train_collision_rate": runners.get("agents_collided", 0) / finished if finished else float("nan"),
+    }
+    for key, value in result.get("learners", {}).get("shared", {}).items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[f"learner/{key}"] = float(value)
+    for key, value in result.get("coin_eval", {}).items():
+        out[f"eval/{key}"] = float(value)
+    return out
+
+
+def outcome_text(metrics: dict[str, float]) -> str:
+    """``"  agents 12  success 0.250  collision 0.083"`` from :func:`iteration_metrics` ('' if no agent ended)."""
+    if not metrics["agents_finished"]:
+        return ""
+    n, success, collision = int(metrics["agents_finished"]), metrics["train_success_rate"], metrics["train_collision_rate"]
+    return f"  agents {n}  success {success:.3f}  collision {collision:.3f}"
+
+
 def quick_settings(name: str) -> dict[str, Any]:
     """Settings of algorithm ``name`` on the small quick scenario (learning test, learning curves)."""
     return {**QUICK_SCENARIO, **get(name).quick}
+
+
+def checkpoint_meta(name: str, scenario: str, seed: int, overrides: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    """The coin_app metadata stored with every checkpoint (what evaluation and export read back)."""
+    env_cfg, _ = split_overrides(name, overrides, scenario)
+    return {"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides, "env_config": env_cfg, **extra}
 
 
 def save(algo: Any, checkpoint: Path, meta: dict[str, Any]) -> None:
@@ -245,7 +300,7 @@ def train(
     cfg = build_config(name, scenario, overrides, seed)
     out.mkdir(parents=True, exist_ok=True)
     if not ray.is_initialized():
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
     register_envs()
     algo = cfg.build_algo()
     if resume is not None:
@@ -253,8 +308,7 @@ def train(
             raise ValueError(f"--resume {resume} is not a checkpoint directory (no rllib_checkpoint.json)")
         algo.restore_from_path(str(resume.resolve()))
         log(f"resumed from {resume}")
-    env_cfg, _ = split_overrides(name, overrides, scenario)
-    meta = {"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides, "env_config": env_cfg}
+    meta = checkpoint_meta(name, scenario, seed, overrides)
     (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
     t0 = time.perf_counter()
     start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
@@ -263,15 +317,14 @@ def train(
     ckpt = out / "checkpoint"
     while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
         result = algo.train()
-        sampled = int(result.get("num_env_steps_sampled_lifetime", result.get("env_runners", {}).get("num_env_steps_sampled_lifetime", 0)))
+        m = iteration_metrics(result)
+        sampled = m["env_steps"]
         it = int(result["training_iteration"])
-        runners = result.get("env_runners", {})
         elapsed = time.perf_counter() - t0
-        learner = result.get("learners", {}).get("shared", {})
+        critic = m.get("learner/local_critic_loss", m.get("learner/vf_loss", float("nan")))
         log(
             f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
-            f"episode return {runners.get('episode_return_mean', float('nan')):8.2f}  "
-            f"critic loss {learner.get('local_critic_loss', learner.get('vf_loss', float('nan'))):8.4f}"
+            f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
         )
         if "coin_eval" in result:
             last_eval = result["coin_eval"]

@@ -26,6 +26,9 @@ Contract of :class:`CoinMultiAgentEnv` (``shared/reference/rllib_2_60.md`` secti
 * ``config["lcf"] = {"mean": m, "std": s}`` (CoPO) gives every agent a local coordination
   factor at spawn, appended to its observation (``coin_app.envs.lcf``);
   ``set_lcf_distribution`` moves the distribution for agents spawned later.
+* ``outcomes`` counts the agents that ended since it was last cleared (``finished``) and how
+  many of them succeeded (``arrive_dest`` / arena ``success``) or had collided; the
+  :class:`AgentOutcomes` callback moves these counts into the env runner metrics.
 * RLlib's env checker (``disable_env_checking=False``) steps once after ``reset(seed=42)``
   and requires every returned id to still be in ``agents``; it fails if an agent is done
   on that very first step (not the case for the shipped scenarios).
@@ -39,6 +42,7 @@ from typing import Any
 
 import numpy as np
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+from ray.rllib.callbacks.callbacks import RLlibCallback
 from ray.rllib.env.multi_agent_env import MultiAgentEnv
 from ray.tune.registry import register_env
 
@@ -47,6 +51,7 @@ from coin_app.envs.driving_env import make_driving_env
 from coin_app.envs.lcf import LocalCoordination
 
 SHARED_MODULE_ID = "shared"
+OUTCOMES = ("finished", "succeeded", "collided")  # agent outcome counts of CoinMultiAgentEnv.outcomes
 ADAPTER_KEYS = ("scenario", "lcf")  # env_config keys of the adapter itself, not of the scenario
 ENV_IDS: dict[str, str] = {
     "coin-intersection-v0": "intersection",
@@ -85,6 +90,7 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         self.action_spaces = dict.fromkeys(self.possible_agents, act_space)
         self.agents = []
         self._over = True
+        self.outcomes = dict.fromkeys(OUTCOMES, 0)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
         """Start a new episode; returns observations and infos of the initial agents (``options`` is unused)."""
@@ -104,6 +110,7 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         acting = list(self.driving_env.agents)
         obs, rewards, terms, truncs, infos = self.driving_env.step(action_dict)
         ended = [a for a in acting if terms[a] or truncs[a]]
+        self._count_outcomes([infos[a] for a in ended])
         over = self.driving_env.episode_over or len(ended) == len(acting)
         if over:
             for aid in [a for a in obs if a not in rewards]:  # spawned in this step
@@ -117,6 +124,12 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         if self.lcf is not None:
             obs, infos = self.lcf.augment(obs, infos)
         return obs, rewards, terms, truncs, infos
+
+    def _count_outcomes(self, final_infos: list[dict[str, Any]]) -> None:
+        """Add the ended agents' outcomes (their last infos) to ``outcomes``."""
+        self.outcomes["finished"] += len(final_infos)
+        self.outcomes["succeeded"] += sum(bool(i.get("arrive_dest", i.get("success", False))) for i in final_infos)
+        self.outcomes["collided"] += sum(bool(i.get("crash_vehicle", i.get("collided", False))) for i in final_infos)
 
     def set_lcf_distribution(self, mean: float, std: float) -> None:
         """Draw the LCFs of agents spawned from now on from N(mean, std) (an env with LCFs only)."""
@@ -164,6 +177,20 @@ def coin_envs(env_runner: Any) -> list[CoinMultiAgentEnv]:
     env = getattr(env_runner, "env", None)
     subs = getattr(env, "envs", [env]) if env is not None else []
     return [e.unwrapped for e in subs if isinstance(e.unwrapped, CoinMultiAgentEnv)]
+
+
+class AgentOutcomes(RLlibCallback):
+    """Logs how many agents ended, succeeded and collided in each sample call (``agents_<outcome>``, summed per iteration)."""
+
+    def on_sample_end(self, *, env_runner: Any = None, metrics_logger: Any = None, **kwargs: Any) -> None:
+        """Move every sub-env's outcome counts into the env runner's metrics."""
+        envs = coin_envs(env_runner)
+        if metrics_logger is None or not envs:
+            return
+        for key in OUTCOMES:
+            metrics_logger.log_value(f"agents_{key}", sum(e.outcomes[key] for e in envs), reduce="sum")
+            for e in envs:
+                e.outcomes[key] = 0
 
 
 def backend_errors(config: AlgorithmConfig) -> list[str]:

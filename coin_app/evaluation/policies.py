@@ -20,7 +20,9 @@ def as_policy(source: Any) -> Policy:
     if callable(source):
         return source
     if not isinstance(source, (str, Path)):
-        raise TypeError(f"cannot make a policy from {type(source).__name__}; allowed: a callable, a checkpoint directory, a .npz file")
+        raise TypeError(
+            f"cannot make a policy from {type(source).__name__}; allowed: a callable, a checkpoint directory, an exported policy file"
+        )
     path = Path(source)
     if path.is_dir():
         from coin_app.algorithms.checkpoints import load_policy as load_checkpoint
@@ -34,7 +36,9 @@ def as_policy(source: Any) -> Policy:
         from coin_app.inference import load_policy as load_exported
 
         return load_exported(path)
-    raise ValueError(f"policy source {path} does not exist; allowed: a checkpoint directory or an exported .npz file")
+    raise ValueError(
+        f"policy source {path} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx, .json)"
+    )
 
 
 __all__ = ["Policy", "as_policy"]

@@ -1,0 +1,152 @@
+"""Every export format (numpy, TorchScript, ONNX) returns the RLModule's forward_inference actions, loads without Ray,
+and refuses bad input by name; ``python -m coin_app export`` on a real checkpoint."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from ray.rllib.core.columns import Columns
+
+from coin_app.algorithms import registry
+from coin_app.algorithms.checkpoints import deterministic_actor
+from coin_app.cli import main
+from coin_app.envs.lcf import encode
+from coin_app.envs.rllib_env import SHARED_MODULE_ID, make_env
+from coin_app.inference import FORMATS, export_policy, load_policy
+
+pytest.importorskip("onnxruntime", reason="the ONNX extra (requirements-onnx.txt) is installed in CI")
+
+
+def build_module(name: str, seed: int = 0):
+    """A freshly built (untrained) shared RLModule of algorithm ``name`` with every parameter perturbed."""
+    module = registry.fresh_module(name, seed=seed)
+    env = make_env(registry.get(name).scenarios[0])
+    torch.manual_seed(seed)
+    with torch.no_grad():  # RLlib initializes the policy head near zero; move every weight so actions differ clearly
+        for p in module.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    return module, env
+
+
+def module_actions(module, obs: np.ndarray) -> np.ndarray:
+    """What the RLModule itself does on ``obs`` in deterministic inference, as the env applies it (the expectation)."""
+    x = torch.as_tensor(obs)
+    if hasattr(module, "lcf_params"):  # CoPO's policy reads the LCF feature; evaluation uses the learned mean
+        x = torch.cat([x, torch.full((len(x), 1), float(encode(module.lcf_distribution()[0])))], dim=1)
+    with torch.no_grad():
+        out = module.forward_inference({Columns.OBS: x})
+    if Columns.ACTIONS in out:  # TD3 family: the tanh actor
+        return out[Columns.ACTIONS].numpy()
+    mean = out[Columns.ACTION_DIST_INPUTS][:, :2]  # Gaussian (mean, log std): the mean, clipped as the env clips
+    return mean.clamp(-1, 1).numpy()
+
+
+@pytest.mark.parametrize("name", sorted(registry.ALGORITHMS))
+def test_every_format_returns_the_modules_inference_actions(name, tmp_path):
+    module, env = build_module(name)
+    obs_dim = env.driving_env.observation_space.shape[0]
+    obs = np.random.default_rng(1).uniform(-0.5, 1.5, (300, obs_dim)).astype(np.float32)
+    want = module_actions(module, obs)
+    assert want.shape == (300, 2) and want.std() > 0.05  # a non-trivial action spread, so parity means something
+    actor = deterministic_actor(module)
+    for fmt, (suffix, _, _) in FORMATS.items():
+        policy = load_policy(export_policy(actor, tmp_path / f"{name}{suffix}", fmt, meta={"algo": name}))
+        assert policy.obs_dim == obs_dim and policy.meta == {"algo": name}
+        got = policy(obs)
+        assert got.dtype == np.float32 and got.shape == want.shape
+        np.testing.assert_allclose(got, want, atol=1e-5, rtol=0, err_msg=f"{name} {fmt}")
+        np.testing.assert_allclose(policy(obs[:1]), want[:1], atol=1e-5, rtol=0)  # batch of one
+
+
+def test_onnx_graph_by_hand(tmp_path):
+    # a = clip(2 * leaky_relu(x0 - x1) - 0.5, -1, 1)
+    net = torch.nn.Sequential(torch.nn.Linear(2, 1), torch.nn.LeakyReLU(0.01), torch.nn.Linear(1, 1), torch.nn.Hardtanh(-1.0, 1.0))
+    with torch.no_grad():
+        net[0].weight.copy_(torch.tensor([[1.0, -1.0]]))
+        net[0].bias.zero_()
+        net[2].weight.fill_(2.0)
+        net[2].bias.fill_(-0.5)
+    policy = load_policy(export_policy(net, tmp_path / "a.onnx", "onnx"))
+    x = np.array([[3.0, 1.0], [0.0, 2.0], [0.5, 0.25]], np.float32)
+    np.testing.assert_allclose(policy(x)[:, 0], [1.0, 2 * (-0.02) - 0.5, 0.0], atol=1e-7)
+
+
+@pytest.mark.parametrize("fmt", ["numpy", "onnx", "torchscript"])
+def test_loading_needs_no_ray(fmt, tmp_path):
+    module, env = build_module("ippo")
+    path = export_policy(deterministic_actor(module), tmp_path / f"p{FORMATS[fmt][0]}", fmt)
+    blocked = "['ray']" if fmt == "torchscript" else "['ray', 'torch']"  # TorchScript needs torch, nothing else does
+    code = (
+        f"import sys\nfor m in {blocked}: sys.modules[m] = None\n"
+        "import numpy as np\nfrom coin_app.inference import load_policy\n"
+        f"p = load_policy({str(path)!r})\nprint(p(np.zeros((3, p.obs_dim), np.float32)).shape)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "(3, 2)"
+
+
+def test_bad_exports_and_files_are_refused(tmp_path):
+    net = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Tanh())
+    with pytest.raises(ValueError, match=r"unknown format 'tflite'; allowed: numpy, torchscript, onnx"):
+        export_policy(net, tmp_path / "a.tflite", "tflite")
+    with pytest.raises(ValueError, match=r"must end in \.onnx for format 'onnx'"):
+        export_policy(net, tmp_path / "a.npz", "onnx")
+    assert not list(tmp_path.iterdir())
+    for suffix, kind in ((".pt", "TorchScript"), (".onnx", "ONNX"), (".npz", "numpy")):
+        bad = tmp_path / f"bad{suffix}"
+        bad.write_bytes(b"not a policy")
+        with pytest.raises(ValueError, match=f"not a coin_app {kind} policy file"):
+            load_policy(bad)
+    other = tmp_path / "plain.pt"  # a valid TorchScript file that coin_app did not write
+    torch.jit.save(torch.jit.script(net), str(other))
+    with pytest.raises(ValueError, match="format 'coin_app.torchscript.v1' expected"):
+        load_policy(other)
+    (tmp_path / "w.h5").write_bytes(b"x")
+    with pytest.raises(ValueError, match=r"no known policy suffix; allowed: \.npz \(numpy\), \.pt \(torchscript\), \.onnx \(onnx\)"):
+        load_policy(tmp_path / "w.h5")
+    with pytest.raises(ValueError, match="shape \\(N, 3\\)"):
+        load_policy(export_policy(net, tmp_path / "ok.onnx", "onnx"))(np.zeros((2, 4)))
+
+
+@pytest.fixture(scope="module")
+def ippo_checkpoint(ray_session, tmp_path_factory):
+    """An untrained IPPO checkpoint (its policy head perturbed) written the way ``train`` writes them."""
+    out = tmp_path_factory.mktemp("ckpt") / "checkpoint"
+    cfg = registry.build_config("ippo", "intersection", {"num_agents": 4, "hidden": 16}, 0)
+    algo = cfg.build_algo()
+    module = algo.learner_group._learner.module[SHARED_MODULE_ID]
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    registry.save(algo, out, {"algo": "ippo", "scenario": "intersection", "seed": 0, "env_config": {"num_agents": 4}})
+    algo.stop()
+    return out
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS))
+def test_cli_export_each_format(ippo_checkpoint, fmt, tmp_path, capsys):
+    out = tmp_path / f"actor{FORMATS[fmt][0]}"
+    assert main(["export", str(ippo_checkpoint), "--format", fmt, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    gap = float(text.split("forward_inference| on 256 random obs = ")[1].split()[0])
+    assert gap <= 1e-5 and f"({fmt}," in text
+    policy = load_policy(out)
+    assert policy.meta["algo"] == "ippo" and policy.meta["env_config"] == {"num_agents": 4}
+    # the evaluator takes the exported file like any policy: identical returns to the checkpoint itself
+    assert main(["evaluate", str(out), "--seeds", "5"]) == 0
+    from_file = capsys.readouterr().out
+    assert main(["evaluate", str(ippo_checkpoint), "--seeds", "5"]) == 0
+    assert capsys.readouterr().out.split("success rate")[1] == from_file.split("success rate")[1]
+
+
+def test_cli_export_refuses_bad_input(ippo_checkpoint, tmp_path, capsys):
+    assert main(["export", str(ippo_checkpoint), "--format", "tflite", "--out", str(tmp_path / "a.tflite")]) == 2
+    assert "unknown format 'tflite'" in capsys.readouterr().err
+    assert main(["export", str(ippo_checkpoint), "--format", "onnx", "--out", str(tmp_path / "a.pt")]) == 2
+    assert "must end in .onnx" in capsys.readouterr().err
+    assert main(["export", str(tmp_path / "missing"), "--format", "numpy", "--out", str(tmp_path / "a.npz")]) == 2
+    assert "missing" in capsys.readouterr().err
+    assert not list(tmp_path.glob("a.*"))

@@ -1,0 +1,131 @@
+"""What a sweep is: methods x variants x seeds on one scenario, at a named scale, as a Tune param space.
+
+An :class:`Experiment` names the methods (registry algorithms), the variants (named override
+sets: ablations) and, per scale, the seeds, the env-step budget per trial, the checkpoint
+cadence and, for generalization, the agent counts and test seeds to evaluate the final
+checkpoints at. :meth:`Experiment.param_space` turns it into the dict Tune expands with
+``tune.grid_search``; :func:`expand_grid` expands the same grid in plain Python so every
+trial's config is validated (``registry.build_config``) before any work starts.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Any
+
+from ray import tune
+
+SCALES = ("paper", "smoke")
+
+# Smoke scale: the quick scenario and small networks of the learning tests, and batch sizes so a
+# trial is a few iterations of a few seconds each (tests and CI).
+SMOKE_TD3 = {"warmup_steps": 200, "updates_per_env_step": 0.1}
+SMOKE_PPO = {"train_batch_size_per_learner": 256, "minibatch_size": 128, "num_epochs": 1}
+
+
+@dataclass(frozen=True)
+class Scale:
+    """One size of an experiment: seeds, env steps per trial, checkpoints and (generalization) evaluation grid."""
+
+    seeds: tuple[int, ...]
+    steps: int
+    checkpoint_every: int  # training iterations between checkpoints (plus one at the end)
+    keep: int  # checkpoints kept per trial (the newest)
+    test_seeds: int = 20  # episodes per (checkpoint, agent count) in the generalization evaluation
+    counts: dict[str, tuple[int, ...]] = field(default_factory=dict)  # scenario -> agent counts to evaluate at
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A paper experiment as a sweep definition (see module doc)."""
+
+    name: str
+    summary: str
+    methods: tuple[str, ...]
+    scenarios: tuple[str, ...]
+    paper: Scale
+    smoke: Scale
+    variants: dict[str, dict[str, Any]] = field(default_factory=lambda: {"default": {}})
+    smoke_variants: tuple[str, ...] | None = None  # a subset of variants at smoke scale (None = all)
+    allowed_methods: tuple[str, ...] | None = None  # methods the variants apply to (None = every registry algorithm)
+
+    def scale(self, name: str) -> Scale:
+        """The scale called ``name`` (paper or smoke)."""
+        if name not in SCALES:
+            raise ValueError(f"unknown scale {name!r}; allowed: {', '.join(SCALES)}")
+        return self.paper if name == "paper" else self.smoke
+
+    def variant_names(self, scale: str) -> tuple[str, ...]:
+        """The variants swept at ``scale``."""
+        return tuple(self.smoke_variants or self.variants) if scale == "smoke" else tuple(self.variants)
+
+    def check(self, scenario: str, methods: tuple[str, ...], seeds: tuple[int, ...] | None) -> None:
+        """A ValueError naming the bad scenario, method or seed list and what is allowed."""
+        from coin_app.algorithms import registry
+
+        if scenario not in self.scenarios:
+            raise ValueError(f"experiment {self.name!r} runs on {', '.join(self.scenarios)}; got scenario {scenario!r}")
+        for m in methods:
+            registry.get(m)
+            if self.allowed_methods is not None and m not in self.allowed_methods:
+                raise ValueError(f"experiment {self.name!r} sweeps variants of {', '.join(self.allowed_methods)}; got method {m!r}")
+        if not methods:
+            raise ValueError(f"experiment {self.name!r} needs at least one method; allowed: {', '.join(sorted(registry.ALGORITHMS))}")
+        if seeds is not None and (not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0):
+            raise ValueError(f"bad seeds {list(seeds)}; allowed: distinct integers >= 0")
+
+    def base_config(self, scenario: str, scale: str, steps: int, overrides: dict[str, Any]) -> dict[str, Any]:
+        """The part of every trial's config that does not vary."""
+        return {
+            "experiment": self.name,
+            "scenario": scenario,
+            "scale": scale,
+            "steps": int(steps),
+            "overrides": dict(overrides),
+            "variant_overrides": {v: dict(self.variants[v]) for v in self.variant_names(scale)},
+        }
+
+    def param_space(
+        self,
+        scenario: str,
+        scale: str = "paper",
+        methods: tuple[str, ...] | None = None,
+        seeds: tuple[int, ...] | None = None,
+        steps: int | None = None,
+        overrides: dict[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """The Tune param space: grid over method x variant x seed."""
+        sc = self.scale(scale)
+        methods = tuple(methods or self.methods)
+        self.check(scenario, methods, seeds)
+        return self.base_config(scenario, scale, steps or sc.steps, overrides or {}) | {
+            "algo": tune.grid_search(list(methods)),
+            "variant": tune.grid_search(list(self.variant_names(scale))),
+            "seed": tune.grid_search(list(seeds or sc.seeds)),
+        }
+
+
+def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every trial config of a param space: its top-level ``grid_search`` axes expanded in plain Python."""
+    axes = {k: v["grid_search"] for k, v in space.items() if isinstance(v, dict) and set(v) == {"grid_search"}}
+    fixed = {k: v for k, v in space.items() if k not in axes}
+    return [fixed | dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
+
+
+def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
+    """The registry overrides of one trial: smoke settings (smoke scale), then the variant's, then the user's ``--set``."""
+    from coin_app.algorithms import registry
+
+    algo = config["algo"]
+    smoke: dict[str, Any] = {}
+    if config["scale"] == "smoke":
+        quick = registry.quick_settings(algo) if config["scenario"] != "arena" else {}
+        smoke = quick | (SMOKE_TD3 if algo in ("cig_td3", "itd3") else SMOKE_PPO)
+    return smoke | config["variant_overrides"][config["variant"]] | config["overrides"]
+
+
+def trial_name(config: dict[str, Any]) -> str:
+    """``<algo>-<variant>-s<seed>`` (``<algo>-s<seed>`` for the default variant)."""
+    variant = "" if config["variant"] == "default" else f"-{config['variant']}"
+    return f"{config['algo']}{variant}-s{config['seed']}"

@@ -1,0 +1,216 @@
+"""Run, resume and summarize a sweep (``python -m coin_app sweep``).
+
+* Everything is checked before any work: the experiment name, scenario, methods and seeds,
+  every trial's full config (``registry.build_config``), the storage, the cluster address
+  (a TCP probe with a short timeout, so an unreachable head fails fast) and that a fresh
+  sweep does not overwrite an existing one (``--resume`` continues it instead).
+* A fresh sweep writes ``coin_sweep.json`` (what was asked) into its experiment directory and
+  runs ``tune.Tuner(CoinTrial, ...)`` with Tune's progress table, a checkpoint every
+  ``checkpoint_every`` iterations and at the end, the newest ``keep`` kept per trial.
+* ``resume=True`` runs ``Tuner.restore(..., resume_unfinished=True, resume_errored=True)``:
+  finished trials stay as they are, interrupted or errored ones continue from their newest
+  checkpoint; this works after ``kill -9`` of the driver because Tune's experiment state
+  and every checkpoint are on disk (state saved at least every ``TUNE_GLOBAL_CHECKPOINT_S``,
+  set to 5 s here unless the environment sets it).
+* The generalization experiment then evaluates every final checkpoint at each agent count of
+  its grid into ``generalization.csv``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlparse
+
+from tuning import get_experiment
+from tuning.results import SETTINGS_FILE, load_trials, read_settings
+
+EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
+
+
+def check_address(address: str | None, timeout: float = 5.0) -> None:
+    """A ValueError unless ``address`` is None, ``auto``/``local``, or a reachable ``[ray://]host:port``."""
+    if address in (None, "auto", "local"):
+        return
+    parsed = urlparse(address if "://" in address else f"tcp://{address}")
+    if parsed.scheme not in ("tcp", "ray") or not parsed.hostname or parsed.port is None:
+        raise ValueError(f"bad --address {address!r}; allowed: auto, local, HOST:PORT (GCS address) or ray://HOST:PORT (Ray client)")
+    try:
+        with socket.create_connection((parsed.hostname, parsed.port), timeout=timeout):
+            pass
+    except OSError as exc:
+        raise ValueError(f"cannot reach a Ray cluster at {address}: {exc} (is `ray start --head` running there?)") from exc
+
+
+def storage_root(storage: str | None) -> str:
+    """An absolute storage path or a URI (``s3://...``, ``gs://...``); default ``runs/sweeps``."""
+    storage = storage or "runs/sweeps"
+    if "://" in storage:
+        return storage
+    return str(Path(storage).expanduser().resolve())
+
+
+def experiment_path(storage: str, name: str) -> Path:
+    """The local experiment directory (URIs are not checked locally)."""
+    return Path(storage) / name
+
+
+def validate_trials(space: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every trial config of the param space, each built once so a bad value is refused before any work."""
+    from tuning.experiment import expand_grid
+    from tuning.trainable import build_trial_config
+
+    trials = expand_grid(space)
+    for t in trials:
+        build_trial_config(t)
+    return trials
+
+
+def run_sweep(
+    experiment: str,
+    scenario: str = "intersection",
+    scale: str = "paper",
+    methods: tuple[str, ...] | None = None,
+    seeds: tuple[int, ...] | None = None,
+    steps: int | None = None,
+    overrides: dict[str, Any] | None = None,
+    storage: str | None = None,
+    name: str | None = None,
+    address: str | None = None,
+    max_concurrent: int | None = None,
+    resume: bool = False,
+    num_cpus: int | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run (or resume) one sweep; returns its summary (experiment directory, trials, generalization CSV)."""
+    import ray
+    from ray import tune
+
+    from tuning.experiment import trial_name
+    from tuning.trainable import CoinTrial
+
+    exp = get_experiment(experiment)
+    sc = exp.scale(scale)
+    if max_concurrent is not None and max_concurrent < 1:
+        raise ValueError(f"bad --max-concurrent {max_concurrent}; allowed: an integer >= 1")
+    if steps is not None and steps < 1:
+        raise ValueError(f"bad --steps {steps}; allowed: an integer >= 1")
+    root = storage_root(storage)
+    name = name or f"{experiment}-{scenario}" + ("-smoke" if scale == "smoke" else "")
+    path = experiment_path(root, name)
+    local = "://" not in root
+    if resume:
+        if local and not list(path.glob(EXPERIMENT_STATE_GLOB)):
+            raise ValueError(f"nothing to resume at {path}: no Tune experiment state there (start it without --resume)")
+        settings = read_settings(path) if local else {}
+        if settings and settings["experiment"] != experiment:
+            raise ValueError(f"{path} holds experiment {settings['experiment']!r}, not {experiment!r}")
+        space = None
+    else:
+        if local and path.exists() and any(path.iterdir()):
+            raise ValueError(f"experiment directory {path} already exists; continue it with --resume or pick another --name")
+        space = exp.param_space(scenario, scale, methods, seeds, steps, overrides)
+        trials = validate_trials(space)
+        settings = {
+            "experiment": experiment,
+            "scenario": scenario,
+            "scale": scale,
+            "methods": list(methods or exp.methods),
+            "seeds": list(seeds or sc.seeds),
+            "variants": list(exp.variant_names(scale)),
+            "steps": space["steps"],
+            "overrides": overrides or {},
+            "checkpoint_every": sc.checkpoint_every,
+            "keep": sc.keep,
+            "counts": list(sc.counts.get(scenario, ())),
+            "test_seeds": sc.test_seeds,
+            "trials": len(trials),
+            "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+        }
+        log(f"sweep {experiment} on {scenario} ({scale} scale): {len(trials)} trials -> {path}")
+    check_address(address)
+    os.environ.setdefault("TUNE_GLOBAL_CHECKPOINT_S", "5")
+    if not ray.is_initialized():
+        if address == "local" or (address is None and not os.environ.get("RAY_ADDRESS")):
+            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
+        else:  # an explicit cluster, or the one a Ray job runs in (RAY_ADDRESS)
+            ray.init(address=address)
+    if resume:
+        log(f"resuming {path}: finished trials stay, the others continue from their newest checkpoint")
+        tuner = tune.Tuner.restore(str(path), trainable=CoinTrial, resume_unfinished=True, resume_errored=True)
+    else:
+        if local:
+            path.mkdir(parents=True, exist_ok=True)
+            (path / SETTINGS_FILE).write_text(json.dumps(settings, indent=2))
+        tuner = tune.Tuner(
+            CoinTrial,
+            param_space=space,
+            tune_config=tune.TuneConfig(
+                max_concurrent_trials=max_concurrent,
+                trial_name_creator=lambda t: trial_name(t.config),
+                trial_dirname_creator=lambda t: f"{trial_name(t.config)}_{t.trial_id}",
+            ),
+            run_config=tune.RunConfig(
+                name=name,
+                storage_path=root,
+                checkpoint_config=tune.CheckpointConfig(
+                    checkpoint_frequency=sc.checkpoint_every, checkpoint_at_end=True, num_to_keep=sc.keep
+                ),
+                failure_config=tune.FailureConfig(max_failures=1),
+            ),
+        )
+    t0 = time.perf_counter()
+    grid = tuner.fit()
+    summary: dict[str, Any] = {"experiment_dir": str(path), "wall_s": round(time.perf_counter() - t0, 1), "errors": grid.num_errors}
+    if not local:
+        return summary
+    settings = read_settings(path)
+    records = load_trials(path)
+    summary["trials"] = [
+        {
+            "name": r.name,
+            "finished": r.finished,
+            "env_steps": r.last.get("env_steps", 0),
+            "train_success_rate": r.last.get("train_success_rate", float("nan")),
+            "eval_success_rate": r.last.get("eval/success_rate", float("nan")),
+            "checkpoint": str(r.final_checkpoint) if r.final_checkpoint else None,
+        }
+        for r in records
+    ]
+    if settings["experiment"] == "generalization" and settings["counts"]:
+        done = [r for r in records if r.finished and r.final_checkpoint]
+        if done:
+            summary["generalization_csv"] = str(write_generalization(path, records=done, log=log))
+    return summary
+
+
+def write_generalization(
+    path: Path,
+    counts: list[int] | None = None,
+    test_seeds: int | None = None,
+    records: list[Any] | None = None,
+    log: Callable[[str], None] = print,
+) -> Path:
+    """Evaluate every finished trial's final checkpoint at each agent count; write ``generalization.csv`` in ``path``."""
+    from coin_app.evaluation.generalization import evaluate_at_counts
+
+    settings = read_settings(path)
+    counts = list(counts or settings["counts"])
+    test_seeds = int(test_seeds or settings["test_seeds"])
+    records = records if records is not None else [r for r in load_trials(path) if r.finished and r.final_checkpoint]
+    if not records:
+        raise ValueError(f"no finished trial with a checkpoint in {path}; nothing to evaluate")
+    runs = [
+        {"method": r.config["algo"], "variant": r.config["variant"], "seed": r.config["seed"], "checkpoint": r.final_checkpoint}
+        for r in records
+    ]
+    log(f"generalization: {len(runs)} checkpoints x agent counts {counts} x {test_seeds} test seeds")
+    table = evaluate_at_counts(runs, counts, test_seeds, log)
+    out = Path(path) / "generalization.csv"
+    table.to_csv(out, index=False)
+    return out
