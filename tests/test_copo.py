@@ -340,7 +340,7 @@ def test_copo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
     )
     capsys.readouterr()
     assert main(["export", str(out / "checkpoint"), "--out", str(tmp_path / "copo.npz")]) == 0
-    assert "max |action difference|" in capsys.readouterr().out
+    assert "parity: max |action - RLModule.forward_inference|" in capsys.readouterr().out
     results = []
     for source in (out / "checkpoint", tmp_path / "copo.npz"):  # 91-dim observations: the learned LCF is folded in
         assert main(["evaluate", str(source), "--seeds", "3", "--out", str(tmp_path / "e.json")]) == 0

@@ -83,7 +83,7 @@ def test_cli_trains_on_metadrive_exports_and_evaluates_on_both_backends(tmp_path
     ckpt = out / "checkpoint"
     assert json.loads((ckpt / "coin_app.json").read_text())["env_config"]["backend"] == "metadrive"
     assert main(["export", str(ckpt), "--out", str(tmp_path / "actor.npz")]) == 0
-    assert "max |action difference|" in capsys.readouterr().out
+    assert "parity: max |action - RLModule.forward_inference|" in capsys.readouterr().out
     results = {}
     for name, source, backend in (("ckpt", ckpt, []), ("npz", tmp_path / "actor.npz", []), ("native", ckpt, ["--backend", "native"])):
         target = tmp_path / f"{name}.json"

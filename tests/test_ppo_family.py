@@ -92,7 +92,7 @@ def test_ippo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
         mean = module.forward_inference({"obs": obs})["action_dist_inputs"][:, :2]
         np.testing.assert_allclose(deterministic_actor(module)(obs).numpy(), mean.clamp(-1, 1).numpy(), atol=1e-6)
     assert main(["export", str(ckpt), "--out", str(tmp_path / "ippo.npz")]) == 0
-    gap = float(re.search(r"difference\| on 64 random obs ([0-9.e+-]+)", capsys.readouterr().out).group(1))
+    gap = float(re.search(r"forward_inference\| on 256 random obs = ([0-9.e+-]+)", capsys.readouterr().out).group(1))
     assert gap < 1e-5
     for source in (ckpt, tmp_path / "ippo.npz"):
         assert main(["evaluate", str(source), "--seeds", "3", "--out", str(tmp_path / "e.json")]) == 0
