@@ -20,6 +20,7 @@ back at once; ``job status|logs|stop ID`` follow it; ``--wait`` follows the logs
 
 from __future__ import annotations
 
+import shlex
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -96,7 +97,7 @@ def submit(command: list[str], address: str | None = None, install: str = "pip",
     if command[0] == "sweep" and not any(c.startswith("--storage") for c in command):
         print("warning: without --storage the sweep's results stay in the job's temporary working dir on the head node")
     env = runtime_env(install)
-    entrypoint = "python -m coin_app " + " ".join(_quote(c) for c in command)
+    entrypoint = "python -m coin_app " + shlex.join(command)
     c = client(address)
     deadline = time.perf_counter() + AGENT_WAIT_S
     while True:  # a head that just started answers "No available agent" until its dashboard agent is up
@@ -106,13 +107,6 @@ def submit(command: list[str], address: str | None = None, install: str = "pip",
             if "No available agent" not in str(exc) or time.perf_counter() > deadline:
                 raise ValueError(f"the job server at {address or DEFAULT_ADDRESS} refused the job: {exc}") from exc
             time.sleep(2.0)
-
-
-def _quote(arg: str) -> str:
-    """Shell-quote one argument of the entrypoint."""
-    import shlex
-
-    return shlex.quote(arg)
 
 
 def status(job_id: str, address: str | None = None) -> str:

@@ -120,8 +120,7 @@ def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     algo = config["algo"]
     smoke: dict[str, Any] = {}
     if config["scale"] == "smoke":
-        quick = registry.quick_settings(algo) if config["scenario"] != "arena" else {}
-        smoke = quick | (SMOKE_TD3 if algo in ("cig_td3", "itd3") else SMOKE_PPO)
+        smoke = registry.quick_settings(algo) | (SMOKE_TD3 if algo in ("cig_td3", "itd3") else SMOKE_PPO)
     return smoke | config["variant_overrides"][config["variant"]] | config["overrides"]
 
 
