@@ -6,6 +6,7 @@ import argparse
 import ast
 import json
 import math
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -269,6 +270,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         max_concurrent=args.max_concurrent,
         resume=args.resume,
         num_cpus=args.num_cpus,
+        command=getattr(args, "command_line", None),
     )
     print(f"\nsweep summary: {summary['experiment_dir']} ({summary['wall_s']:.0f} s, {summary['errors']} errored trials)")
     for t in summary.get("trials", []):
@@ -293,6 +295,37 @@ def cmd_generalize(args: argparse.Namespace) -> int:
     out = write_generalization(Path(args.experiment_dir), counts=args.counts, test_seeds=args.test_seeds)
     print(f"generalization table: {out}")
     return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Evaluate sweeps (or read results) and write the paper's tables, tests, figures and report.html."""
+    from coin_app.evaluation.report import ReportOptions, build_report
+
+    options = ReportOptions(
+        method=args.method,
+        counts=tuple(args.counts) if args.counts else None,
+        test_seeds=args.test_seeds,
+        workers=args.workers,
+        alpha=args.alpha,
+        tsne_samples=args.tsne_samples,
+        tsne_episodes=args.tsne_episodes,
+        command=getattr(args, "command_line", None),
+    )
+    summary = build_report([Path(p) for p in args.sources], Path(args.out), options)
+    print(
+        f"\nreport summary: {summary['episodes']} test episodes of {summary['models']} models "
+        f"in {summary['wall_s']:.0f} s -> {summary['out']}"
+    )
+    for key, value in summary["success"].items():
+        print(f"  success {key:<40} {100 * value:6.2f} %")
+    drawn = [k for k, v in summary["figures"].items() if not v.startswith("not drawn")]
+    print(f"  figures: {len(drawn)} of {len(summary['figures'])} drawn; page: {Path(summary['out']) / 'report.html'}")
+    for name, value in summary["figures"].items():
+        if value.startswith("not drawn"):
+            print(f"    {name}: {value}")
+    for f in summary["failures"]:
+        print(f"  NOT EVALUATED {f.get('trial') or f.get('checkpoint')}: {f['error']}")
+    return 1 if summary["failures"] else 0
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
@@ -448,6 +481,20 @@ def build_parser() -> argparse.ArgumentParser:
     ge.add_argument("--test-seeds", type=int, default=None, help="episodes per checkpoint and count (default: the sweep's, 20)")
     ge.set_defaults(func=cmd_generalize)
 
+    rp = sub.add_parser("report", help="evaluate sweeps on the test seeds; tables, t-tests, figures, marl-eval JSON, report.html")
+    rp.add_argument("sources", nargs="+", help="sweep directories, directories of sweeps, or results.csv files of earlier reports")
+    rp.add_argument("--out", required=True, help="output directory")
+    rp.add_argument("--method", default="cig_td3", help="the method tested against every baseline (default cig_td3)")
+    rp.add_argument(
+        "--counts", type=int, nargs="*", default=None, help="also evaluate at these agent counts (default: a generalization sweep's)"
+    )
+    rp.add_argument("--test-seeds", type=int, default=None, help="test episodes per model and cell (default: the sweep's, 20)")
+    rp.add_argument("--workers", type=int, default=2, help="evaluation processes")
+    rp.add_argument("--alpha", type=float, default=0.01, help="significance level before the Bonferroni correction")
+    rp.add_argument("--tsne-samples", type=int, default=500, help="CVAE latent samples per scenario (paper: 1500)")
+    rp.add_argument("--tsne-episodes", type=int, default=4, help="test episodes the latents are collected from")
+    rp.set_defaults(func=cmd_report)
+
     sb = sub.add_parser("submit", help="submit a coin_app command to a Ray cluster as a job (ray job submit); prints the job id")
     sb.add_argument("--address", default=None, help="job server URL (the dashboard), default http://127.0.0.1:8265")
     sb.add_argument("--install", default="pip", choices=["pip", "none"], help="pip: install requirements.txt's pins in the job env")
@@ -472,6 +519,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; bad input exits with status 2 and a one-line message."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.command_line = shlex.join(["python", "-m", "coin_app", *(sys.argv[1:] if argv is None else argv)])
     try:
         return int(args.func(args))
     except (ValueError, ImportError) as exc:

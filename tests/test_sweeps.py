@@ -8,7 +8,6 @@ import sys
 import time
 from pathlib import Path
 
-import pandas as pd
 import pytest
 import ray
 
@@ -186,30 +185,3 @@ def test_sweep_killed_with_sigkill_resumes_without_rerunning_or_losing_anything(
     # it continued from its checkpoint: its env-step count never went back to the start
     steps = [r["env_steps"] for r in resumed.results]
     assert steps[0] == 500 and steps.count(500) == 1 and steps[-1] >= 1000
-
-
-def test_generalization_table_from_a_finished_sweep(local_ray, tmp_path, capsys):
-    storage = tmp_path / "sweeps"
-    assert main(["sweep", "generalization", "--smoke", "--storage", str(storage)]) == 0
-    exp_dir = storage / "generalization-intersection-smoke"
-    table = pd.read_csv(exp_dir / "generalization.csv")
-    assert list(table.columns) == [
-        "method",
-        "variant",
-        "seed",
-        "scenario",
-        "agent_count",
-        "trained_agent_count",
-        "metric",
-        "value",
-        "std",
-        "episodes",
-    ]
-    assert len(table) == 1 * 2 * 7 and set(table["agent_count"]) == {2, 4} and set(table["trained_agent_count"]) == {4}
-    success = table[table.metric == "success_rate"]
-    assert success["value"].between(0, 1).all() and (table["episodes"] == 2).all()
-    # the standalone command re-evaluates the same checkpoints: deterministic, so the same table
-    assert main(["generalize", str(exp_dir), "--counts", "2", "4", "--test-seeds", "2"]) == 0
-    pd.testing.assert_frame_equal(pd.read_csv(exp_dir / "generalization.csv"), table)
-    assert main(["generalize", str(tmp_path)]) == 2
-    assert "is not a coin_app sweep directory" in capsys.readouterr().err

@@ -86,6 +86,7 @@ def run_sweep(
     resume: bool = False,
     num_cpus: int | None = None,
     log: Callable[[str], None] = print,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) one sweep; returns its summary (experiment directory, trials, generalization CSV)."""
     import ray
@@ -131,6 +132,7 @@ def run_sweep(
             "test_seeds": sc.test_seeds,
             "trials": len(trials),
             "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "command": command,
         }
         log(f"sweep {experiment} on {scenario} ({scale} scale): {len(trials)} trials -> {path}")
     check_address(address)

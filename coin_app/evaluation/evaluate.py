@@ -78,11 +78,16 @@ def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int]
     return [rec.metrics() for rec in recorders]
 
 
-def run_episode(env: Any, policy: Policy, seed: int, max_steps: int) -> dict[str, float]:
-    """Metrics of one episode of ``policy`` on a dict-API driving env (native ``DrivingEnv`` or MetaDrive)."""
+def run_episode(env: Any, policy: Policy, seed: int, max_steps: int, trace: Any = None) -> dict[str, float]:
+    """Metrics of one episode of ``policy`` on a dict-API driving env (native ``DrivingEnv`` or MetaDrive).
+
+    ``trace``: an :class:`~coin_app.envs.rendering.EpisodeTrace` to record the native env's vehicles into.
+    """
     recorder = EpisodeRecorder()
     obs, infos = env.reset(seed)
     recorder.reset(infos)
+    if trace is not None:
+        trace.record(env, infos)
     for _ in range(max_steps):
         agents = list(env.agents)
         act = np.asarray(policy(np.stack([obs[a] for a in agents])), dtype=float) if agents else np.zeros((0, 2))
@@ -91,6 +96,8 @@ def run_episode(env: Any, policy: Policy, seed: int, max_steps: int) -> dict[str
         new_obs, rewards, terms, truncs, infos = env.step(dict(zip(agents, act)))
         obs.update(new_obs)
         recorder.step(infos, terms, truncs, rewards)
+        if trace is not None:
+            trace.record(env, infos)
         if env.episode_over:
             break
     return recorder.metrics()

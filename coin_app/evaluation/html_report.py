@@ -1,0 +1,125 @@
+"""``report.html``: the tables, tests and figures of a report in one self-contained page (images inlined)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import platform
+import subprocess
+import sys
+import time
+from html import escape
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from coin_app.evaluation.tables import to_html
+
+PACKAGES = ("ray", "torch", "numpy", "pandas", "scipy", "matplotlib", "gymnasium", "pettingzoo")
+STYLE = """
+body { font-family: sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
+table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 3px 8px; text-align: right; }
+th:first-child, td:first-child { text-align: left; }
+img { max-width: 100%; border: 1px solid #eee; margin: 0.3em 0; }
+pre { background: #f6f6f6; padding: 0.6em; overflow-x: auto; font-size: 0.8em; }
+.note { color: #a33; }
+"""
+
+
+def versions() -> dict[str, str]:
+    """Python, platform, the coin_app git commit (if any) and the installed versions of the key packages."""
+    out = {"python": sys.version.split()[0], "platform": platform.platform()}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    try:
+        root = Path(__file__).resolve().parents[2]
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        out["coin_app commit"] = commit.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        out["coin_app commit"] = "unknown"
+    return out
+
+
+def _image(value: Any) -> str:
+    if isinstance(value, Path) and value.is_file():
+        data = base64.b64encode(value.read_bytes()).decode("ascii")
+        return f'<img alt="{escape(value.name)}" src="data:image/png;base64,{data}">'
+    return f'<p class="note">{escape(str(value))}</p>'
+
+
+def _models(table: pd.DataFrame) -> str:
+    """Per evaluated model: label, seed, episodes and the checkpoint's own metadata (what trained it)."""
+    rows = []
+    for ckpt, g in table.groupby("checkpoint", sort=True):
+        meta_file = Path(ckpt) / "coin_app.json"
+        meta = meta_file.read_text() if meta_file.is_file() else "(checkpoint metadata not available)"
+        params = Path(ckpt).parent / "params.json"
+        trial = f"<pre>{escape(params.read_text())}</pre>" if params.is_file() else ""
+        first = g.iloc[0]
+        rows.append(
+            f"<details><summary>{escape(str(first['label']))} seed {int(first['trained_seed'])}: {len(g)} episodes, "
+            f"{escape(str(ckpt))}</summary><pre>{escape(meta)}</pre>{trial}</details>"
+        )
+    return "\n".join(rows)
+
+
+def write_html(
+    path: Path,
+    table: pd.DataFrame,
+    main_summary: pd.DataFrame,
+    ablation_summary: pd.DataFrame | None,
+    stats: pd.DataFrame,
+    figures: dict[str, Any],
+    context: dict[str, Any],
+) -> Path:
+    """Write the report page; returns its path."""
+    opts = context["options"]
+    fails = context["failures"]
+    parts = [
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>coin_app report</title><style>{STYLE}</style></head><body>",
+        "<h1>coin_app evaluation report</h1>",
+        f"<p>Generated {time.strftime('%Y-%m-%d %H:%M:%S')} by <code>{escape(str(opts.get('command') or 'build_report()'))}</code>. "
+        f"{len(table)} test episodes of {table['checkpoint'].nunique()} models, deterministic actions, fixed test seeds "
+        "(disjoint from training and validation seeds).</p>",
+    ]
+    if fails:
+        items = "".join(f"<li>{escape(f.get('trial') or f.get('checkpoint', '?'))}: {escape(f['error'])}</li>" for f in fails)
+        parts.append(f"<h2>Not evaluated</h2><ul class='note'>{items}</ul>")
+    parts += [
+        "<h2>Main results (Table 5.1 layout)</h2>",
+        "<p>Mean (std) over all test episodes of all trained seeds; best in bold, second underlined.</p>",
+    ]
+    parts.append(to_html(main_summary))
+    if ablation_summary is not None:
+        parts += [f"<h2>Ablations of {escape(opts['method'])}</h2>", to_html(ablation_summary, "Variant")]
+    if len(stats):
+        thr = stats["threshold"].iloc[0]
+        parts += [
+            "<h2>Paired t-tests</h2>",
+            f"<p>{escape(opts['method'])} vs each baseline, paired on (trained seed, test seed); {len(stats)} tests, "
+            f"Bonferroni threshold p &lt; {opts['alpha']} / {len(stats)} = {thr:.3g}.</p>",
+            stats.to_html(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-"),
+        ]
+    else:
+        parts.append(f"<h2>Paired t-tests</h2><p class='note'>No baseline shares a scenario with {escape(opts['method'])}: no tests.</p>")
+    parts.append("<h2>Figures</h2>")
+    for name, value in figures.items():
+        parts.append(f"<h3>{escape(name)}</h3>{_image(value)}")
+    parts += [
+        "<h2>Provenance</h2><h3>Versions</h3>",
+        "<table>" + "".join(f"<tr><td>{escape(k)}</td><td>{escape(v)}</td></tr>" for k, v in versions().items()) + "</table>",
+        "<h3>Report options, sources, sweep settings (with the command that ran each sweep) and evaluation grid</h3>",
+        f"<pre>{escape(json.dumps(context, indent=2, default=str))}</pre>",
+        "<h3>Models: checkpoint metadata and trial config</h3>",
+        _models(table),
+        "</body></html>",
+    ]
+    path = Path(path)
+    path.write_text("\n".join(parts))
+    return path

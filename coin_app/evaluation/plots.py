@@ -1,0 +1,169 @@
+"""The paper's result figures as PNG files (matplotlib, no display needed).
+
+* :func:`plot_radar` - Fig. 5: success, safety and efficiency per method, each metric min-max
+  normalized across the methods of the scenario to [0.1, 1] (the paper normalizes to [0, 1];
+  the floor keeps the worst method's polygon visible).
+* :func:`plot_generalization` - Figs. 4/6: success rate vs initial agent count, one line per
+  method (mean over trained seeds of the per-seed mean, band = std over seeds), the training
+  count marked.
+* :func:`plot_learning_curves` - Fig. 4: training episode return (and train success rate) vs
+  env steps from Tune's progress files, mean +- std over seeds on a common step grid.
+* :func:`plot_latent_tsne` - App. B.1: t-SNE of CVAE latents, all scenarios coloured by
+  scenario, then per scenario coloured by a 6-cluster k-means fitted before the projection.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+RADAR_METRICS = (("success_rate", "Success"), ("safety", "Safety"), ("efficiency", "Efficiency"))
+PALETTE = ("#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf")
+
+
+def label_colors(labels: Sequence[str]) -> dict[str, str]:
+    """A fixed colour per label, in the given order (the chosen method first gets red)."""
+    return {label: PALETTE[i % len(PALETTE)] for i, label in enumerate(labels)}
+
+
+def _seeds(n: int) -> str:
+    return f"{n} seed" if n == 1 else f"{n} seeds"
+
+
+def _figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height), dpi=100, facecolor="white", layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def radar_values(summary: pd.DataFrame) -> pd.DataFrame:
+    """Per label, the radar metrics min-max normalized across labels to [0.1, 1] (all equal: 1)."""
+    wide = summary.pivot_table(index="label", columns="metric", values="mean", sort=False)
+    out = pd.DataFrame(index=wide.index)
+    for key, _ in RADAR_METRICS:
+        v = wide[key].astype(float)
+        span = v.max() - v.min()
+        out[key] = 1.0 if not span > 0 else 0.1 + 0.9 * (v - v.min()) / span
+    return out
+
+
+def plot_radar(summary: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:
+    """Radar chart of success, safety and efficiency per method for one scenario."""
+    values = radar_values(summary)
+    angles = np.linspace(0.0, 2.0 * np.pi, len(RADAR_METRICS), endpoint=False)
+    closed = np.append(angles, angles[0])
+    fig = _figure(5.2, 4.6)
+    ax = fig.add_subplot(1, 1, 1, projection="polar")
+    for label, row in values.iterrows():
+        r = np.array([row[k] for k, _ in RADAR_METRICS])
+        ax.plot(closed, np.append(r, r[0]), color=colors[label], lw=2, marker="o", ms=4, label=label)
+        ax.fill(closed, np.append(r, r[0]), color=colors[label], alpha=0.12)
+    ax.set_xticks(angles)
+    ax.set_xticklabels([name for _, name in RADAR_METRICS])
+    ax.set_ylim(0, 1.05)
+    ax.set_yticks([0.25, 0.5, 0.75, 1.0])
+    ax.set_yticklabels([])
+    ax.set_title(f"{scenario}: min-max normalized across methods", fontsize=10)
+    ax.legend(loc="upper right", bbox_to_anchor=(1.35, 1.1), fontsize=8, frameon=False)
+    return _save(fig, path)
+
+
+def plot_generalization(rows: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:
+    """Success rate vs initial agent count for one scenario, one line per label, training count marked."""
+    fig = _figure(6.0, 4.0)
+    ax = fig.add_subplot(1, 1, 1)
+    per_seed = rows.groupby(["label", "trained_seed", "agent_count"], sort=False)["success_rate"].mean().reset_index()
+    for label, g in per_seed.groupby("label", sort=False):
+        stats = g.groupby("agent_count")["success_rate"].agg(["mean", "std", "count"]).sort_index()
+        x, m = stats.index.to_numpy(), 100.0 * stats["mean"].to_numpy()
+        s = 100.0 * stats["std"].fillna(0.0).to_numpy()
+        ax.plot(x, m, color=colors[label], marker="o", lw=2, label=f"{label} ({_seeds(int(stats['count'].max()))})")
+        ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.15)
+    for count in sorted(rows["trained_agent_count"].unique()):
+        ax.axvline(count, color="k", ls="--", lw=1)
+        ax.annotate(
+            f"trained at {count}", (count, 1.0), xycoords=("data", "axes fraction"), xytext=(3, -12), textcoords="offset points", fontsize=8
+        )
+    ax.xaxis.get_major_locator().set_params(integer=True)
+    ax.set_ylim(-3, 103)
+    ax.set_xlabel("initial number of agents")
+    ax.set_ylabel("success rate (%)")
+    ax.set_title(f"{scenario}: generalization over agent counts", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, frameon=False)
+    return _save(fig, path)
+
+
+def mean_curve(curves: pd.DataFrame, column: str, points: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(steps, mean, std) of ``column`` over seeds, each seed's curve interpolated onto a common grid.
+
+    The grid spans the steps every seed reached (from the largest first point to the smallest last).
+    """
+    seeds = [g.dropna(subset=[column]).sort_values("env_steps") for _, g in curves.groupby("seed")]
+    seeds = [g for g in seeds if len(g)]
+    if not seeds:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    lo = max(float(g["env_steps"].iloc[0]) for g in seeds)
+    hi = min(float(g["env_steps"].iloc[-1]) for g in seeds)
+    grid = np.linspace(lo, hi, points) if hi > lo else np.array([hi])
+    ys = np.array([np.interp(grid, g["env_steps"].to_numpy(float), g[column].to_numpy(float)) for g in seeds])
+    return grid, ys.mean(0), ys.std(0)
+
+
+def plot_learning_curves(curves: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:
+    """Training episode return and train success rate vs env steps, mean +- std over seeds, per label."""
+    panels = [("episode_return_mean", "episode return (train)"), ("train_success_rate", "success rate (train)")]
+    panels = [p for p in panels if p[0] in curves.columns]
+    fig = _figure(5.0 * len(panels), 3.8)
+    for k, (column, ylabel) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), k + 1)
+        for label, g in curves.groupby("label", sort=False):
+            x, m, s = mean_curve(g, column)
+            if len(x):
+                ax.plot(x, m, color=colors[label], lw=2, label=f"{label} ({_seeds(g['seed'].nunique())})")
+                ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.15)
+        if column == "train_success_rate":
+            ax.set_ylim(-0.03, 1.03)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        if k == 0:
+            ax.legend(fontsize=8, frameon=False)
+    fig.suptitle(f"{scenario}: learning curves (mean ± std over seeds)", fontsize=10)
+    return _save(fig, path)
+
+
+def plot_latent_tsne(
+    embeddings: dict[str, np.ndarray], clusters: dict[str, np.ndarray], joint: np.ndarray, joint_scenario: np.ndarray, path: Path
+) -> Path:
+    """Panel (a): the joint t-SNE coloured by scenario; then one panel per scenario coloured by k-means cluster."""
+    scenarios = list(embeddings)
+    fig = _figure(4.0 * (1 + len(scenarios)), 4.0)
+    ax = fig.add_subplot(1, 1 + len(scenarios), 1)
+    for i, name in enumerate(dict.fromkeys(joint_scenario)):
+        pts = joint[joint_scenario == name]
+        ax.scatter(pts[:, 0], pts[:, 1], s=5, color=PALETTE[i % len(PALETTE)], label=f"{name} ({len(pts)})")
+    ax.set_title("(a) all scenarios", fontsize=10)
+    ax.legend(fontsize=8, markerscale=3, frameon=False)
+    for k, name in enumerate(scenarios):
+        ax = fig.add_subplot(1, 1 + len(scenarios), k + 2)
+        y, lab = embeddings[name], clusters[name]
+        ax.scatter(y[:, 0], y[:, 1], s=5, c=[PALETTE[c % len(PALETTE)] for c in lab])
+        ax.set_title(f"({chr(ord('b') + k)}) {name}: {len(set(lab.tolist()))} k-means clusters", fontsize=10)
+    for a in fig.axes:
+        a.set_xticks([])
+        a.set_yticks([])
+    fig.suptitle("t-SNE of the CVAE latent means z_ij", fontsize=10)
+    return _save(fig, path)

@@ -1,0 +1,321 @@
+"""``python -m coin_app report``: evaluate sweeps (or read results) and write the paper's tables and figures.
+
+Sources are sweep directories (``coin_sweep.json``), directories holding sweeps, or results
+tables written by an earlier report (``results.csv``). Every finished or unfinished trial with a
+checkpoint is evaluated with :func:`~coin_app.evaluation.protocol.run_evaluation` on the fixed
+test seeds at its training agent count (and, for a generalization sweep or with ``counts``,
+at the other counts); methods and variants come from the data, so a new baseline appears in
+every output without changes here. Outputs in ``out``:
+
+``results.csv`` + ``evaluation.json`` (per-episode table, settings, failures), ``table_main``
+and ``table_ablation`` ``.{md,csv,tex}``, ``stats.csv``, ``radar_<scenario>.png``,
+``generalization_<scenario>.png``, ``learning_curves_<scenario>.png``,
+``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``marl_eval.json`` and
+``report.html`` (everything above in one self-contained page, with command, versions and
+configs). A figure that cannot be drawn from the data (no progress files, no CVAE model) is
+named in the page with the reason instead.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from coin_app.evaluation import plots, statistics, tables
+from coin_app.evaluation.marl_eval import run_label, write_marl_eval
+from coin_app.evaluation.protocol import EvalRun, read_results, run_evaluation, write_results
+
+Log = Callable[[str], None]
+
+
+@dataclass
+class ReportOptions:
+    """What the report evaluates and draws (defaults: the paper's protocol, smaller t-SNE sample)."""
+
+    method: str = "cig_td3"  # the method compared with every baseline (stats, first colour)
+    counts: tuple[int, ...] | None = None  # extra agent counts to evaluate at (default: a generalization sweep's grid)
+    test_seeds: int | None = None  # test episodes per model and cell (default: the sweep's, 20)
+    workers: int = 2  # evaluation processes
+    alpha: float = 0.01  # family-wise significance level before Bonferroni
+    tsne_samples: int = 500  # latent samples per scenario (the paper: 1500)
+    tsne_episodes: int = 4  # test episodes the latents are drawn from
+    command: str | None = None  # the command line, recorded in the page
+
+    def check(self) -> None:
+        """Refuse bad options before any work starts."""
+        if self.test_seeds is not None and self.test_seeds < 1:
+            raise ValueError(f"bad --test-seeds {self.test_seeds}; allowed: an integer >= 1")
+        if self.workers < 1:
+            raise ValueError(f"bad --workers {self.workers}; allowed: an integer >= 1")
+        if not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"bad --alpha {self.alpha}; allowed: a number in (0, 1)")
+        if self.tsne_samples < 10:
+            raise ValueError(f"bad --tsne-samples {self.tsne_samples}; allowed: an integer >= 10")
+        if self.tsne_episodes < 1:
+            raise ValueError(f"bad --tsne-episodes {self.tsne_episodes}; allowed: an integer >= 1")
+        if self.counts is not None and (not self.counts or any(c < 1 for c in self.counts)):
+            raise ValueError(f"bad --counts {list(self.counts)}; allowed: one or more integers >= 1")
+
+
+@dataclass
+class Sources:
+    """What the report reads: sweeps to evaluate and results tables already evaluated."""
+
+    sweeps: list[dict[str, Any]] = field(default_factory=list)  # {"path", "settings", "runs", "skipped"}
+    tables: list[dict[str, Any]] = field(default_factory=list)  # {"path", "table", "settings"}
+
+
+def gather(paths: Sequence[Path]) -> Sources:
+    """Classify every source path; a ValueError naming a path that is none of the allowed kinds."""
+    from tuning.results import SETTINGS_FILE, load_trials, read_settings
+
+    out = Sources()
+    for raw in paths:
+        path = Path(raw)
+        if path.is_file():
+            meta = path.parent / "evaluation.json"
+            settings = json.loads(meta.read_text()) if meta.is_file() else {}
+            out.tables.append({"path": path, "table": read_results(path), "settings": settings})
+            continue
+        sweep_dirs = [path] if (path / SETTINGS_FILE).is_file() else sorted(p.parent for p in path.glob(f"*/{SETTINGS_FILE}"))
+        if not path.is_dir() or not sweep_dirs:
+            raise ValueError(f"{path} is not a results file, a sweep directory (with {SETTINGS_FILE}) or a directory of sweeps")
+        for d in sweep_dirs:
+            runs, skipped, unfinished = [], [], []
+            for trial in load_trials(d):
+                if not trial.finished:
+                    unfinished.append(f"{trial.name} ({trial.last.get('env_steps', 0)} of {trial.config.get('steps')} env steps)")
+                ckpt = trial.final_checkpoint
+                if ckpt is None:
+                    skipped.append({"trial": trial.name, "path": str(trial.path), "error": "no checkpoint"})
+                    continue
+                cfg = trial.config
+                runs.append(EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(ckpt), int(trial.last.get("env_steps", 0))))
+            out.sweeps.append({"path": d, "settings": read_settings(d), "runs": runs, "skipped": skipped, "unfinished": unfinished})
+    return out
+
+
+def evaluate_sources(
+    sources: Sources, options: ReportOptions, out: Path, log: Log
+) -> tuple[pd.DataFrame, list[dict[str, Any]], dict[str, Any]]:
+    """The combined per-episode table (new evaluations written to ``out``), failures and evaluation settings."""
+    from coin_app.evaluation.evaluate import eval_test_seeds
+
+    frames, failures = [t["table"] for t in sources.tables], []
+    groups: dict[tuple, list[EvalRun]] = {}
+    seen: set[str] = set()
+    for sweep in sources.sweeps:
+        failures += [{**s, "sweep": str(sweep["path"])} for s in sweep["skipped"]]
+        settings = sweep["settings"]
+        counts = options.counts or (tuple(settings.get("counts") or ()) if settings.get("experiment") == "generalization" else None)
+        n_seeds = options.test_seeds or int(settings.get("test_seeds", 20))
+        for run in sweep["runs"]:
+            key = str(Path(run.checkpoint).resolve())
+            if key not in seen:
+                seen.add(key)
+                groups.setdefault((counts, n_seeds), []).append(run)
+    settings = {"groups": []}
+    if groups:
+        evaluations = []
+        for (counts, n_seeds), runs in groups.items():
+            seeds = eval_test_seeds(n_seeds)
+            ev = run_evaluation(runs, seeds, counts=counts, workers=options.workers, log=log)
+            evaluations.append(ev)
+            failures += ev.failures
+            settings["groups"].append({"runs": len(runs), "counts": counts, "test_seeds": seeds, "workers": options.workers})
+        table = pd.concat([e.table for e in evaluations], ignore_index=True)
+        wall = sum(e.wall_s for e in evaluations)
+        from coin_app.evaluation.protocol import Evaluation
+
+        write_results(Evaluation(table, failures, wall), out, {**settings, "command": options.command})
+        frames.append(table)
+    if not frames or all(f.empty for f in frames):
+        names = ", ".join(f["trial"] if "trial" in f else f.get("checkpoint", "?") for f in failures) or "none"
+        raise ValueError(f"nothing to report: no episode was evaluated (failed or skipped: {names})")
+    combined = pd.concat([f for f in frames if not f.empty], ignore_index=True)
+    combined = combined.drop_duplicates(subset=["checkpoint", "scenario", "agent_count", "test_seed"], keep="last")
+    return combined.reset_index(drop=True), failures, settings
+
+
+def ordered_labels(labels: Sequence[str], method: str) -> list[str]:
+    """Labels with ``method`` (and its variants) first, then the rest in sorted order."""
+    uniq = sorted(set(labels))
+    first = [x for x in uniq if x == method or x.startswith(f"{method}-")]
+    return first + [x for x in uniq if x not in first]
+
+
+def learning_curves(table: pd.DataFrame) -> pd.DataFrame:
+    """Per run (label, seed) the Tune progress rows (env steps, return, train success) next to its checkpoint."""
+    parts = []
+    runs = table.drop_duplicates("checkpoint")
+    for r in runs.itertuples():
+        progress = Path(r.checkpoint).parent / "progress.csv"
+        if not progress.is_file():
+            continue
+        df = pd.read_csv(progress)
+        cols = [c for c in ("env_steps", "episode_return_mean", "train_success_rate") if c in df.columns]
+        if "env_steps" not in cols:
+            continue
+        parts.append(df[cols].assign(label=run_label(r.method, r.variant), seed=r.trained_seed, scenario=r.scenario))
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=["label", "seed", "scenario", "env_steps"])
+
+
+def trajectory_plot(checkpoint: str, seed: int, path: Path, title: str) -> Path:
+    """One deterministic test episode of a checkpoint drawn with every vehicle's path and outcome points."""
+    from coin_app.algorithms.checkpoints import load_policy, scenario_of
+    from coin_app.envs.driving_env import DrivingEnv
+    from coin_app.envs.rendering import EpisodeTrace, plot_trajectories
+    from coin_app.evaluation.evaluate import run_episode
+
+    config = scenario_of(Path(checkpoint))
+    if config.backend != "native":
+        raise ValueError(f"trajectory plots need the native backend; {checkpoint} uses {config.backend!r}")
+    env, trace = DrivingEnv(config), EpisodeTrace()
+    m = run_episode(env, load_policy(Path(checkpoint)), seed, config.force_stop_factor * config.horizon + 1, trace=trace)
+    full = f"{title}: success {m['success_rate']:.2f}, {int(m['num_crashed'])} crashes, {int(m['num_out_of_road'])} off-road"
+    return plot_trajectories(trace, env.sim.map, path, title=full, width=6.0, dpi=90)
+
+
+def latent_figure(table: pd.DataFrame, method: str, options: ReportOptions, path: Path, log: Log) -> Path:
+    """t-SNE of CVAE latents of ``method``'s lowest-seed model per scenario (App. B.1)."""
+    from coin_app.evaluation.embedding import kmeans, tsne
+    from coin_app.evaluation.evaluate import eval_test_seeds
+    from coin_app.evaluation.latents import collect_latents
+
+    rows = statistics.main_rows(statistics.at_training_count(table))
+    rows = rows[rows["method"] == method].sort_values("trained_seed")
+    if rows.empty:
+        raise ValueError(f"no {method} model in the results")
+    rng = np.random.default_rng(0)
+    samples: dict[str, np.ndarray] = {}
+    for scenario, g in rows.groupby("scenario", sort=True):
+        checkpoint = g["checkpoint"].iloc[0]
+        lat = collect_latents(Path(checkpoint), eval_test_seeds(options.tsne_episodes))
+        if len(lat.z) < 10:
+            log(f"  latents: only {len(lat.z)} pairs in {scenario}; skipped")
+            continue
+        pick = rng.choice(len(lat.z), size=min(options.tsne_samples, len(lat.z)), replace=False)
+        samples[scenario] = lat.z[np.sort(pick)]
+        log(f"  latents: {len(pick)} of {len(lat.z)} pairs from {checkpoint}")
+    if not samples:
+        raise ValueError("too few latent pairs (< 10) in every scenario")
+    perp = lambda n: float(min(30.0, max(2.0, (n - 1) / 3.0)))  # noqa: E731 - perplexity must stay below n
+    embeddings, clusters = {}, {}
+    for name, z in samples.items():
+        embeddings[name] = tsne(z, perplexity=perp(len(z)), seed=0)
+        clusters[name] = kmeans(z, min(6, len(z)), seed=0)[0]
+    joint = np.concatenate(list(samples.values()))
+    joint_names = np.concatenate([np.full(len(z), name) for name, z in samples.items()])
+    joint_y = tsne(joint, perplexity=perp(len(joint)), seed=0) if len(samples) > 1 else embeddings[joint_names[0]]
+    return plots.plot_latent_tsne(embeddings, clusters, joint_y, joint_names, path)
+
+
+def _attempt(name: str, figures: dict[str, Any], log: Log, fn: Callable[[], Path]) -> None:
+    """Draw one figure; record its path or the reason it could not be drawn."""
+    try:
+        figures[name] = fn()
+        log(f"  wrote {figures[name].name}")
+    except (ValueError, KeyError, OSError, RuntimeError) as exc:
+        figures[name] = f"not drawn: {exc}"
+        log(f"  {name}: not drawn ({exc})")
+
+
+def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None = None, log: Log = print) -> dict[str, Any]:
+    """Evaluate the sources and write every table, figure, the marl-eval JSON and report.html into ``out``."""
+    from coin_app.evaluation.html_report import write_html
+
+    options = options or ReportOptions()
+    options.check()
+    t0 = time.perf_counter()
+    sources = gather(paths)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    n_runs = sum(len(s["runs"]) for s in sources.sweeps)
+    log(f"report: {len(sources.sweeps)} sweeps ({n_runs} models) and {len(sources.tables)} results tables -> {out}")
+    for sweep in sources.sweeps:
+        if sweep["unfinished"]:
+            log(f"  note: unfinished trials in {sweep['path']}, their newest checkpoints are evaluated: {', '.join(sweep['unfinished'])}")
+    table, failures, eval_settings = evaluate_sources(sources, options, out, log)
+    table.to_csv(out / "results.csv", index=False)  # new evaluations and read tables together
+    table = table.assign(label=[run_label(m, v) for m, v in zip(table["method"], table["variant"])])
+    colors = plots.label_colors(ordered_labels(list(table["label"]) + list(table["method"]), options.method))
+    trained = statistics.at_training_count(table)
+
+    main = statistics.main_rows(trained)
+    main_summary = statistics.rank_marks(statistics.summarize(main))
+    files = tables.write_tables(main_summary, out, "table_main", "Results at the training agent count: mean (std) over test episodes")
+    ablation = statistics.ablation_rows(trained, options.method)
+    ablation_summary = statistics.rank_marks(statistics.summarize(ablation)) if len(ablation) else None
+    if ablation_summary is not None:
+        files += tables.write_tables(ablation_summary, out, "table_ablation", f"Ablations of {options.method}", "Variant")
+    stats = statistics.paired_tests(main, options.method, alpha=options.alpha)
+    stats.to_csv(out / "stats.csv", index=False)
+    files += [out / "stats.csv", write_marl_eval(table, out / "marl_eval.json")]
+
+    figures: dict[str, Any] = {}
+    curves = learning_curves(table)
+    for scenario in sorted(table["scenario"].unique()):
+        s_sum = main_summary[main_summary["scenario"] == scenario]
+        _attempt(f"radar_{scenario}", figures, log, lambda s=s_sum, n=scenario: plots.plot_radar(s, out / f"radar_{n}.png", n, colors))
+        s_rows = table[table["scenario"] == scenario]
+        _attempt(
+            f"generalization_{scenario}",
+            figures,
+            log,
+            lambda r=s_rows, n=scenario: plots.plot_generalization(r, out / f"generalization_{n}.png", n, colors),
+        )
+        s_curves = curves[curves["scenario"] == scenario]
+        _attempt(
+            f"learning_curves_{scenario}",
+            figures,
+            log,
+            lambda c=s_curves, n=scenario: _curves(c, out / f"learning_curves_{n}.png", n, colors),
+        )
+        for method, g in main[main["scenario"] == scenario].groupby("method", sort=True):
+            first = g.sort_values(["trained_seed", "test_seed"]).iloc[0]
+            _attempt(
+                f"trajectories_{scenario}_{method}",
+                figures,
+                log,
+                lambda f=first, n=scenario, m=method: trajectory_plot(
+                    f["checkpoint"],
+                    int(f["test_seed"]),
+                    out / f"trajectories_{n}_{m}.png",
+                    f"{n}, {m} (seed {f['trained_seed']}, test seed {f['test_seed']})",
+                ),
+            )
+    _attempt("latent_tsne", figures, log, lambda: latent_figure(table, options.method, options, out / "latent_tsne.png", log))
+
+    context = {
+        "options": asdict(options),
+        "sources": [str(p) for p in paths],
+        "sweeps": [{"path": str(s["path"]), "settings": s["settings"], "unfinished": s["unfinished"]} for s in sources.sweeps],
+        "tables": [{"path": str(t["path"]), "settings": t["settings"]} for t in sources.tables],
+        "evaluation": eval_settings,
+        "failures": failures,
+    }
+    html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context)
+    summary = {
+        "out": str(out),
+        "episodes": len(table),
+        "models": int(table["checkpoint"].nunique()),
+        "failures": failures,
+        "files": [str(f) for f in [*files, html]],
+        "figures": {k: str(v) for k, v in figures.items()},
+        "success": {f"{r.scenario}/{r.label}": r.mean for r in main_summary[main_summary["metric"] == "success_rate"].itertuples()},
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
+    return summary
+
+
+def _curves(curves: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:
+    if curves.empty:
+        raise ValueError("no Tune progress.csv next to any checkpoint of this scenario")
+    return plots.plot_learning_curves(curves, path, scenario, colors)

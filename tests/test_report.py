@@ -1,0 +1,151 @@
+"""Evaluation protocol and report on one real smoke sweep: generalization table, deterministic parallel
+evaluation, broken checkpoints reported by name, and every report output produced."""
+
+import html
+import json
+import shutil
+
+import pandas as pd
+import pytest
+import ray
+
+from coin_app.cli import main
+from coin_app.evaluation.evaluate import TEST_SEED_BASE, VALIDATION_SEED_BASE
+from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
+from tuning.results import load_trials
+
+METRIC_COLUMNS = [c for c in RESULT_COLUMNS if c != "wall_time_s"]
+
+
+@pytest.fixture(scope="module")
+def sweep_dir(tmp_path_factory):
+    """A finished smoke generalization sweep of CIG-TD3 and IPPO (seed 0, 1000 env steps, counts 2 and 4)."""
+    storage = tmp_path_factory.mktemp("sweeps")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    try:
+        assert main(["sweep", "generalization", "--smoke", "--algos", "cig_td3", "ippo", "--storage", str(storage)]) == 0
+    finally:
+        ray.shutdown()
+    return storage / "generalization-intersection-smoke"
+
+
+def _runs(sweep_dir):
+    return [EvalRun(t.config["algo"], t.config["variant"], t.config["seed"], str(t.final_checkpoint)) for t in load_trials(sweep_dir)]
+
+
+def test_generalization_table_from_a_finished_sweep(sweep_dir, capsys):
+    table = pd.read_csv(sweep_dir / "generalization.csv")
+    assert list(table.columns) == [
+        "method",
+        "variant",
+        "seed",
+        "scenario",
+        "agent_count",
+        "trained_agent_count",
+        "metric",
+        "value",
+        "std",
+        "episodes",
+    ]
+    assert len(table) == 2 * 2 * 7 and set(table["agent_count"]) == {2, 4} and set(table["trained_agent_count"]) == {4}
+    assert set(table["method"]) == {"cig_td3", "ippo"}
+    success = table[table.metric == "success_rate"]
+    assert success["value"].between(0, 1).all() and (table["episodes"] == 2).all()
+    # the standalone command re-evaluates the same checkpoints: deterministic, so the same table
+    assert main(["generalize", str(sweep_dir), "--counts", "2", "4", "--test-seeds", "2"]) == 0
+    pd.testing.assert_frame_equal(pd.read_csv(sweep_dir / "generalization.csv"), table)
+    assert main(["generalize", str(sweep_dir.parent)]) == 2
+    assert "is not a coin_app sweep directory" in capsys.readouterr().err
+
+
+def test_evaluation_is_deterministic_in_process_and_in_workers(sweep_dir):
+    runs = _runs(sweep_dir)
+    seeds = [TEST_SEED_BASE + k for k in range(3)]
+    first = run_evaluation(runs, seeds, counts=[2], workers=1, log=lambda _: None)
+    spread = run_evaluation(runs, seeds, counts=[2], workers=2, log=lambda _: None)
+    assert not first.failures and len(first.table) == len(runs) * 2 * 3  # (training count 4 and 2) x 3 seeds
+    assert set(first.table["test_seed"]) == set(seeds) and first.table["test_seed"].min() >= TEST_SEED_BASE > VALIDATION_SEED_BASE
+    assert (first.table["episode_length"] > 0).all() and (first.table["wall_time_s"] > 0).all()
+    pd.testing.assert_frame_equal(first.table[METRIC_COLUMNS], spread.table[METRIC_COLUMNS])
+
+
+def test_missing_or_corrupt_checkpoint_is_reported_by_name_and_the_rest_still_runs(sweep_dir, tmp_path):
+    good = _runs(sweep_dir)[0]
+    corrupt = tmp_path / "corrupt_ckpt"
+    shutil.copytree(good.checkpoint, corrupt)
+    for f in (corrupt / "learner_group").rglob("*"):
+        if f.is_file():
+            f.write_bytes(b"not a checkpoint")
+    missing = EvalRun("itd3", "default", 3, str(tmp_path / "missing_ckpt"))
+    broken = EvalRun("cig_td3", "default", 7, str(corrupt))
+    lines = []
+    ev = run_evaluation([missing, good, broken], [TEST_SEED_BASE], workers=2, log=lines.append)
+    assert sorted(f["checkpoint"] for f in ev.failures) == sorted([missing.checkpoint, broken.checkpoint])
+    assert set(ev.table["checkpoint"]) == {good.checkpoint} and len(ev.table) == 1
+    assert any("FAILED itd3 seed 3" in line and "missing_ckpt" in line for line in lines)
+    assert any("FAILED cig_td3 seed 7" in line and "corrupt_ckpt" in line for line in lines)
+
+
+def test_report_from_a_real_sweep_writes_every_output(sweep_dir, tmp_path, capsys):
+    out = tmp_path / "report"
+    argv = ["report", str(sweep_dir), "--out", str(out), "--test-seeds", "2", "--tsne-samples", "40", "--tsne-episodes", "1"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "report summary:" in printed and "figures: 6 of 6 drawn" in printed
+    expected = [
+        "results.csv",
+        "evaluation.json",
+        "table_main.md",
+        "table_main.csv",
+        "table_main.tex",
+        "stats.csv",
+        "marl_eval.json",
+        "radar_intersection.png",
+        "generalization_intersection.png",
+        "learning_curves_intersection.png",
+        "trajectories_intersection_cig_td3.png",
+        "trajectories_intersection_ippo.png",
+        "latent_tsne.png",
+        "report.html",
+    ]
+    for name in expected:
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    for png in out.glob("*.png"):
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000, png.name
+    results = pd.read_csv(out / "results.csv")
+    # 2 models x counts {2, 4} x 2 test seeds, one row per episode
+    assert len(results) == 8 and set(results["agent_count"]) == {2, 4}
+    stats = pd.read_csv(out / "stats.csv")
+    assert list(stats["baseline"]) == ["ippo"] * 3 and list(stats["metric"]) == ["success_rate", "safety", "efficiency"]
+    assert (stats["n_pairs"] == 2).all() and stats["threshold"].iloc[0] == pytest.approx(0.01 / 3)
+    md = (out / "table_main.md").read_text()
+    assert "| cig_td3 |" in md and "| ippo |" in md and "**" in md
+    page = html.unescape((out / "report.html").read_text())
+    assert page.count("data:image/png;base64,") == 6 and "python -m coin_app report" in page and '"experiment": "generalization"' in page
+    assert "<td>torch</td>" in page and '"algo": "ippo"' in page  # versions and each model's metadata
+    marl = json.loads((out / "marl_eval.json").read_text())
+    assert set(marl["coin_app"]) == {"intersection", "intersection_2agents"}
+    # re-plotting from the results file alone evaluates nothing and gives the same main table
+    again = tmp_path / "again"
+    assert main(["report", str(out / "results.csv"), "--out", str(again), "--tsne-samples", "40", "--tsne-episodes", "1"]) == 0
+    assert (again / "table_main.md").read_text() == md
+    assert main(["report", str(tmp_path / "nowhere"), "--out", str(again)]) == 2
+    assert "is not a results file, a sweep directory" in capsys.readouterr().err
+
+
+def test_report_refuses_bad_options_before_any_work(tmp_path, capsys):
+    for flag, value, message in [
+        ("--workers", "0", "bad --workers 0"),
+        ("--alpha", "2", "bad --alpha 2.0"),
+        ("--counts", "0", "bad --counts [0]"),
+    ]:
+        assert main(["report", str(tmp_path), "--out", str(tmp_path / "o"), flag, value]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_report_names_the_path_of_a_file_that_is_not_a_results_table(tmp_path, capsys):
+    bad = tmp_path / "other.csv"
+    bad.write_text("a,b\n1,2\n")
+    assert main(["report", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert f"{bad} is not a coin_app results table" in capsys.readouterr().err
