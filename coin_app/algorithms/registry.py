@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from coin_app.envs.config import ScenarioConfig, config_from_dict
+from coin_app.evaluation.evaluate import MAX_TRAINING_SEED, VALIDATION_SEED_BASE
 
 
 @dataclass(frozen=True)
@@ -182,6 +183,10 @@ def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "inter
 def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int) -> Any:
     """A validated RLlib config of algorithm ``name`` on ``scenario``."""
     entry = get(name)
+    if not 0 <= seed < MAX_TRAINING_SEED:
+        raise ValueError(
+            f"bad seed {seed}; allowed: an integer in [0, {MAX_TRAINING_SEED}) (validation seeds start at {VALIDATION_SEED_BASE})"
+        )
     if scenario not in entry.scenarios:
         raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(entry.scenarios)}")
     env_cfg, algo_cfg = split_overrides(name, overrides, scenario)

@@ -9,7 +9,8 @@ only a fresh engine makes an episode depend on its seed alone. MetaDrive allows 
 engine per process; if this process already has one open (an env runner's), the
 episodes run in a worker process instead.
 
-Seed sets are disjoint: training runs seed their envs below ``VALIDATION_SEED_BASE``;
+Seed sets are disjoint: training seeds are below ``MAX_TRAINING_SEED`` (refused otherwise), so their envs
+are seeded below ``VALIDATION_SEED_BASE``;
 validation seeds (checkpoint selection, periodic evaluation) are ``VALIDATION_SEED_BASE + k``
 and test seeds (reported results) ``TEST_SEED_BASE + k``. Never select on test seeds.
 """
@@ -28,6 +29,7 @@ from coin_app.evaluation.metrics import EpisodeRecorder
 
 VALIDATION_SEED_BASE = 100_000
 TEST_SEED_BASE = 200_000
+MAX_TRAINING_SEED = VALIDATION_SEED_BASE - 10_000  # env runners add small offsets to the trial seed
 
 Policy = Callable[[np.ndarray], np.ndarray]
 

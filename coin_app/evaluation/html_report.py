@@ -30,7 +30,7 @@ pre { background: #f6f6f6; padding: 0.6em; overflow-x: auto; font-size: 0.8em; }
 
 
 def versions() -> dict[str, str]:
-    """Python, platform, the coin_app git commit (if any) and the installed versions of the key packages."""
+    """Python, platform, the coin_app git commit (``-dirty`` with uncommitted changes) and the installed versions of the key packages."""
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in PACKAGES:
         try:
@@ -39,7 +39,9 @@ def versions() -> dict[str, str]:
             out[name] = "not installed"
     try:
         root = Path(__file__).resolve().parents[2]
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        commit = subprocess.run(
+            ["git", "-C", str(root), "describe", "--always", "--dirty", "--abbrev=12"], capture_output=True, text=True, timeout=10
+        )
         out["coin_app commit"] = commit.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         out["coin_app commit"] = "unknown"
