@@ -102,6 +102,18 @@ def test_main_and_ablation_rows_pick_variants():
     abl = statistics.ablation_rows(table, "cig")
     assert sorted(abl["label"]) == ["full", "wo_gat"]
     assert statistics.ablation_rows(table, "itd3").empty  # one variant only: no ablation table
+    # a seeds sweep's default beside an ablation sweep's full: full stands for it; a scenario with one variant has no ablation
+    rows += _episodes("cig", "intersection", {"success_rate": [0.6]}, variant="default")
+    rows += _episodes("cig", "roundabout", {"success_rate": [0.3]}, variant="default")
+    table = pd.DataFrame(rows)
+    abl = statistics.ablation_rows(table, "cig")
+    assert sorted(zip(abl["scenario"], abl["label"])) == [("intersection", "full"), ("intersection", "wo_gat")]
+    main = statistics.main_rows(table)
+    assert sorted(zip(main["scenario"], main["variant"])) == [
+        ("intersection", "default"),
+        ("intersection", "default"),
+        ("roundabout", "default"),
+    ]
 
 
 def _known_summary():

@@ -2,7 +2,8 @@
 
 * :func:`plot_radar` - Fig. 5: success, safety and efficiency per method, each metric min-max
   normalized across the methods of the scenario to [0.1, 1] (the paper normalizes to [0, 1];
-  the floor keeps the worst method's polygon visible).
+  the floor keeps the worst method's polygon visible; a metric on which all methods tie is
+  drawn at 1 and labelled "all equal").
 * :func:`plot_generalization` - Figs. 4/6: success rate vs initial agent count, one line per
   method (mean over trained seeds of the per-seed mean, band = std over seeds), the training
   count marked.
@@ -41,6 +42,12 @@ def _figure(width: float, height: float) -> Figure:
     return fig
 
 
+def _z(colors: dict[str, str], label: str) -> float:
+    """Drawing order: labels earlier in ``colors`` (the chosen method first) are drawn on top."""
+    order = list(colors)
+    return 2.0 + (len(order) - order.index(label)) / max(len(order), 1) if label in order else 2.0
+
+
 def _save(fig: Figure, path: Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -68,10 +75,12 @@ def plot_radar(summary: pd.DataFrame, path: Path, scenario: str, colors: dict[st
     ax = fig.add_subplot(1, 1, 1, projection="polar")
     for label, row in values.iterrows():
         r = np.array([row[k] for k, _ in RADAR_METRICS])
-        ax.plot(closed, np.append(r, r[0]), color=colors[label], lw=2, marker="o", ms=4, label=label)
-        ax.fill(closed, np.append(r, r[0]), color=colors[label], alpha=0.12)
+        z = _z(colors, label)
+        ax.plot(closed, np.append(r, r[0]), color=colors[label], lw=2, marker="o", ms=4, label=label, zorder=z)
+        ax.fill(closed, np.append(r, r[0]), color=colors[label], alpha=0.12, zorder=z - 1)
     ax.set_xticks(angles)
-    ax.set_xticklabels([name for _, name in RADAR_METRICS])
+    tied = [len(values) > 1 and values[key].nunique() == 1 for key, _ in RADAR_METRICS]
+    ax.set_xticklabels([f"{name}\n(all equal)" if t else name for (_, name), t in zip(RADAR_METRICS, tied)])
     ax.set_ylim(0, 1.05)
     ax.set_yticks([0.25, 0.5, 0.75, 1.0])
     ax.set_yticklabels([])
@@ -89,7 +98,9 @@ def plot_generalization(rows: pd.DataFrame, path: Path, scenario: str, colors: d
         stats = g.groupby("agent_count")["success_rate"].agg(["mean", "std", "count"]).sort_index()
         x, m = stats.index.to_numpy(), 100.0 * stats["mean"].to_numpy()
         s = 100.0 * stats["std"].fillna(0.0).to_numpy()
-        ax.plot(x, m, color=colors[label], marker="o", lw=2, label=f"{label} ({_seeds(int(stats['count'].max()))})")
+        ax.plot(
+            x, m, color=colors[label], marker="o", lw=2, label=f"{label} ({_seeds(int(stats['count'].max()))})", zorder=_z(colors, label)
+        )
         ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.15)
     for count in sorted(rows["trained_agent_count"].unique()):
         ax.axvline(count, color="k", ls="--", lw=1)
@@ -132,7 +143,7 @@ def plot_learning_curves(curves: pd.DataFrame, path: Path, scenario: str, colors
         for label, g in curves.groupby("label", sort=False):
             x, m, s = mean_curve(g, column)
             if len(x):
-                ax.plot(x, m, color=colors[label], lw=2, label=f"{label} ({_seeds(g['seed'].nunique())})")
+                ax.plot(x, m, color=colors[label], lw=2, label=f"{label} ({_seeds(g['seed'].nunique())})", zorder=_z(colors, label))
                 ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.15)
         if column == "train_success_rate":
             ax.set_ylim(-0.03, 1.03)
@@ -156,7 +167,7 @@ def plot_latent_tsne(
         pts = joint[joint_scenario == name]
         ax.scatter(pts[:, 0], pts[:, 1], s=5, color=PALETTE[i % len(PALETTE)], label=f"{name} ({len(pts)})")
     ax.set_title("(a) all scenarios", fontsize=10)
-    ax.legend(fontsize=8, markerscale=3, frameon=False)
+    ax.legend(fontsize=8, markerscale=3, loc="best", framealpha=0.85)
     for k, name in enumerate(scenarios):
         ax = fig.add_subplot(1, 1 + len(scenarios), k + 2)
         y, lab = embeddings[name], clusters[name]

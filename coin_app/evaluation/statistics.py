@@ -66,11 +66,18 @@ def main_rows(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def ablation_rows(table: pd.DataFrame, method: str) -> pd.DataFrame:
-    """Every variant of ``method``; column ``label`` = variant. Empty unless it has two or more variants."""
-    rows = table[table["method"] == method]
-    if rows["variant"].nunique() < 2:
-        return rows.iloc[:0].assign(label=pd.Series(dtype=str))
-    return rows.assign(label=rows["variant"])
+    """The variants of ``method`` per scenario with two or more of them; column ``label`` = variant.
+
+    Where an ablation sweep's ``full`` is present, ``default`` (the same configuration from a
+    seeds sweep) is left out so the table compares the ablation sweep's own models.
+    """
+    parts = []
+    for _, rows in table[table["method"] == method].groupby("scenario", sort=False):
+        if "full" in set(rows["variant"]):
+            rows = rows[rows["variant"] != "default"]
+        if rows["variant"].nunique() >= 2:
+            parts.append(rows.assign(label=rows["variant"]))
+    return pd.concat(parts, ignore_index=True) if parts else table.iloc[:0].assign(label=pd.Series(dtype=str))
 
 
 def summarize(rows: pd.DataFrame, metrics: Sequence[str] = tuple(METRIC_BY_KEY)) -> pd.DataFrame:
