@@ -110,6 +110,25 @@ def local_ray():
     ray.shutdown()
 
 
+def test_trial_files_caught_mid_write_are_handled_and_corrupt_ones_named(tmp_path):
+    exp = tmp_path / "sweep"
+    (exp / "a").mkdir(parents=True)
+    (exp / "b").mkdir()
+    (exp / "coin_sweep.json").write_text(json.dumps({"experiment": "seeds"}))
+    (exp / "a" / "params.json").write_text(json.dumps({"algo": "itd3", "variant": "default", "seed": 3, "steps": 100}))
+    # two complete iterations, then a third line cut off while Tune was appending it
+    (exp / "a" / "result.json").write_text('{"env_steps": 50}\n{"env_steps": 100}\n{"env_st')
+    (exp / "b" / "params.json").write_text("")  # Tune has created the file but not written it yet
+    (trial,) = load_trials(exp, live=True)
+    assert trial.name == "itd3-s3" and [r["env_steps"] for r in trial.results] == [50, 100] and trial.finished
+    with pytest.raises(ValueError, match=r"b/params\.json is not valid JSON"):
+        load_trials(exp)
+    (exp / "b" / "params.json").unlink()
+    (exp / "a" / "result.json").write_text('{"env_steps": 50}\n{"env_st\n{"env_steps": 100}\n')
+    with pytest.raises(ValueError, match=r"a/result\.json line 2 is not valid JSON"):
+        load_trials(exp)
+
+
 def test_ablations_smoke_sweep_end_to_end(local_ray, tmp_path, capsys):
     storage = tmp_path / "sweeps"
     assert main(["sweep", "ablations", "--smoke", "--storage", str(storage)]) == 0
@@ -148,7 +167,7 @@ def test_sweep_killed_with_sigkill_resumes_without_rerunning_or_losing_anything(
     exp_dir = storage / "killed"
 
     def trials():
-        return load_trials(exp_dir) if (exp_dir / "coin_sweep.json").exists() else []
+        return load_trials(exp_dir, live=True) if (exp_dir / "coin_sweep.json").exists() else []
 
     try:  # kill -9 once the first trial has finished and the second is mid-way (checkpointed, not finished)
         _wait_for(

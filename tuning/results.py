@@ -56,17 +56,40 @@ def read_settings(experiment_dir: Path) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
-def load_trials(experiment_dir: Path) -> list[TrialRecord]:
-    """Every trial directory of a sweep, sorted by trial name."""
+def _read_json_lines(path: Path) -> list[dict[str, Any]]:
+    """The complete JSON lines of ``result.json``; a trailing line still being written is left out."""
+    if not path.is_file():
+        return []
+    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    results = []
+    for i, line in enumerate(lines):
+        try:
+            results.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            if i == len(lines) - 1:  # Tune appends one line per iteration; the last may be mid-write
+                break
+            raise ValueError(f"{path} line {i + 1} is not valid JSON ({err.msg}); the trial's results are corrupt") from err
+    return results
+
+
+def load_trials(experiment_dir: Path, live: bool = False) -> list[TrialRecord]:
+    """Every trial directory of a sweep, sorted by trial name.
+
+    ``live=True`` is for a sweep that may be running: a trial whose ``params.json`` is still
+    being written is left out instead of refused.
+    """
     read_settings(experiment_dir)
     trials = []
     for params in sorted(Path(experiment_dir).glob("*/params.json")):
         d = params.parent
-        results_file = d / "result.json"
-        lines = results_file.read_text().splitlines() if results_file.is_file() else []
-        results = [json.loads(line) for line in lines if line.strip()]
+        try:
+            config = json.loads(params.read_text())
+        except json.JSONDecodeError as err:
+            if live:
+                continue
+            raise ValueError(f"{params} is not valid JSON ({err.msg}); the trial's config is missing or corrupt") from err
         checkpoints = sorted(
             (c for c in d.glob("checkpoint_*") if (c / "coin_app.json").is_file()), key=lambda c: int(c.name.split("_")[-1])
         )
-        trials.append(TrialRecord(d, json.loads(params.read_text()), results, checkpoints))
+        trials.append(TrialRecord(d, config, _read_json_lines(d / "result.json"), checkpoints))
     return sorted(trials, key=lambda t: t.name)
