@@ -137,6 +137,8 @@ def run_sweep(
         log(f"sweep {experiment} on {scenario} ({scale} scale): {len(trials)} trials -> {path}")
     check_address(address)
     os.environ.setdefault("TUNE_GLOBAL_CHECKPOINT_S", "5")
+    # the frequent state saves above are deliberate (resume after kill -9); Tune's warning about them is noise
+    os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")
     if not ray.is_initialized():
         if address == "local" or (address is None and not os.environ.get("RAY_ADDRESS")):
             ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
