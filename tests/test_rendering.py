@@ -11,6 +11,7 @@ from PIL import Image
 from coin_app.envs.driving_env import DrivingEnv
 from coin_app.envs.rendering import (
     EpisodeTrace,
+    agent_colors,
     agent_number,
     plot_trajectories,
     render_frame,
@@ -155,3 +156,24 @@ def test_batched_simulator_renders_one_env():
     assert np.any(a != b)  # different seeds, different spawns
     with pytest.raises(ValueError, match="env_index"):
         render_frame(sim, env_index=2)
+
+
+def test_trajectory_plot_marks_a_vehicle_that_never_moved(tmp_path):
+    from coin_app.envs.road_map import load_map
+
+    road_map = load_map("intersection")
+    colour = np.round(agent_colors(np.array([0]))[0] * 255).astype(int)
+
+    def pixels_of_vehicle_colour(trace: EpisodeTrace, name: str) -> int:
+        path = plot_trajectories(trace, road_map, tmp_path / name, title=name)
+        with Image.open(path) as im:
+            rgb = np.asarray(im.convert("RGB")).astype(int)
+        return int((np.abs(rgb - colour).sum(axis=2) < 30).sum())
+
+    parked = EpisodeTrace(scenario="intersection")
+    for step in range(5):  # agent 0 stays at one point for the whole episode: a zero-length path
+        parked.add(step, np.array([0]), np.array([[75.0, -40.0]]), np.array([0.0]), np.array([1]))
+    empty = EpisodeTrace(scenario="intersection")
+    empty.add(0, np.zeros(0, dtype=int), np.zeros((0, 2)), np.zeros(0), np.zeros(0, dtype=int))
+    # the legend line is the same in both; the spawn circle adds the vehicle's colour on the map
+    assert pixels_of_vehicle_colour(parked, "parked.png") >= pixels_of_vehicle_colour(empty, "empty.png") + 10

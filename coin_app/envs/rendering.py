@@ -375,13 +375,27 @@ def plot_trajectories(
     trajs = trace.trajectories()
     if trajs:
         nums = np.fromiter(trajs, dtype=np.int64)
-        ax.add_collection(LineCollection(list(trajs.values()), colors=agent_colors(nums), linewidths=1.3, alpha=0.9, zorder=4))
+        colors = agent_colors(nums)
+        ax.add_collection(LineCollection(list(trajs.values()), colors=colors, linewidths=1.3, alpha=0.9, zorder=4))
+        # a hollow circle at each spawn point keeps a vehicle that never moved visible
+        starts = np.array([p[0] for p in trajs.values()])
+        ax.scatter(starts[:, 0], starts[:, 1], s=14, marker="o", facecolors="none", edgecolors=colors, linewidths=1.0, zorder=5)
     arr, crash, oor = trace.events_of("arrived"), trace.events_of("crashed"), trace.events_of("out_of_road")
     ax.scatter(arr[:, 0], arr[:, 1], s=34, marker="o", c=ARRIVAL_COLOR, edgecolors="k", linewidths=0.5, zorder=6)
     ax.scatter(oor[:, 0], oor[:, 1], s=48, marker="^", c=OFF_ROAD_COLOR, edgecolors="k", linewidths=0.5, zorder=6)
     ax.scatter(crash[:, 0], crash[:, 1], s=60, marker="x", c=CRASH_COLOR, linewidths=2.0, zorder=7)
     handles = [
-        Line2D([], [], color=AGENT_COLORS[0], lw=1.3, label=f"trajectory ({len(trajs)} vehicles)"),
+        Line2D(
+            [],
+            [],
+            color=AGENT_COLORS[0],
+            lw=1.3,
+            marker="o",
+            ms=4,
+            mfc="none",
+            markevery=[0],
+            label=f"trajectory from spawn ({len(trajs)} vehicles)",
+        ),
         Line2D([], [], ls="none", marker="o", ms=6, mfc=ARRIVAL_COLOR, mec="k", mew=0.5, label=f"arrival ({len(arr)})"),
         Line2D([], [], ls="none", marker="x", ms=7, mec=CRASH_COLOR, mew=2.0, label=f"crash ({len(crash)})"),
         Line2D([], [], ls="none", marker="^", ms=7, mfc=OFF_ROAD_COLOR, mec="k", mew=0.5, label=f"out of road ({len(oor)})"),
