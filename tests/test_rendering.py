@@ -19,7 +19,7 @@ from coin_app.envs.rendering import (
     vehicle_corners,
     write_gif,
 )
-from coin_app.envs.simulator import DYING
+from coin_app.envs.simulator import ACTIVE, DYING
 
 
 @pytest.fixture(scope="module")
@@ -172,7 +172,7 @@ def test_trajectory_plot_marks_a_vehicle_that_never_moved(tmp_path):
 
     parked = EpisodeTrace(scenario="intersection")
     for step in range(5):  # agent 0 stays at one point for the whole episode: a zero-length path
-        parked.add(step, np.array([0]), np.array([[75.0, -40.0]]), np.array([0.0]), np.array([1]))
+        parked.add(step, np.array([0]), np.array([[75.0, -40.0]]), np.array([0.0]), np.array([ACTIVE]))
     empty = EpisodeTrace(scenario="intersection")
     empty.add(0, np.zeros(0, dtype=int), np.zeros((0, 2)), np.zeros(0), np.zeros(0, dtype=int))
     # the legend line is the same in both; the spawn circle adds the vehicle's colour on the map
