@@ -29,9 +29,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from coin_app.envs.config import DEFAULT_NUM_AGENTS, make_config  # noqa: E402
-from coin_app.envs.heuristic import HeuristicDriver  # noqa: E402
-from coin_app.envs.simulator import DrivingSimulator  # noqa: E402
+from coin_app.sim.config import DEFAULT_NUM_AGENTS, make_config  # noqa: E402
+from coin_app.sim.heuristic import HeuristicDriver  # noqa: E402
+from coin_app.sim.simulator import DrivingSimulator  # noqa: E402
 
 
 def measure(scenario: str, num_agents: int, num_envs: int, policy: str, steps: int, seed: int = 0) -> tuple[float, float, float]:
@@ -68,7 +68,7 @@ def measure(scenario: str, num_agents: int, num_envs: int, policy: str, steps: i
 
 def measure_dict_env(scenario: str, backend: str, policy: str, steps: int, seed: int = 0) -> tuple[float, float]:
     """(agent-steps/s, mean acting agents) of one env of ``backend`` through the dict API, auto-resetting."""
-    from coin_app.envs.driving_env import make_driving_env
+    from coin_app.backends.factory import make_driving_env
 
     env = make_driving_env(make_config(scenario, backend=backend))
     rng = np.random.default_rng(seed)

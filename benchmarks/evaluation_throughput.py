@@ -18,8 +18,8 @@ def main() -> int:
     """Evaluate every final checkpoint of a sweep with 1 and ``--workers`` processes; print both rates."""
     import pandas as pd
 
-    from coin_app.evaluation.evaluate import eval_test_seeds
     from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
+    from coin_app.sim.seeds import eval_test_seeds
     from tuning.results import load_trials
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -20,10 +20,10 @@ import numpy as np
 import torch
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
+from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.config import CigTd3Config
 from coin_app.algorithms.cig_td3.learner import loss_config
 from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, local_critic_loss, td_targets
-from coin_app.envs.rllib_env import CoinMultiAgentEnv, register_envs
 
 
 def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.Generator) -> dict[str, np.ndarray]:

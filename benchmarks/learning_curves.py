@@ -39,7 +39,7 @@ def run_one(job: tuple[str, int, str, int, int, dict, int, int]) -> list[dict]:
     import torch
 
     from coin_app.algorithms.registry import build_config, evaluate_algorithm, get, quick_settings
-    from coin_app.evaluation.evaluate import validation_seeds
+    from coin_app.sim.seeds import validation_seeds
 
     torch.set_num_threads(1)
     ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)

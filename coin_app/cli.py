@@ -49,11 +49,11 @@ def format_metrics(metrics: dict[str, float]) -> str:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run the heuristic driver on a scenario; print the metrics and write a GIF and a trajectory plot."""
-    from coin_app.envs.config import make_config
-    from coin_app.envs.driving_env import DrivingEnv
-    from coin_app.envs.heuristic import HeuristicDriver
-    from coin_app.envs.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
     from coin_app.evaluation.metrics import EpisodeRecorder
+    from coin_app.sim.config import make_config
+    from coin_app.sim.driving_env import DrivingEnv
+    from coin_app.sim.heuristic import HeuristicDriver
+    from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
 
     overrides = parse_overrides(args.set)
     if args.num_agents is not None:
@@ -132,7 +132,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any]) -> Any:
     """The scenario config to evaluate ``source`` on: its training scenario (checkpoint / export metadata) plus overrides."""
     from coin_app.algorithms.checkpoints import scenario_of
-    from coin_app.envs.config import config_from_dict
+    from coin_app.sim.config import config_from_dict
 
     if source.is_dir():
         from coin_app.algorithms.checkpoints import read_metadata
@@ -158,9 +158,10 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate a checkpoint or exported policy deterministically on test seeds and print the six metrics."""
-    from coin_app.evaluation.evaluate import eval_test_seeds, evaluate_policy
+    from coin_app.evaluation.evaluate import evaluate_policy
     from coin_app.evaluation.metrics import aggregate
     from coin_app.evaluation.policies import as_policy
+    from coin_app.sim.seeds import eval_test_seeds
 
     if args.episodes < 1:
         raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
@@ -365,7 +366,7 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     """List the scenarios, presets and every config key with its default."""
     from dataclasses import fields
 
-    from coin_app.envs.config import DEFAULT_NUM_AGENTS, PRESETS, ScenarioConfig, make_config
+    from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, ScenarioConfig, make_config
 
     for name, n in DEFAULT_NUM_AGENTS.items():
         cfg = make_config(name)
@@ -377,7 +378,7 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
         if f.name not in ("scenario", "dynamics"):
             print(f"  {f.name:<20} {getattr(cfg, f.name)!r}")
     print("  dynamics             a dict of DynamicsConfig fields, e.g. --set \"dynamics={'max_speed_kmh': 60}\"")
-    from coin_app.envs.arena.config import ArenaConfig
+    from coin_app.sim.arena.config import ArenaConfig
 
     arena = ArenaConfig()
     print(f"arena          {arena.num_vehicles:>3} vehicles, {arena.num_obstacles} obstacles  obs {arena.obs_dim}  coin-arena-v0 (nav_ppo)")

@@ -7,12 +7,12 @@ import sys
 import numpy as np
 import pytest
 
-from coin_app.envs.arena.config import RewardConfig, make_arena_config
-from coin_app.envs.arena.env import ArenaEnv, arena_metrics
-from coin_app.envs.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
-from coin_app.envs.arena.heuristic import heuristic_actions
-from coin_app.envs.arena.reward import angle_reward, distance_reward, obstacle_reward, step_reward, time_reward
-from coin_app.envs.dynamics import friction_bicycle_step
+from coin_app.sim.arena.config import RewardConfig, make_arena_config
+from coin_app.sim.arena.env import ArenaEnv, arena_metrics
+from coin_app.sim.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
+from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.reward import angle_reward, distance_reward, obstacle_reward, step_reward, time_reward
+from coin_app.sim.dynamics import friction_bicycle_step
 
 CFG = make_arena_config()
 R_VEH = math.hypot(2.5, 1.0) / 2  # a vehicle's bounding radius
@@ -237,9 +237,7 @@ def test_short_generator_starts_near_the_targets():
 def test_test_sets_are_fixed_and_disjoint_from_training():
     assert len(PAPER_CASES) == 24 and len(set(PAPER_CASES)) == 24
     assert (20, 8) in PAPER_CASES and (6, 12) not in PAPER_CASES
-    code = (
-        "from coin_app.envs.arena.generator import *; from coin_app.envs.arena.config import make_arena_config as m; import numpy as np\n"
-    )
+    code = "from coin_app.sim.arena.generator import *; from coin_app.sim.arena.config import make_arena_config as m; import numpy as np\n"
     code += "print(np.round(generate(heldout_rng(4, 4, 3), m(), 4, 4).obstacles, 9).tolist())"
     other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert other == str(np.round(generate(heldout_rng(4, 4, 3), CFG, 4, 4).obstacles, 9).tolist())  # same in a fresh process
@@ -280,8 +278,8 @@ def test_arena_passes_pettingzoo_and_rllib_env_checks():
     from pettingzoo.test import parallel_api_test
     from ray.rllib.utils.pre_checks.env import check_multiagent_environments
 
-    from coin_app.envs.pettingzoo_env import CoinParallelEnv
-    from coin_app.envs.rllib_env import CoinMultiAgentEnv
+    from coin_app.adapters.pettingzoo_env import CoinParallelEnv
+    from coin_app.adapters.rllib_env import CoinMultiAgentEnv
 
     parallel_api_test(CoinParallelEnv("arena", num_vehicles=3, num_obstacles=2, max_steps=30), num_cycles=40)
     env = CoinMultiAgentEnv({"scenario": "arena", "num_vehicles": 3, "num_obstacles": 2, "max_steps": 30})

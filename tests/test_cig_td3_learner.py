@@ -7,8 +7,8 @@ import pytest
 import torch
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
+from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.config import CigTd3Config
-from coin_app.envs.rllib_env import CoinMultiAgentEnv, register_envs
 
 torch.set_num_threads(1)
 register_envs()

@@ -16,8 +16,9 @@ import ray
 import torch
 
 from coin_app.algorithms.registry import QUICK_SETTINGS, build_config
-from coin_app.evaluation.evaluate import eval_test_seeds, evaluate_policy, validation_seeds
+from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import aggregate
+from coin_app.sim.seeds import eval_test_seeds, validation_seeds
 
 
 def test_cig_td3_beats_random_policy():

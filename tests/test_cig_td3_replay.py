@@ -506,7 +506,8 @@ def real_runner_data():
     from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
     from ray.tune.registry import register_env
 
-    from coin_app.envs.rllib_env import CoinMultiAgentEnv, policy_mapping_fn
+    from coin_app.adapters.rllib_env import CoinMultiAgentEnv
+    from coin_app.algorithms.common import policy_mapping_fn
 
     class LoggingEnv(CoinMultiAgentEnv):
         """Records every (episode, env step, agent) -> obs / state / action / reward / flags it hands out."""

@@ -8,6 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from coin_app.adapters.lcf import LocalCoordination, decode, encode
+from coin_app.adapters.rllib_env import CoinMultiAgentEnv
+from coin_app.algorithms.common import coin_envs
 from coin_app.algorithms.copo.advantages import (
     COORD_MEAN,
     COORD_STD,
@@ -30,9 +33,7 @@ from coin_app.algorithms.copo.coordination import (
 )
 from coin_app.algorithms.ppo_family.losses import surrogate_loss
 from coin_app.algorithms.registry import build_config
-from coin_app.envs.lcf import LocalCoordination, decode, encode
-from coin_app.envs.rllib_env import CoinMultiAgentEnv, coin_envs
-from coin_app.envs.road_map import load_map
+from coin_app.sim.road_map import load_map
 
 NO_BRAKES = {"brake_linear": 0.0, "brake_sat_intercept": 0.0, "brake_sat_slope": 0.0, "coast_decel": 0.0, "throttle_accel": 8.0}
 RESPAWNING = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}

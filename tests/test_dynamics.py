@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from coin_app.envs.config import DynamicsConfig
-from coin_app.envs.dynamics import bicycle_step
+from coin_app.sim.config import DynamicsConfig
+from coin_app.sim.dynamics import bicycle_step
 
 FIT = DynamicsConfig()
 KIN = DynamicsConfig.kinematic()

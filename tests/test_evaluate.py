@@ -3,8 +3,6 @@
 import numpy as np
 import pytest
 
-from coin_app.envs.config import make_config
-from coin_app.envs.driving_env import DrivingEnv
 from coin_app.evaluation.evaluate import (
     TEST_SEED_BASE,
     VALIDATION_SEED_BASE,
@@ -14,6 +12,8 @@ from coin_app.evaluation.evaluate import (
     validation_seeds,
 )
 from coin_app.evaluation.metrics import EpisodeRecorder
+from coin_app.sim.config import make_config
+from coin_app.sim.driving_env import DrivingEnv
 
 
 def policy(obs):

@@ -9,11 +9,12 @@ import pytest
 import torch
 from ray.rllib.core.columns import Columns
 
+from coin_app.adapters.lcf import encode
+from coin_app.adapters.rllib_env import make_env
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoints import deterministic_actor
+from coin_app.algorithms.common import SHARED_MODULE_ID
 from coin_app.cli import main
-from coin_app.envs.lcf import encode
-from coin_app.envs.rllib_env import SHARED_MODULE_ID, make_env
 from coin_app.inference import FORMATS, export_policy, load_policy
 
 pytest.importorskip("onnxruntime", reason="the ONNX extra (requirements-onnx.txt) is installed in CI")

@@ -5,11 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from coin_app.envs.collision import boxes_overlap
-from coin_app.envs.config import make_config
-from coin_app.envs.road_map import load_map
-from coin_app.envs.sensors import lidar_scan
-from coin_app.envs.simulator import DrivingSimulator
+from coin_app.sim.collision import boxes_overlap
+from coin_app.sim.config import make_config
+from coin_app.sim.road_map import load_map
+from coin_app.sim.sensors import lidar_scan
+from coin_app.sim.simulator import DrivingSimulator
 
 L, W = 4.515, 1.852
 HALF = (L / 2, W / 2)
@@ -160,7 +160,7 @@ def test_route_lengths_match_map_data():
     # the JSON records each route's length along lane 0; recompute it from our lane lengths
     import json
 
-    from coin_app.envs.road_map import MAP_DIR
+    from coin_app.sim.road_map import MAP_DIR
 
     for name in ("intersection", "roundabout", "bottleneck"):
         m = load_map(name)
@@ -199,7 +199,7 @@ def test_bottleneck96_detectors_match_metadrive_measurement():
 
 
 def test_sector_lidar_equals_brute_force_ray_casting():
-    from coin_app.envs.collision import ray_box_distance
+    from coin_app.sim.collision import ray_box_distance
 
     rng = np.random.default_rng(4)
     for _ in range(30):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from coin_app.envs.heuristic import route_paths, single_vehicle_outcomes
-from coin_app.envs.road_map import load_map
+from coin_app.sim.heuristic import route_paths, single_vehicle_outcomes
+from coin_app.sim.road_map import load_map
 
 SCENARIOS = ["intersection", "roundabout", "bottleneck"]
 

@@ -9,14 +9,14 @@ import pytest
 
 pytest.importorskip("metadrive", reason="the optional MetaDrive extra is not installed (pip install -r requirements-metadrive.txt)")
 
-from coin_app.envs.config import make_config  # noqa: E402
-from coin_app.envs.driving_env import DrivingEnv  # noqa: E402
-from coin_app.envs.metadrive_env import MetaDriveDrivingEnv, open_in_this_process  # noqa: E402
-from coin_app.envs.rendering import EpisodeTrace, write_gif  # noqa: E402
-from coin_app.envs.rllib_env import CoinMultiAgentEnv  # noqa: E402
-from coin_app.envs.road_map import load_map  # noqa: E402
+from coin_app.adapters.rllib_env import CoinMultiAgentEnv  # noqa: E402
+from coin_app.backends.metadrive import MetaDriveDrivingEnv, open_in_this_process  # noqa: E402
 from coin_app.evaluation.evaluate import evaluate_policy  # noqa: E402
 from coin_app.evaluation.metrics import EpisodeRecorder  # noqa: E402
+from coin_app.sim.config import make_config  # noqa: E402
+from coin_app.sim.driving_env import DrivingEnv  # noqa: E402
+from coin_app.sim.rendering import EpisodeTrace, write_gif  # noqa: E402
+from coin_app.sim.road_map import load_map  # noqa: E402
 
 SMALL = {"num_agents": 4, "horizon": 60, "max_agent_steps": 60}
 NATIVE_INFO_KEYS = set(DrivingEnv(make_config("intersection", num_agents=2)).reset(0)[1]["agent0"])
@@ -201,7 +201,7 @@ def test_one_engine_per_process_topdown_rendering_and_no_3d(tmp_path):
 @pytest.mark.parametrize("scenario", ["intersection", "roundabout", "bottleneck"])
 def test_native_observations_of_metadrive_poses_match_metadrive(scenario):
     """Put native vehicles where MetaDrive's are (same route and route progress): same observations."""
-    from coin_app.envs.simulator import DYING, DrivingSimulator
+    from coin_app.sim.simulator import DYING, DrivingSimulator
 
     cfg = make_config(scenario, backend="metadrive", num_agents=20)
     env = MetaDriveDrivingEnv(cfg)

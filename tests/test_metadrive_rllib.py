@@ -13,10 +13,11 @@ import torch  # noqa: E402
 from ray.rllib.algorithms.ppo import PPOConfig  # noqa: E402
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig  # noqa: E402
 
+from coin_app.adapters.rllib_env import register_envs  # noqa: E402
+from coin_app.algorithms.common import policy_mapping_fn
 from coin_app.algorithms.registry import build_config  # noqa: E402
+from coin_app.backends.metadrive import open_in_this_process  # noqa: E402
 from coin_app.cli import main  # noqa: E402
-from coin_app.envs.metadrive_env import open_in_this_process  # noqa: E402
-from coin_app.envs.rllib_env import policy_mapping_fn, register_envs  # noqa: E402
 
 SMALL = {"backend": "metadrive", "num_agents": 4, "horizon": 40, "max_agent_steps": 40}
 

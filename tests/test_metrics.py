@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from coin_app.envs.driving_env import DrivingEnv
 from coin_app.evaluation import EpisodeRecorder, aggregate, episode_metrics, metrics_from_infos
+from coin_app.sim.driving_env import DrivingEnv
 
 
 def _info(arrive=False, crash=False, oor=False, max_step=False, length=0, ret=0.0, step_reward=0.0):

@@ -1,4 +1,4 @@
-"""Tests of the PettingZoo parallel adapter (coin_app.envs.pettingzoo_env)."""
+"""Tests of the PettingZoo parallel adapter (coin_app.adapters.pettingzoo_env)."""
 
 import importlib.util
 import re
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from coin_app.envs.config import make_config
-from coin_app.envs.pettingzoo_env import CoinParallelEnv
+from coin_app.adapters.pettingzoo_env import CoinParallelEnv
+from coin_app.sim.config import make_config
 
 SCENARIOS = ["intersection", "roundabout", "bottleneck"]
 # every vehicle times out after 10 own steps and vanishes at once (delay_done=0), so
@@ -145,7 +145,7 @@ def test_render():
     env = CoinParallelEnv("intersection", num_agents=2, horizon=10, render_mode="rgb_array")
     env.reset(seed=0)
     frame = env.render()
-    if importlib.util.find_spec("coin_app.envs.rendering") is None:
+    if importlib.util.find_spec("coin_app.sim.rendering") is None:
         assert frame is None
     else:
         assert isinstance(frame, np.ndarray) and frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from coin_app.envs.driving_env import DrivingEnv
-from coin_app.envs.rendering import (
+from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.rendering import (
     EpisodeTrace,
     agent_colors,
     agent_number,
@@ -19,7 +19,7 @@ from coin_app.envs.rendering import (
     vehicle_corners,
     write_gif,
 )
-from coin_app.envs.simulator import ACTIVE, DYING
+from coin_app.sim.simulator import ACTIVE, DYING
 
 
 @pytest.fixture(scope="module")
@@ -146,8 +146,8 @@ def test_agent_number():
 
 
 def test_batched_simulator_renders_one_env():
-    from coin_app.envs.config import make_config
-    from coin_app.envs.simulator import DrivingSimulator
+    from coin_app.sim.config import make_config
+    from coin_app.sim.simulator import DrivingSimulator
 
     sim = DrivingSimulator(make_config("intersection", num_agents=5), num_envs=2)
     sim.reset(seed=[0, 1])
@@ -159,7 +159,7 @@ def test_batched_simulator_renders_one_env():
 
 
 def test_trajectory_plot_marks_a_vehicle_that_never_moved(tmp_path):
-    from coin_app.envs.road_map import load_map
+    from coin_app.sim.road_map import load_map
 
     road_map = load_map("intersection")
     colour = np.round(agent_colors(np.array([0]))[0] * 255).astype(int)

@@ -1,4 +1,4 @@
-"""Tests of the RLlib MultiAgentEnv adapter (coin_app.envs.rllib_env)."""
+"""Tests of the RLlib MultiAgentEnv adapter (coin_app.adapters.rllib_env)."""
 
 import gymnasium as gym
 import numpy as np
@@ -8,8 +8,9 @@ from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 from ray.rllib.utils.pre_checks.env import check_multiagent_environments
 from ray.tune.registry import ENV_CREATOR, _global_registry
 
-from coin_app.envs.driving_env import DrivingEnv
-from coin_app.envs.rllib_env import CoinMultiAgentEnv, policy_mapping_fn, register_envs, shared_policy_config
+from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
+from coin_app.algorithms.common import policy_mapping_fn, shared_policy_config
+from coin_app.sim.driving_env import DrivingEnv
 
 BRAKE = np.array([0.0, -1.0], np.float32)
 SPIN = np.array([1.0, 1.0], np.float32)  # full steering and full throttle: leaves the road
@@ -178,8 +179,8 @@ def test_every_agent_maps_to_the_shared_module():
 
 def test_outcome_counts_match_the_episode_metrics():
     """The adapter's per-agent outcome counts (logged each iteration) equal the evaluation recorder's on one episode."""
-    from coin_app.envs.heuristic import HeuristicDriver
     from coin_app.evaluation.metrics import EpisodeRecorder
+    from coin_app.sim.heuristic import HeuristicDriver
 
     env = CoinMultiAgentEnv({"scenario": "intersection", "num_agents": 12, "horizon": 400})
     obs, infos = env.reset(seed=3)

@@ -8,7 +8,8 @@ import torch
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 
-from coin_app.envs.rllib_env import policy_mapping_fn, register_envs
+from coin_app.adapters.rllib_env import register_envs
+from coin_app.algorithms.common import policy_mapping_fn
 
 NUM_AGENTS = 4
 # Cars without brakes or rolling resistance: under a random initial policy some leave the

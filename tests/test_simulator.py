@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from coin_app.envs.config import make_config
-from coin_app.envs.driving_env import DrivingEnv
-from coin_app.envs.simulator import ACTIVE, DYING, EMPTY, DrivingSimulator
+from coin_app.sim.config import make_config
+from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.simulator import ACTIVE, DYING, EMPTY, DrivingSimulator
 
 L = 4.515
 
@@ -290,7 +290,7 @@ def test_metadrive_backend_config_follows_metadrive():
 
 
 def test_metadrive_config_mapping():
-    from coin_app.envs.metadrive_env import metadrive_config
+    from coin_app.backends.metadrive import metadrive_config
 
     cfg = make_config("bottleneck", backend="metadrive", crash_penalty=7.0, lidar_range=30.0, num_agents=12, delay_done=3)
     md = metadrive_config(cfg)

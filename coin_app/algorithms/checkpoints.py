@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.envs.config import ScenarioConfig, config_from_dict
-from coin_app.envs.rllib_env import SHARED_MODULE_ID
+from coin_app.algorithms.common import SHARED_MODULE_ID
+from coin_app.sim.config import ScenarioConfig, config_from_dict
 
 META_FILE = "coin_app.json"
 MODULE_PATH = ("learner_group", "learner", "rl_module", SHARED_MODULE_ID)
@@ -80,7 +80,7 @@ def _fold_lcf(first: Any, lcf: float) -> Any:
     import torch
     from torch import nn
 
-    from coin_app.envs.lcf import encode
+    from coin_app.adapters.lcf import encode
 
     if not isinstance(first, nn.Linear):
         raise ValueError(f"cannot fold the LCF into {first!r}; expected a Linear first layer")
@@ -103,7 +103,7 @@ def inference_actions(module: Any, obs: np.ndarray) -> np.ndarray:
 
     x = torch.as_tensor(np.asarray(obs, dtype=np.float32))
     if hasattr(module, "lcf_params"):
-        from coin_app.envs.lcf import encode
+        from coin_app.adapters.lcf import encode
 
         x = torch.cat([x, torch.full((len(x), 1), float(encode(module.lcf_distribution()[0])))], dim=1)
     with torch.no_grad():

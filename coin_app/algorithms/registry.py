@@ -14,8 +14,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from coin_app.envs.config import ScenarioConfig, config_from_dict
-from coin_app.evaluation.evaluate import MAX_TRAINING_SEED, VALIDATION_SEED_BASE
+from coin_app.sim.config import ScenarioConfig, config_from_dict
+from coin_app.sim.seeds import MAX_TRAINING_SEED, VALIDATION_SEED_BASE
 
 
 @dataclass(frozen=True)
@@ -160,7 +160,7 @@ register(
 def scenario_keys(scenario: str) -> set[str]:
     """The ``--set`` keys of a scenario's config."""
     if scenario == "arena":
-        from coin_app.envs.arena.config import ArenaConfig
+        from coin_app.sim.arena.config import ArenaConfig
 
         return {f.name for f in fields(ArenaConfig)}
     return {f.name for f in fields(ScenarioConfig)} - {"scenario"} | {"preset"}
@@ -191,7 +191,8 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
         raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(entry.scenarios)}")
     env_cfg, algo_cfg = split_overrides(name, overrides, scenario)
     config_from_dict(scenario, env_cfg)  # refuses bad scenario values before any work
-    from coin_app.envs.rllib_env import AgentOutcomes, register_envs
+    from coin_app.adapters.rllib_env import register_envs
+    from coin_app.algorithms.common import AgentOutcomes
 
     cfg = entry.build(scenario, env_cfg, dict(algo_cfg), seed).callbacks(AgentOutcomes)
     cfg.validate()
@@ -202,7 +203,8 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
 
 def fresh_module(name: str, scenario: str | None = None, overrides: dict[str, Any] | None = None, seed: int = 0) -> Any:
     """An untrained shared RLModule of algorithm ``name`` as its config builds it (no Ray session needed)."""
-    from coin_app.envs.rllib_env import SHARED_MODULE_ID, make_env
+    from coin_app.adapters.rllib_env import make_env
+    from coin_app.algorithms.common import SHARED_MODULE_ID
 
     scenario = scenario or get(name).scenarios[0]
     cfg = build_config(name, scenario, dict(overrides or {}), seed)
@@ -216,7 +218,7 @@ def fresh_module(name: str, scenario: str | None = None, overrides: dict[str, An
 def evaluate_algorithm(algo: Any, seeds: list[int]) -> dict[str, float]:
     """Mean metrics of an algorithm's current deterministic actor on ``seeds`` (either backend)."""
     from coin_app.algorithms.checkpoints import actor_policy
-    from coin_app.envs.rllib_env import SHARED_MODULE_ID, scenario_config_of
+    from coin_app.algorithms.common import SHARED_MODULE_ID, scenario_config_of
     from coin_app.evaluation.evaluate import evaluate_policy
     from coin_app.evaluation.metrics import aggregate
 
@@ -294,7 +296,7 @@ def train(
     """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end."""
     import ray
 
-    from coin_app.envs.rllib_env import register_envs
+    from coin_app.adapters.rllib_env import register_envs
 
     if steps < 1:
         raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.envs.arena.config import ArenaConfig, make_arena_config
-from coin_app.envs.arena.env import ArenaEnv, arena_metrics
-from coin_app.envs.arena.generator import PAPER_CASES, generate, heldout_rng
+from coin_app.sim.arena.config import ArenaConfig, make_arena_config
+from coin_app.sim.arena.env import ArenaEnv, arena_metrics
+from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
 
 # Table I: (our agent success, A-GNN success, our agent collision rate, A-GNN collision rate); None where the paper has "-"
 PAPER_TABLE_I: dict[tuple[int, int], tuple[float, float, float | None, float | None]] = {
@@ -98,7 +98,7 @@ def suite_config(max_steps: int = 400) -> ArenaConfig:
 def load_arena_policy(source: str | Path) -> Callable[[np.ndarray], np.ndarray]:
     """``"heuristic"`` (the scripted driver) or any policy source of ``as_policy`` (checkpoint, .npz, pair .json)."""
     if str(source) == "heuristic":
-        from coin_app.envs.arena.heuristic import heuristic_actions
+        from coin_app.sim.arena.heuristic import heuristic_actions
 
         return heuristic_actions
     from coin_app.evaluation.policies import as_policy
@@ -125,7 +125,7 @@ def run_scenario(policy: Callable[[np.ndarray], np.ndarray], env: ArenaEnv, layo
 
 def plot_scenarios(source: str | Path, cases: list[tuple[int, int]], count: int, out: Path, max_steps: int = 400) -> list[Path]:
     """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores)."""
-    from coin_app.envs.arena.rendering import ArenaTrace, plot_arena_episode
+    from coin_app.sim.arena.rendering import ArenaTrace, plot_arena_episode
 
     policy = load_arena_policy(source)
     cfg = suite_config(max_steps)

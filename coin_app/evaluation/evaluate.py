@@ -9,10 +9,7 @@ only a fresh engine makes an episode depend on its seed alone. MetaDrive allows 
 engine per process; if this process already has one open (an env runner's), the
 episodes run in a worker process instead.
 
-Seed sets are disjoint: training seeds are below ``MAX_TRAINING_SEED`` (refused otherwise), so their envs
-are seeded below ``VALIDATION_SEED_BASE``;
-validation seeds (checkpoint selection, periodic evaluation) are ``VALIDATION_SEED_BASE + k``
-and test seeds (reported results) ``TEST_SEED_BASE + k``. Never select on test seeds.
+The seed sets (training, validation, test) are defined in :mod:`coin_app.sim.seeds`.
 """
 
 from __future__ import annotations
@@ -22,26 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.envs.config import ScenarioConfig
-from coin_app.envs.driving_env import result_dicts
-from coin_app.envs.simulator import ACTIVE, DrivingSimulator
 from coin_app.evaluation.metrics import EpisodeRecorder
-
-VALIDATION_SEED_BASE = 100_000
-TEST_SEED_BASE = 200_000
-MAX_TRAINING_SEED = VALIDATION_SEED_BASE - 10_000  # env runners add small offsets to the trial seed
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.driving_env import result_dicts
+from coin_app.sim.simulator import ACTIVE, DrivingSimulator
 
 Policy = Callable[[np.ndarray], np.ndarray]
-
-
-def eval_test_seeds(n: int) -> list[int]:
-    """The first ``n`` test seeds (the paper uses 20 per trained model)."""
-    return [TEST_SEED_BASE + k for k in range(n)]
-
-
-def validation_seeds(n: int) -> list[int]:
-    """The first ``n`` validation seeds (periodic evaluation during training)."""
-    return [VALIDATION_SEED_BASE + k for k in range(n)]
 
 
 def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int], max_steps: int | None = None) -> list[dict[str, float]]:
@@ -83,7 +66,7 @@ def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int]
 def run_episode(env: Any, policy: Policy, seed: int, max_steps: int, trace: Any = None) -> dict[str, float]:
     """Metrics of one episode of ``policy`` on a dict-API driving env (native ``DrivingEnv`` or MetaDrive).
 
-    ``trace``: an :class:`~coin_app.envs.rendering.EpisodeTrace` to record the native env's vehicles into.
+    ``trace``: an :class:`~coin_app.sim.rendering.EpisodeTrace` to record the native env's vehicles into.
     """
     recorder = EpisodeRecorder()
     obs, infos = env.reset(seed)
@@ -107,7 +90,7 @@ def run_episode(env: Any, policy: Policy, seed: int, max_steps: int, trace: Any 
 
 def _evaluate_metadrive(policy: Policy, config: ScenarioConfig, seeds: list[int], max_steps: int | None) -> list[dict[str, float]]:
     """MetaDrive episodes, each in a fresh engine; in a worker process if this one already runs MetaDrive."""
-    from coin_app.envs import metadrive_env
+    from coin_app.backends import metadrive as metadrive_env
 
     if metadrive_env.open_in_this_process():
         return _in_worker_process(policy, config, seeds, max_steps)

@@ -25,8 +25,8 @@ def evaluate_at_counts(
     log: Callable[[str], None] = print,
 ) -> pd.DataFrame:
     """Tidy metrics of every run (``method``, ``variant``, ``seed``, ``checkpoint``) at every agent count in ``counts``."""
-    from coin_app.evaluation.evaluate import eval_test_seeds
     from coin_app.evaluation.protocol import EvalRun, check_grid, run_evaluation
+    from coin_app.sim.seeds import eval_test_seeds
 
     check_grid([0], list(counts), None)
     if test_seeds < 1:

@@ -43,7 +43,7 @@ def collect_latents(checkpoint: Path, seeds: list[int], pairs_per_step: int = 8,
     import torch
 
     from coin_app.algorithms.checkpoints import scenario_of
-    from coin_app.envs.simulator import ACTIVE, DrivingSimulator
+    from coin_app.sim.simulator import ACTIVE, DrivingSimulator
 
     module = cvae_module(checkpoint)
     config = scenario_of(Path(checkpoint))

@@ -5,7 +5,7 @@ The recorder only reads the dict-of-agents step output (PettingZoo parallel / RL
 flags ``arrive_dest``, ``crash_vehicle``, ``out_of_road`` and ``max_step`` and, if
 available, ``episode_length`` and ``episode_reward``; ``terminations`` / ``truncations``
 map the ids that acted to their done flags (an ``"__all__"`` key is ignored). The native
-:class:`~coin_app.envs.driving_env.DrivingEnv` and MetaDrive's multi-agent envs both
+:class:`~coin_app.sim.driving_env.DrivingEnv` and MetaDrive's multi-agent envs both
 produce exactly this.
 
 Counting rules (``shared/reference/decisions.md``, "Metrics"; the same as COIN's

@@ -70,7 +70,7 @@ class Evaluation:
 
 def check_grid(test_seeds: Sequence[int], counts: Sequence[int] | None, scenarios: Sequence[str] | None) -> None:
     """Refuse a bad evaluation grid before any work starts (ValueError naming the value)."""
-    from coin_app.envs.config import DEFAULT_NUM_AGENTS
+    from coin_app.sim.config import DEFAULT_NUM_AGENTS
 
     if not test_seeds:
         raise ValueError("no test seeds; allowed: one or more integers (the fixed test seeds)")
@@ -93,8 +93,8 @@ def evaluate_run(
     ``counts`` are agent counts evaluated in addition to the training count (always evaluated).
     """
     from coin_app.algorithms.checkpoints import load_policy, read_metadata, scenario_of
-    from coin_app.envs.config import config_from_dict
     from coin_app.evaluation.evaluate import evaluate_policy
+    from coin_app.sim.config import config_from_dict
 
     meta = read_metadata(Path(run.checkpoint))
     policy = load_policy(Path(run.checkpoint))

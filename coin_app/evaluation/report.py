@@ -106,7 +106,7 @@ def evaluate_sources(
     sources: Sources, options: ReportOptions, out: Path, log: Log
 ) -> tuple[pd.DataFrame, list[dict[str, Any]], dict[str, Any]]:
     """The combined per-episode table (new evaluations written to ``out``), failures and evaluation settings."""
-    from coin_app.evaluation.evaluate import eval_test_seeds
+    from coin_app.sim.seeds import eval_test_seeds
 
     frames, failures = [t["table"] for t in sources.tables], []
     groups: dict[tuple, list[EvalRun]] = {}
@@ -170,9 +170,9 @@ def learning_curves(table: pd.DataFrame) -> pd.DataFrame:
 def trajectory_plot(checkpoint: str, seed: int, path: Path, title: str) -> Path:
     """One deterministic test episode of a checkpoint drawn with every vehicle's path and outcome points."""
     from coin_app.algorithms.checkpoints import load_policy, scenario_of
-    from coin_app.envs.driving_env import DrivingEnv
-    from coin_app.envs.rendering import EpisodeTrace, plot_trajectories
     from coin_app.evaluation.evaluate import run_episode
+    from coin_app.sim.driving_env import DrivingEnv
+    from coin_app.sim.rendering import EpisodeTrace, plot_trajectories
 
     config = scenario_of(Path(checkpoint))
     if config.backend != "native":
@@ -186,8 +186,8 @@ def trajectory_plot(checkpoint: str, seed: int, path: Path, title: str) -> Path:
 def latent_figure(table: pd.DataFrame, method: str, options: ReportOptions, path: Path, log: Log) -> Path:
     """t-SNE of CVAE latents of ``method``'s lowest-seed model per scenario (App. B.1)."""
     from coin_app.evaluation.embedding import kmeans, tsne
-    from coin_app.evaluation.evaluate import eval_test_seeds
     from coin_app.evaluation.latents import collect_latents
+    from coin_app.sim.seeds import eval_test_seeds
 
     rows = statistics.main_rows(statistics.at_training_count(table))
     rows = rows[rows["method"] == method].sort_values("trained_seed")

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.envs.arena.observation import POSITION_SCALE
+from coin_app.sim.arena.observation import POSITION_SCALE
 
 FORMAT = "coin_app.switching.v1"
 

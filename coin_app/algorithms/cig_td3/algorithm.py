@@ -31,11 +31,12 @@ from ray.rllib.utils.metrics import (
     TIMERS,
 )
 
+from coin_app.adapters.rllib_env import register_envs
 from coin_app.algorithms.cig_td3.config import CigTd3Config
 from coin_app.algorithms.cig_td3.replay import JointStepReplayBuffer, episodes_to_transitions
 from coin_app.algorithms.cig_td3.rl_module import STATE_DIM
-from coin_app.envs.rllib_env import SHARED_MODULE_ID, register_envs
-from coin_app.evaluation.evaluate import validation_seeds
+from coin_app.algorithms.common import SHARED_MODULE_ID
+from coin_app.sim.seeds import validation_seeds
 
 REPLAY_STATE_KEY = "cig_td3_replay"
 

@@ -12,10 +12,11 @@ from typing import Any
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig, NotProvided
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from coin_app.envs.config import ScenarioConfig
-from coin_app.envs.rllib_env import ENV_IDS, SHARED_MODULE_ID, backend_errors, policy_mapping_fn, scenario_config_of
-from coin_app.envs.road_map import load_map
-from coin_app.envs.simulator import MAX_RESPAWN_PER_STEP
+from coin_app.adapters.rllib_env import ENV_IDS
+from coin_app.algorithms.common import SHARED_MODULE_ID, backend_errors, policy_mapping_fn, scenario_config_of
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.road_map import load_map
+from coin_app.sim.simulator import MAX_RESPAWN_PER_STEP
 
 LOCAL_MODULES = ("cvae", "attention", "none")
 GLOBAL_MODULES = ("gat", "gcn", "graphsage", "none")

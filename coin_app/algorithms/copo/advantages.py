@@ -22,10 +22,10 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.numpy import convert_to_numpy
 from ray.rllib.utils.postprocessing.value_predictions import compute_value_targets
 
+from coin_app.adapters.lcf import decode
 from coin_app.algorithms.copo.coordination import coordinated_advantage, neighbour_and_global_rewards, standardized
 from coin_app.algorithms.ppo_family.learner import OLD_VALUES
 from coin_app.algorithms.ppo_family.rows import check_aligned, episode_rows, like
-from coin_app.envs.lcf import decode
 
 NEI_REWARDS, GLOBAL_REWARDS = "coin_nei_rewards", "coin_global_rewards"
 NEI_TARGETS, GLOBAL_TARGETS = "coin_nei_targets", "coin_global_targets"

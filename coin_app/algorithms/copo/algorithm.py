@@ -11,7 +11,7 @@ from typing import Any
 
 from ray.rllib.algorithms.ppo import PPO
 
-from coin_app.envs.rllib_env import SHARED_MODULE_ID, coin_envs
+from coin_app.algorithms.common import SHARED_MODULE_ID, coin_envs
 
 
 def _set_lcf(env_runner: Any, mean: float, std: float) -> int:

@@ -23,7 +23,7 @@ from typing import Any
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 
-from coin_app.envs.rllib_env import shared_policy_config
+from coin_app.algorithms.common import shared_policy_config
 
 STAGES: dict[str, dict[str, Any]] = {
     "long": {"num_vehicles": 4, "num_obstacles": 3, "generator": "agnn"},
@@ -55,7 +55,7 @@ def nav_ppo_keys() -> tuple[str, ...]:
 
 def build_nav_ppo_config(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """RLlib PPO-Clip on the arena for one stage (see module doc)."""
-    from coin_app.envs.arena.config import make_arena_config
+    from coin_app.sim.arena.config import make_arena_config
 
     if scenario != "arena":
         raise ValueError(f"nav_ppo trains on the arena only, got scenario {scenario!r}; allowed: arena")

@@ -16,7 +16,7 @@ from typing import Any
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 
-from coin_app.envs.rllib_env import backend_errors, shared_policy_config
+from coin_app.algorithms.common import backend_errors, shared_policy_config
 
 # name -> (default, meaning)
 HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
@@ -75,8 +75,8 @@ def _number(name: str, value: Any, ok: Callable[[float], bool], allowed: str, in
 def _central_parts(variant: str, opts: dict[str, Any], scenario: str, env_cfg: dict[str, Any], model: dict[str, Any]) -> dict[str, Any]:
     """Learner, module, model and learner settings of CPPO / MFPO."""
     from coin_app.algorithms.ppo_family.centralized import CentralizedCriticPPOLearner, CentralizedCriticPPOModule, critic_input_dim
-    from coin_app.envs.config import config_from_dict
-    from coin_app.envs.road_map import load_map
+    from coin_app.sim.config import config_from_dict
+    from coin_app.sim.road_map import load_map
 
     mode, default_radius = CENTRAL_VARIANTS[variant]
     radius = default_radius if opts["neighbour_radius"] is None else opts["neighbour_radius"]
@@ -98,7 +98,7 @@ def _copo_parts(opts: dict[str, Any], scenario: str, env_cfg: dict[str, Any], mo
     from coin_app.algorithms.copo.algorithm import CoPO
     from coin_app.algorithms.copo.learner import CoPOLearner
     from coin_app.algorithms.copo.rl_module import CoPOModule
-    from coin_app.envs.road_map import load_map
+    from coin_app.sim.road_map import load_map
 
     radius = _number("neighbour_radius", opts["neighbour_radius"], lambda v: v > 0, "a number of metres > 0")
     mean = _number("initial_lcf_mean", opts["initial_lcf_mean"], lambda v: -1 < v < 1, "a number in (-1, 1)")

@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from coin_app.envs.road_map import MAP_NAMES
+from coin_app.sim.road_map import MAP_NAMES
 
 DEFAULT_NUM_AGENTS = {"intersection": 30, "roundabout": 40, "bottleneck": 20}
 SPAWN_CAPACITY = 48  # MetaDrive's spawn slots per map (6 per lane of every spawn road)
@@ -210,11 +210,11 @@ def config_from_dict(scenario: str, env_config: dict[str, Any]) -> Any:
     """The config of ``scenario`` from a flat dict of overrides (env_config, checkpoint metadata, ``--set``).
 
     Driving scenarios: ``make_config`` (the dict may hold ``preset``); ``"arena"``: an
-    :class:`~coin_app.envs.arena.config.ArenaConfig` (no presets).
+    :class:`~coin_app.sim.arena.config.ArenaConfig` (no presets).
     """
     values = dict(env_config)
     if scenario == "arena":
-        from coin_app.envs.arena.config import make_arena_config
+        from coin_app.sim.arena.config import make_arena_config
 
         if "preset" in values:
             raise ValueError(f"the arena has no presets (got preset={values['preset']!r})")

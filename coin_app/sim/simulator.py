@@ -19,11 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coin_app.envs.collision import boxes_overlap, footprint_samples
-from coin_app.envs.config import ScenarioConfig
-from coin_app.envs.dynamics import bicycle_step
-from coin_app.envs.road_map import GridIndex, load_map
-from coin_app.envs.sensors import ego_features, lidar_scan, line_detector, local_state
+from coin_app.sim.collision import boxes_overlap, footprint_samples
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.dynamics import bicycle_step
+from coin_app.sim.road_map import GridIndex, load_map
+from coin_app.sim.sensors import ego_features, lidar_scan, line_detector, local_state
 
 EMPTY, ACTIVE, DYING = 0, 1, 2
 CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
@@ -67,7 +67,7 @@ class DrivingSimulator:
         if config.backend != "native":
             raise ValueError(
                 f"the native simulator cannot run backend {config.backend!r}; "
-                "use coin_app.envs.driving_env.make_driving_env(config) (or backend='native')"
+                "use coin_app.sim.driving_env.make_driving_env(config) (or backend='native')"
             )
         self.cfg = config
         self.map = load_map(config.scenario)

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 
-from coin_app.envs.rendering import ARRIVAL_COLOR, BACKGROUND, CRASH_COLOR, agent_colors, vehicle_corners
+from coin_app.sim.rendering import ARRIVAL_COLOR, BACKGROUND, CRASH_COLOR, agent_colors, vehicle_corners
 
 
 class ArenaTrace:

@@ -1,4 +1,4 @@
-"""PettingZoo parallel-API adapter of :class:`~coin_app.envs.driving_env.DrivingEnv`.
+"""PettingZoo parallel-API adapter of :class:`~coin_app.sim.driving_env.DrivingEnv`.
 
 The driving env already follows PettingZoo's parallel semantics except for one detail:
 an agent that spawns during a step gets an observation and an info in that step but no
@@ -20,8 +20,8 @@ import gymnasium as gym
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from coin_app.envs.config import ScenarioConfig, config_from_dict
-from coin_app.envs.driving_env import make_driving_env
+from coin_app.backends.factory import make_driving_env
+from coin_app.sim.config import ScenarioConfig, config_from_dict
 
 
 class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
@@ -44,7 +44,7 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         render_mode: str | None = None,
         **overrides: Any,
     ):
-        from coin_app.envs.arena.config import ArenaConfig
+        from coin_app.sim.arena.config import ArenaConfig
 
         config: Any
         if isinstance(scenario, (ScenarioConfig, ArenaConfig)):
@@ -110,7 +110,7 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
-        from coin_app.envs.rendering import render_frame
+        from coin_app.sim.rendering import render_frame
 
         return render_frame(self.driving_env)
 

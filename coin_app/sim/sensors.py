@@ -11,7 +11,7 @@ from functools import cache
 
 import numpy as np
 
-from coin_app.envs.road_map import RoadMap
+from coin_app.sim.road_map import RoadMap
 
 MAX_LANE_SPAN = 18.0  # (MAX_LANE_NUM 3 + 1) * MAX_LANE_WIDTH 4.5
 LANE_OFFSET_NORM = 4.5  # MAX_LANE_WIDTH

@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coin_app.envs.arena.config import ArenaConfig
-from coin_app.envs.arena.generator import Layout
-from coin_app.envs.arena.observation import observe
-from coin_app.envs.arena.reward import step_reward
-from coin_app.envs.collision import box_circle_overlap, boxes_overlap
-from coin_app.envs.dynamics import friction_bicycle_step, wrap_angle
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.arena.generator import Layout
+from coin_app.sim.arena.observation import observe
+from coin_app.sim.arena.reward import step_reward
+from coin_app.sim.collision import box_circle_overlap, boxes_overlap
+from coin_app.sim.dynamics import friction_bicycle_step, wrap_angle
 
 
 @dataclass

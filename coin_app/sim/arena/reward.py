@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from coin_app.envs.arena.config import RewardConfig
+from coin_app.sim.arena.config import RewardConfig
 
 
 def distance_reward(cfg: RewardConfig, dist: np.ndarray, prev_dist: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from coin_app.envs.config import DynamicsConfig
+from coin_app.sim.config import DynamicsConfig
 
 
 def bicycle_step(

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coin_app.envs.arena.config import ArenaConfig
+from coin_app.sim.arena.config import ArenaConfig
 
 MIN_SEPARATION = 5.0  # m between starts, and between targets
 OBSTACLE_CLEARANCE = 5.0  # m between an obstacle's surface and any start or target

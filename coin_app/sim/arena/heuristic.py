@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from coin_app.envs.arena.observation import POSITION_SCALE, SPEED_SCALE
+from coin_app.sim.arena.observation import POSITION_SCALE, SPEED_SCALE
 
 
 def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, friction: float = 0.99, max_steer: float = 0.8) -> np.ndarray:

@@ -16,10 +16,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from coin_app.envs.arena.config import ArenaConfig, make_arena_config
-from coin_app.envs.arena.generator import Layout, generate, training_rng
-from coin_app.envs.arena.simulator import ArenaSimulator
-from coin_app.envs.driving_env import checked_actions
+from coin_app.sim.arena.config import ArenaConfig, make_arena_config
+from coin_app.sim.arena.generator import Layout, generate, training_rng
+from coin_app.sim.arena.simulator import ArenaSimulator
+from coin_app.sim.driving_env import checked_actions
 
 
 class ArenaEnv:

@@ -24,7 +24,7 @@ Contract of :class:`CoinMultiAgentEnv` (``shared/reference/rllib_2_60.md`` secti
 * ``infos`` only has agents that have an observation in the same return; ``rewards`` /
   per-agent flags only agents that acted in the step.
 * ``config["lcf"] = {"mean": m, "std": s}`` (CoPO) gives every agent a local coordination
-  factor at spawn, appended to its observation (``coin_app.envs.lcf``);
+  factor at spawn, appended to its observation (``coin_app.adapters.lcf``);
   ``set_lcf_distribution`` moves the distribution for agents spawned later.
 * ``outcomes`` counts the agents that ended since it was last cleared (``finished``) and how
   many of them succeeded (``arrive_dest`` / arena ``success``) or had collided; the
@@ -41,16 +41,13 @@ from functools import partial
 from typing import Any
 
 import numpy as np
-from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
-from ray.rllib.callbacks.callbacks import RLlibCallback
 from ray.rllib.env.multi_agent_env import MultiAgentEnv
 from ray.tune.registry import register_env
 
-from coin_app.envs.config import ScenarioConfig, config_from_dict
-from coin_app.envs.driving_env import make_driving_env
-from coin_app.envs.lcf import LocalCoordination
+from coin_app.adapters.lcf import LocalCoordination
+from coin_app.backends.factory import make_driving_env
+from coin_app.sim.config import config_from_dict
 
-SHARED_MODULE_ID = "shared"
 OUTCOMES = ("finished", "succeeded", "collided")  # agent outcome counts of CoinMultiAgentEnv.outcomes
 ADAPTER_KEYS = ("scenario", "lcf")  # env_config keys of the adapter itself, not of the scenario
 ENV_IDS: dict[str, str] = {
@@ -65,8 +62,8 @@ class CoinMultiAgentEnv(MultiAgentEnv):
     """A COIN driving scenario as an RLlib ``MultiAgentEnv`` with respawning agents (see module doc).
 
     ``config`` holds ``scenario`` (default ``"intersection"``; ``"arena"`` takes
-    :class:`~coin_app.envs.arena.config.ArenaConfig` fields instead), ``preset`` (default
-    ``"paper"``) and any :class:`~coin_app.envs.config.ScenarioConfig` field as an
+    :class:`~coin_app.sim.arena.config.ArenaConfig` fields instead), ``preset`` (default
+    ``"paper"``) and any :class:`~coin_app.sim.config.ScenarioConfig` field as an
     override (``backend="metadrive"`` runs MetaDrive itself), and optionally ``lcf``
     (``{"mean", "std"}``: CoPO's local coordination factors); an unknown key raises
     ``ValueError`` naming it and the allowed keys.
@@ -157,53 +154,3 @@ def register_envs() -> list[str]:
         creator: Callable[[Mapping[str, Any] | None], CoinMultiAgentEnv] = partial(make_env, scenario)
         register_env(env_id, creator)
     return list(ENV_IDS)
-
-
-def policy_mapping_fn(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
-    """Map every agent to the one shared module."""
-    return SHARED_MODULE_ID
-
-
-def scenario_config_of(config: AlgorithmConfig) -> ScenarioConfig:
-    """The scenario config an RLlib algorithm config trains on (its registered env id and ``env_config``)."""
-    if not isinstance(config.env, str) or config.env not in ENV_IDS:
-        raise ValueError(f"coin_app algorithms need one of the registered envs {sorted(ENV_IDS)}, got env={config.env!r}")
-    env_cfg = {k: v for k, v in dict(config.env_config or {}).items() if k not in ADAPTER_KEYS}
-    return config_from_dict(ENV_IDS[config.env], env_cfg)
-
-
-def coin_envs(env_runner: Any) -> list[CoinMultiAgentEnv]:
-    """The ``CoinMultiAgentEnv`` instances an RLlib env runner steps (one per vectorized sub-env)."""
-    env = getattr(env_runner, "env", None)
-    subs = getattr(env, "envs", [env]) if env is not None else []
-    return [e.unwrapped for e in subs if isinstance(e.unwrapped, CoinMultiAgentEnv)]
-
-
-class AgentOutcomes(RLlibCallback):
-    """Logs how many agents ended, succeeded and collided in each sample call (``agents_<outcome>``, summed per iteration)."""
-
-    def on_sample_end(self, *, env_runner: Any = None, metrics_logger: Any = None, **kwargs: Any) -> None:
-        """Move every sub-env's outcome counts into the env runner's metrics."""
-        envs = coin_envs(env_runner)
-        if metrics_logger is None or not envs:
-            return
-        for key in OUTCOMES:
-            metrics_logger.log_value(f"agents_{key}", sum(e.outcomes[key] for e in envs), reduce="sum")
-            for e in envs:
-                e.outcomes[key] = 0
-
-
-def backend_errors(config: AlgorithmConfig) -> list[str]:
-    """Problems of ``config``'s env runner layout with its env backend (MetaDrive: one engine per process)."""
-    backend = dict(config.env_config or {}).get("backend", "native")
-    if backend == "metadrive" and config.num_envs_per_env_runner > 1:
-        return [
-            f"num_envs_per_env_runner={config.num_envs_per_env_runner} with backend 'metadrive'; allowed: 1 "
-            "(MetaDrive runs one engine per process: scale with num_env_runners instead)"
-        ]
-    return []
-
-
-def shared_policy_config(config: AlgorithmConfig) -> AlgorithmConfig:
-    """``config`` with all agents mapped to one shared module ``"shared"`` (parameter sharing)."""
-    return config.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)

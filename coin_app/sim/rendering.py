@@ -24,8 +24,8 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from coin_app.envs.road_map import RoadMap
-from coin_app.envs.simulator import ACTIVE, DYING, EMPTY
+from coin_app.sim.road_map import RoadMap
+from coin_app.sim.simulator import ACTIVE, DYING, EMPTY
 
 VEHICLE_LENGTH = 4.515  # m, used when the env gives no vehicle size
 VEHICLE_WIDTH = 1.852

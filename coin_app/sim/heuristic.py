@@ -15,10 +15,10 @@ from functools import cache
 
 import numpy as np
 
-from coin_app.envs.config import make_config
-from coin_app.envs.driving_env import DrivingEnv
-from coin_app.envs.road_map import RoadMap, load_map
-from coin_app.envs.simulator import ACTIVE, DrivingSimulator
+from coin_app.sim.config import make_config
+from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.road_map import RoadMap, load_map
+from coin_app.sim.simulator import ACTIVE, DrivingSimulator
 
 LANE_CHANGE_COST = 15.0  # metres of detour charged per lane change
 EXTENSION = 40.0  # metres of straight path appended past the final lane's end

@@ -1,7 +1,7 @@
 """MetaDrive backend: the real MetaDrive 0.4.3 multi-agent scenarios behind the driving-env interface.
 
 :class:`MetaDriveDrivingEnv` has the interface of the native
-:class:`~coin_app.envs.driving_env.DrivingEnv` (``reset`` / ``step`` on dicts of agents,
+:class:`~coin_app.sim.driving_env.DrivingEnv` (``reset`` / ``step`` on dicts of agents,
 ``agents``, ``possible_agents``, ``episode_over``, the same per-agent info keys), so the
 RLlib and PettingZoo adapters, the evaluation and the algorithms run on either backend with
 ``backend="metadrive"`` in the scenario config. MetaDrive is an optional extra
@@ -13,7 +13,7 @@ must equal it), ``delay_done``, ``allow_respawn``, the rewards, ``crash_penalty`
 object crashes), ``out_of_road_penalty``, the lidar (``lidar_beams``, ``lidar_range``, no
 other-vehicle features) and, on the bottleneck, the side / lane-line detector ranges. Keys
 with no MetaDrive setting (the vehicle model, spawn jitter, ``navi_point_dist``...) are
-refused by :func:`~coin_app.envs.config.make_config` unless left at their default.
+refused by :func:`~coin_app.sim.config.make_config` unless left at their default.
 
 What the adapter adds to MetaDrive:
 
@@ -52,11 +52,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from coin_app.envs.config import ScenarioConfig, make_config
-from coin_app.envs.driving_env import checked_actions
-from coin_app.envs.road_map import RoadMap, load_map
-from coin_app.envs.sensors import local_state
-from coin_app.envs.simulator import ACTIVE, DYING, MAX_RESPAWN_PER_STEP, agent_name
+from coin_app.sim.config import ScenarioConfig, make_config
+from coin_app.sim.driving_env import checked_actions
+from coin_app.sim.road_map import RoadMap, load_map
+from coin_app.sim.sensors import local_state
+from coin_app.sim.simulator import ACTIVE, DYING, MAX_RESPAWN_PER_STEP, agent_name
 
 INSTALL_HINT = "install the optional extra: pip install -r requirements-metadrive.txt"
 ENV_CLASSES = {
@@ -364,7 +364,7 @@ class MetaDriveDrivingEnv:
         """Top-down RGB frame (H, W, 3) uint8: coin_app's renderer (``"topdown"``) or MetaDrive's (``"metadrive_topdown"``)."""
         self._require_open()
         if mode == "topdown":
-            from coin_app.envs.rendering import render_frame
+            from coin_app.sim.rendering import render_frame
 
             return render_frame(self, size=size)
         if mode == "metadrive_topdown":

@@ -13,8 +13,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from coin_app.envs.config import ScenarioConfig, make_config
-from coin_app.envs.simulator import ACTIVE, DrivingSimulator, StepResult, agent_name
+from coin_app.sim.config import ScenarioConfig, make_config
+from coin_app.sim.simulator import ACTIVE, DrivingSimulator, StepResult, agent_name
 
 
 class DrivingEnv:
@@ -68,21 +68,6 @@ class DrivingEnv:
 
     def close(self) -> None:
         """Nothing to release (the MetaDrive backend's ``close`` shuts its engine down)."""
-
-
-def make_driving_env(config: Any) -> Any:
-    """The dict-API env of ``config``: a native :class:`DrivingEnv`, a ``MetaDriveDrivingEnv`` or (an arena config) an ``ArenaEnv``."""
-    from coin_app.envs.arena.config import ArenaConfig
-
-    if isinstance(config, ArenaConfig):
-        from coin_app.envs.arena.env import ArenaEnv
-
-        return ArenaEnv(config)
-    if config.backend == "metadrive":
-        from coin_app.envs.metadrive_env import MetaDriveDrivingEnv
-
-        return MetaDriveDrivingEnv(config)
-    return DrivingEnv(config)
 
 
 def checked_actions(actions: dict[str, Any], agents: list[str]) -> dict[str, np.ndarray]:

@@ -1,0 +1,69 @@
+"""RLlib glue every algorithm shares: the one shared module, the agent-outcome metrics, backend checks.
+
+All agents of a scenario map to one RLModule ``SHARED_MODULE_ID`` (parameter sharing, as in
+the COIN paper and the official code). ``AgentOutcomes`` moves the adapter's per-agent outcome
+counts into the env runner metrics, so every algorithm logs success and collision rates.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+from ray.rllib.callbacks.callbacks import RLlibCallback
+
+from coin_app.adapters.rllib_env import ADAPTER_KEYS, ENV_IDS, OUTCOMES, CoinMultiAgentEnv
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.config import ScenarioConfig, config_from_dict
+
+SHARED_MODULE_ID = "shared"
+
+
+def policy_mapping_fn(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
+    """Map every agent to the one shared module."""
+    return SHARED_MODULE_ID
+
+
+def scenario_config_of(config: AlgorithmConfig) -> ScenarioConfig | ArenaConfig:
+    """The scenario config an RLlib algorithm config trains on (its registered env id and ``env_config``)."""
+    if not isinstance(config.env, str) or config.env not in ENV_IDS:
+        raise ValueError(f"coin_app algorithms need one of the registered envs {sorted(ENV_IDS)}, got env={config.env!r}")
+    env_cfg = {k: v for k, v in dict(config.env_config or {}).items() if k not in ADAPTER_KEYS}
+    return config_from_dict(ENV_IDS[config.env], env_cfg)
+
+
+def coin_envs(env_runner: Any) -> list[CoinMultiAgentEnv]:
+    """The ``CoinMultiAgentEnv`` instances an RLlib env runner steps (one per vectorized sub-env)."""
+    env = getattr(env_runner, "env", None)
+    subs = getattr(env, "envs", [env]) if env is not None else []
+    return [e.unwrapped for e in subs if isinstance(e.unwrapped, CoinMultiAgentEnv)]
+
+
+class AgentOutcomes(RLlibCallback):
+    """Logs how many agents ended, succeeded and collided in each sample call (``agents_<outcome>``, summed per iteration)."""
+
+    def on_sample_end(self, *, env_runner: Any = None, metrics_logger: Any = None, **kwargs: Any) -> None:
+        """Move every sub-env's outcome counts into the env runner's metrics."""
+        envs = coin_envs(env_runner)
+        if metrics_logger is None or not envs:
+            return
+        for key in OUTCOMES:
+            metrics_logger.log_value(f"agents_{key}", sum(e.outcomes[key] for e in envs), reduce="sum")
+            for e in envs:
+                e.outcomes[key] = 0
+
+
+def backend_errors(config: AlgorithmConfig) -> list[str]:
+    """Problems of ``config``'s env runner layout with its env backend (MetaDrive: one engine per process)."""
+    backend = dict(config.env_config or {}).get("backend", "native")
+    if backend == "metadrive" and config.num_envs_per_env_runner > 1:
+        return [
+            f"num_envs_per_env_runner={config.num_envs_per_env_runner} with backend 'metadrive'; allowed: 1 "
+            "(MetaDrive runs one engine per process: scale with num_env_runners instead)"
+        ]
+    return []
+
+
+def shared_policy_config(config: AlgorithmConfig) -> AlgorithmConfig:
+    """``config`` with all agents mapped to one shared module ``"shared"`` (parameter sharing)."""
+    return config.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)
