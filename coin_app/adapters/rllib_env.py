@@ -46,10 +46,12 @@ from ray.tune.registry import register_env
 
 from coin_app.adapters.lcf import LocalCoordination
 from coin_app.backends.factory import make_driving_env
+from coin_app.sim import schema
 from coin_app.sim.config import config_from_dict
 
 OUTCOMES = ("finished", "succeeded", "collided")  # agent outcome counts of CoinMultiAgentEnv.outcomes
-ADAPTER_KEYS = ("scenario", "lcf")  # env_config keys of the adapter itself, not of the scenario
+SCENARIO_CONFIG_KEY = "scenario_config"  # env_config key of an already parsed (typed) scenario config
+ADAPTER_KEYS = ("scenario", "lcf", SCENARIO_CONFIG_KEY)  # env_config keys of the adapter itself, not of the scenario
 ENV_IDS: dict[str, str] = {
     "coin-intersection-v0": "intersection",
     "coin-roundabout-v0": "roundabout",
@@ -61,19 +63,20 @@ ENV_IDS: dict[str, str] = {
 class CoinMultiAgentEnv(MultiAgentEnv):
     """A COIN driving scenario as an RLlib ``MultiAgentEnv`` with respawning agents (see module doc).
 
-    ``config`` holds ``scenario`` (default ``"intersection"``; ``"arena"`` takes
-    :class:`~coin_app.sim.arena.config.ArenaConfig` fields instead), ``preset`` (default
-    ``"paper"``) and any :class:`~coin_app.sim.config.ScenarioConfig` field as an
-    override (``backend="metadrive"`` runs MetaDrive itself), and optionally ``lcf``
-    (``{"mean", "std"}``: CoPO's local coordination factors); an unknown key raises
-    ``ValueError`` naming it and the allowed keys.
+    ``config`` holds either ``scenario_config``, a parsed :class:`~coin_app.sim.config.ScenarioConfig`
+    or :class:`~coin_app.sim.arena.config.ArenaConfig` (what :func:`env_config_of` writes and the
+    algorithms pass: the config is parsed once, where the run is set up), or ``scenario``
+    (default ``"intersection"``; ``"arena"`` takes ``ArenaConfig`` fields instead), ``preset``
+    (default ``"paper"``) and any ``ScenarioConfig`` field as an override (``backend="metadrive"``
+    runs MetaDrive itself). Optionally ``lcf`` (``{"mean", "std"}``: CoPO's local coordination
+    factors). An unknown key raises ``ValueError`` naming it and the allowed keys.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None):
         super().__init__()
         overrides = dict(config or {})
         lcf = overrides.pop("lcf", None)
-        self.config = config_from_dict(overrides.pop("scenario", "intersection"), overrides)
+        self.config = _scenario_config(overrides)
         self.driving_env = make_driving_env(self.config)
         if lcf is not None and not (isinstance(lcf, Mapping) and set(lcf) <= {"mean", "std"}):
             raise ValueError(f"bad env_config lcf {lcf!r}; allowed: None or a dict with keys 'mean' and 'std'")
@@ -125,8 +128,8 @@ class CoinMultiAgentEnv(MultiAgentEnv):
     def _count_outcomes(self, final_infos: list[dict[str, Any]]) -> None:
         """Add the ended agents' outcomes (their last infos) to ``outcomes``."""
         self.outcomes["finished"] += len(final_infos)
-        self.outcomes["succeeded"] += sum(bool(i.get("arrive_dest", i.get("success", False))) for i in final_infos)
-        self.outcomes["collided"] += sum(bool(i.get("crash_vehicle", i.get("collided", False))) for i in final_infos)
+        self.outcomes["succeeded"] += sum(bool(i.get(schema.ARRIVE_DEST, i.get(schema.SUCCESS, False))) for i in final_infos)
+        self.outcomes["collided"] += sum(bool(i.get(schema.CRASH_VEHICLE, i.get(schema.COLLIDED, False))) for i in final_infos)
 
     def set_lcf_distribution(self, mean: float, std: float) -> None:
         """Draw the LCFs of agents spawned from now on from N(mean, std) (an env with LCFs only)."""
@@ -137,6 +140,30 @@ class CoinMultiAgentEnv(MultiAgentEnv):
     def close(self) -> None:
         """Release the backend (shuts a MetaDrive engine down)."""
         self.driving_env.close()
+
+
+def _scenario_config(env_config: dict[str, Any]) -> ScenarioConfig | ArenaConfig:
+    """The scenario config of an env_config without its ``lcf``: the typed one it carries, or parsed from overrides."""
+    if SCENARIO_CONFIG_KEY not in env_config:
+        return config_from_dict(env_config.pop("scenario", "intersection"), env_config)
+    config = env_config.pop(SCENARIO_CONFIG_KEY)
+    if not isinstance(config, (ScenarioConfig, ArenaConfig)):
+        raise ValueError(f"bad env_config scenario_config {config!r}; allowed: a ScenarioConfig or an ArenaConfig")
+    name = env_config.pop("scenario", scenario_name(config))
+    if env_config or name != scenario_name(config):
+        raise ValueError(
+            f"env_config has a scenario_config of {scenario_name(config)!r} and also {sorted(env_config) or name!r}; "
+            "allowed: scenario_config alone (set overrides on the config instead)"
+        )
+    return config
+
+
+def env_config_of(config: ScenarioConfig | ArenaConfig, lcf: Mapping[str, float] | None = None) -> dict[str, Any]:
+    """The RLlib ``env_config`` of a parsed scenario config (and CoPO's LCF distribution): the typed config travels as is."""
+    out: dict[str, Any] = {"scenario": scenario_name(config), SCENARIO_CONFIG_KEY: config}
+    if lcf is not None:
+        out["lcf"] = dict(lcf)
+    return out
 
 
 def make_env(scenario: str, env_config: Mapping[str, Any] | None = None) -> CoinMultiAgentEnv:

@@ -12,7 +12,7 @@ from typing import Any
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.callbacks.callbacks import RLlibCallback
 
-from coin_app.adapters.rllib_env import ADAPTER_KEYS, ENV_IDS, OUTCOMES, CoinMultiAgentEnv
+from coin_app.adapters.rllib_env import ADAPTER_KEYS, ENV_IDS, OUTCOMES, SCENARIO_CONFIG_KEY, CoinMultiAgentEnv
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig, config_from_dict
 
@@ -28,8 +28,10 @@ def scenario_config_of(config: AlgorithmConfig) -> ScenarioConfig | ArenaConfig:
     """The scenario config an RLlib algorithm config trains on (its registered env id and ``env_config``)."""
     if not isinstance(config.env, str) or config.env not in ENV_IDS:
         raise ValueError(f"coin_app algorithms need one of the registered envs {sorted(ENV_IDS)}, got env={config.env!r}")
-    env_cfg = {k: v for k, v in dict(config.env_config or {}).items() if k not in ADAPTER_KEYS}
-    return config_from_dict(ENV_IDS[config.env], env_cfg)
+    env_config = dict(config.env_config or {})
+    if SCENARIO_CONFIG_KEY in env_config:  # parsed once where the run was set up
+        return env_config[SCENARIO_CONFIG_KEY]
+    return config_from_dict(ENV_IDS[config.env], {k: v for k, v in env_config.items() if k not in ADAPTER_KEYS})
 
 
 def coin_envs(env_runner: Any) -> list[CoinMultiAgentEnv]:
@@ -55,7 +57,8 @@ class AgentOutcomes(RLlibCallback):
 
 def backend_errors(config: AlgorithmConfig) -> list[str]:
     """Problems of ``config``'s env runner layout with its env backend (MetaDrive: one engine per process)."""
-    backend = dict(config.env_config or {}).get("backend", "native")
+    scenario = scenario_config_of(config)
+    backend = scenario.backend if isinstance(scenario, ScenarioConfig) else "native"
     if backend == "metadrive" and config.num_envs_per_env_runner > 1:
         return [
             f"num_envs_per_env_runner={config.num_envs_per_env_runner} with backend 'metadrive'; allowed: 1 "

@@ -52,6 +52,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.driving_env import checked_actions
 from coin_app.sim.road_map import RoadMap, load_map
@@ -302,16 +303,16 @@ class MetaDriveDrivingEnv:
     def _info(self, aid: str, md_info: dict, state: np.ndarray, global_reward: float, spawned: bool) -> dict[str, Any]:
         """The native env's info dict of one agent."""
         return {
-            "arrive_dest": bool(md_info.get("arrive_dest", False)),
-            "crash_vehicle": bool(md_info.get("crash_vehicle", False)),
-            "out_of_road": self._off_road(md_info),
-            "max_step": bool(md_info.get("max_step", False)),
-            "step_reward": float(md_info.get("step_reward", 0.0)) if not spawned else 0.0,
-            "episode_length": int(md_info.get("episode_length", 0)) if not spawned else 0,
-            "episode_reward": float(self._returns.get(aid, 0.0)),
-            "state": state,
-            "env_step": int(self.md.episode_step),
-            "global_reward": float(global_reward),
+            schema.ARRIVE_DEST: bool(md_info.get("arrive_dest", False)),
+            schema.CRASH_VEHICLE: bool(md_info.get("crash_vehicle", False)),
+            schema.OUT_OF_ROAD: self._off_road(md_info),
+            schema.MAX_STEP: bool(md_info.get("max_step", False)),
+            schema.STEP_REWARD: float(md_info.get("step_reward", 0.0)) if not spawned else 0.0,
+            schema.EPISODE_LENGTH: int(md_info.get("episode_length", 0)) if not spawned else 0,
+            schema.EPISODE_REWARD: float(self._returns.get(aid, 0.0)),
+            schema.STATE: state,
+            schema.ENV_STEP: int(self.md.episode_step),
+            schema.GLOBAL_REWARD: float(global_reward),
         }
 
     def _vehicle_state(self, vehicle: Any) -> np.ndarray:

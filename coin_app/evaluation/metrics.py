@@ -48,6 +48,8 @@ from typing import Any
 
 import numpy as np
 
+from coin_app.sim import schema
+
 ALL_KEY = "__all__"
 OUTCOMES = ("arrived", "out_of_road", "crashed", "timeout", "running")
 METRIC_KEYS = ("success_rate", "collision_rate", "out_of_road_rate", "efficiency", "safety", "avg_travel_steps")
@@ -61,7 +63,7 @@ class VehicleRecord:
     first_step: int  # env step at which the id was first seen (0 = at reset)
     last_step: int  # env step of its latest info
     steps: int = 0  # env steps in which it acted
-    episode_length: int | None = None  # latest info["episode_length"], if the env reports it
+    episode_length: int | None = None  # latest info[schema.EPISODE_LENGTH], if the env reports it
     episode_return: float = 0.0
     arrived: bool = False
     crashed: bool = False
@@ -129,7 +131,7 @@ class EpisodeRecorder:
                 done = bool(terms.get(aid, False)) or bool(truncs.get(aid, False))
             else:
                 acted = True
-                done = any(bool(info.get(k, False)) for k in ("arrive_dest", "crash_vehicle", "out_of_road", "max_step"))
+                done = any(bool(info.get(k, False)) for k in schema.DONE_FLAGS)
             reward = None if rewards is None or not acted else rewards.get(aid)
             self._update(aid, info, acted=acted, done=done, reward=reward)
 
@@ -141,21 +143,21 @@ class EpisodeRecorder:
             return  # a finished vehicle's id is never reused; ignore stray late entries
         rec.last_step = self.env_steps
         rec.steps += int(acted)
-        rec.arrived |= bool(info.get("arrive_dest", False))
-        rec.crashed |= bool(info.get("crash_vehicle", False))
-        rec.out_of_road |= bool(info.get("out_of_road", False))
-        rec.max_step |= bool(info.get("max_step", False))
+        rec.arrived |= bool(info.get(schema.ARRIVE_DEST, False))
+        rec.crashed |= bool(info.get(schema.CRASH_VEHICLE, False))
+        rec.out_of_road |= bool(info.get(schema.OUT_OF_ROAD, False))
+        rec.max_step |= bool(info.get(schema.MAX_STEP, False))
         rec.done |= done
-        if "episode_length" in info:
-            rec.episode_length = int(info["episode_length"])
-        if "episode_reward" in info:
-            rec.episode_return = float(info["episode_reward"])
+        if schema.EPISODE_LENGTH in info:
+            rec.episode_length = int(info[schema.EPISODE_LENGTH])
+        if schema.EPISODE_REWARD in info:
+            rec.episode_return = float(info[schema.EPISODE_REWARD])
             self._reward_from_info.add(aid)
         elif aid not in self._reward_from_info and acted:
             if reward is not None:
                 rec.episode_return += float(reward)
-            elif "step_reward" in info:
-                rec.episode_return += float(info["step_reward"])
+            elif schema.STEP_REWARD in info:
+                rec.episode_return += float(info[schema.STEP_REWARD])
 
     def outcome_counts(self) -> dict[str, int]:
         """Number of vehicles per exclusive outcome (the counts sum to the number of vehicles)."""

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.road_map import MAP_NAMES
 
 DEFAULT_NUM_AGENTS = {"intersection": 30, "roundabout": 40, "bottleneck": 20}
@@ -206,7 +207,7 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)
 
 
-def config_from_dict(scenario: str, env_config: dict[str, Any]) -> Any:
+def config_from_dict(scenario: str, env_config: dict[str, Any]) -> ScenarioConfig | ArenaConfig:
     """The config of ``scenario`` from a flat dict of overrides (env_config, checkpoint metadata, ``--set``).
 
     Driving scenarios: ``make_config`` (the dict may hold ``preset``); ``"arena"``: an
@@ -214,12 +215,15 @@ def config_from_dict(scenario: str, env_config: dict[str, Any]) -> Any:
     """
     values = dict(env_config)
     if scenario == "arena":
-        from coin_app.sim.arena.config import make_arena_config
-
         if "preset" in values:
             raise ValueError(f"the arena has no presets (got preset={values['preset']!r})")
         return make_arena_config(**values)
     return make_config(scenario, values.pop("preset", "paper"), **values)
+
+
+def scenario_name(config: ScenarioConfig | ArenaConfig) -> str:
+    """The scenario name of a parsed config (``"arena"`` for an :class:`ArenaConfig`)."""
+    return "arena" if isinstance(config, ArenaConfig) else config.scenario
 
 
 def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:

@@ -13,6 +13,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.simulator import ACTIVE, DrivingSimulator, StepResult, agent_name
 
@@ -104,16 +105,16 @@ def result_dicts(res: StepResult, slots: np.ndarray, returns: np.ndarray, env: i
         aid = agent_name(int(res.agent_num[slot]))
         obs[aid] = res.obs[slot]
         infos[aid] = {
-            "arrive_dest": bool(res.arrive_dest[slot]),
-            "crash_vehicle": bool(res.crash_vehicle[slot]),
-            "out_of_road": bool(res.out_of_road[slot]),
-            "max_step": bool(res.max_step[slot]),
-            "step_reward": float(res.reward[slot]),
-            "episode_length": int(res.episode_length[slot]) if not res.spawned[slot] else 0,
-            "episode_reward": float(returns[slot]),
-            "state": res.state[slot],
-            "env_step": step,
-            "global_reward": g,
+            schema.ARRIVE_DEST: bool(res.arrive_dest[slot]),
+            schema.CRASH_VEHICLE: bool(res.crash_vehicle[slot]),
+            schema.OUT_OF_ROAD: bool(res.out_of_road[slot]),
+            schema.MAX_STEP: bool(res.max_step[slot]),
+            schema.STEP_REWARD: float(res.reward[slot]),
+            schema.EPISODE_LENGTH: int(res.episode_length[slot]) if not res.spawned[slot] else 0,
+            schema.EPISODE_REWARD: float(returns[slot]),
+            schema.STATE: res.state[slot],
+            schema.ENV_STEP: step,
+            schema.GLOBAL_REWARD: g,
         }
         if res.acted[slot]:
             rewards[aid] = float(res.reward[slot])

@@ -20,6 +20,8 @@ from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
 from ray.rllib.utils.numpy import convert_to_numpy
 
+from coin_app.sim import schema
+
 
 @dataclass
 class EpisodeRows:
@@ -43,8 +45,8 @@ def episode_rows(piece: ConnectorV2, episodes: list[Any], position_scale: float,
         obs.append(np.asarray(sa.get_observations(slice(0, n)), np.float32))
         act.append(np.asarray(sa.get_actions(slice(0, n)), np.float32))
         rew.append(np.asarray(sa.get_rewards(slice(0, n)), np.float32))
-        pos.append(np.array([info["state"][:2] for info in infos], float) * position_scale)
-        step.append(np.array([info["env_step"] for info in infos], np.int64))
+        pos.append(np.array([info[schema.STATE][:2] for info in infos], float) * position_scale)
+        step.append(np.array([info[schema.ENV_STEP] for info in infos], np.int64))
         chunk.append(np.full(n, chunk_ids.setdefault(sa.multi_agent_episode_id, len(chunk_ids)), np.int64))
     if not obs:
         return None

@@ -16,6 +16,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from coin_app.sim import schema
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.generator import Layout, generate, training_rng
 from coin_app.sim.arena.simulator import ArenaSimulator
@@ -90,13 +91,13 @@ class ArenaEnv:
         for aid in ids:
             i = int(aid[5:])
             out[aid] = {
-                "success": bool(sim.succeeded[i]),
-                "collided": bool(sim.collided[i]),
+                schema.SUCCESS: bool(sim.succeeded[i]),
+                schema.COLLIDED: bool(sim.collided[i]),
                 "collisions": int(sim.collision_events[i]),
                 "distance": float(sim.distance[i]),
                 "target_distance": float(dist[i]),
                 "heading_error": float(heading_error[i]),
-                "env_step": int(sim.t),
+                schema.ENV_STEP: int(sim.t),
             }
         return out
 

@@ -1,0 +1,78 @@
+"""The algorithm contract: what every algorithm package exports, as BenchMARL's ``Algorithm`` base declares it.
+
+Each package under ``coin_app/algorithms/`` exports one :class:`AlgorithmSpec` per algorithm it
+holds (``cig_td3`` holds CIG-TD3 and ITD3, ``ppo_family`` IPPO, CPPO and MFPO). The spec says
+what the algorithm is, its documented hyper-parameters (the ``--set`` keys), the scenarios it
+trains on, its capabilities, and builds its RLlib config from a typed scenario config. Its
+RLModule implements :class:`ActorModule`, so evaluation and export never guess by attribute.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+from torch import nn
+
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.config import ScenarioConfig
+
+DRIVING_SCENARIOS = ("intersection", "roundabout", "bottleneck")
+
+AnyScenarioConfig = ScenarioConfig | ArenaConfig
+# (typed scenario config, the algorithm's --set values, seed) -> a validated RLlib config
+ConfigBuilder = Callable[[AnyScenarioConfig, dict[str, Any], int], AlgorithmConfig]
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What an algorithm is, in the terms the rest of the system needs."""
+
+    on_policy: bool  # learns from fresh rollouts (PPO family), not from a replay buffer
+    centralized_critic: bool  # a critic reads other agents' data (global state or neighbours)
+    joint_replay: bool  # replays whole joint env steps with the global state (the CIG-TD3 family)
+    periodic_evaluation: bool = False  # has eval_every / eval_episodes: training evaluates it on validation seeds
+
+
+def _no_scenario_defaults(algo_cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """No scenario values of the algorithm's own."""
+    return {}
+
+
+@dataclass(frozen=True)
+class AlgorithmSpec:
+    """One trainable algorithm: its name, what it is, its ``--set`` keys and how to build its RLlib config."""
+
+    name: str
+    description: str
+    hyperparameters: Mapping[str, tuple[Any, str]]  # --set key -> (default, meaning)
+    build: ConfigBuilder
+    capabilities: Capabilities
+    scenarios: tuple[str, ...] = DRIVING_SCENARIOS
+    quick: Mapping[str, Any] = field(default_factory=dict)  # hyper-parameters of the small quick scenario
+    # scenario values the algorithm sets beneath the user's --set (nav_ppo's stage mix), from its --set values
+    scenario_defaults: Callable[[Mapping[str, Any]], dict[str, Any]] = _no_scenario_defaults
+
+    def keys(self) -> tuple[str, ...]:
+        """The algorithm's ``--set`` keys."""
+        return tuple(self.hyperparameters)
+
+    def build_config(self, scenario: AnyScenarioConfig, algo_cfg: Mapping[str, Any], seed: int) -> AlgorithmConfig:
+        """The RLlib config of this algorithm on ``scenario`` with ``algo_cfg`` (its own keys only) and ``seed``."""
+        return self.build(scenario, dict(algo_cfg), seed)
+
+
+@runtime_checkable
+class ActorModule(Protocol):
+    """What evaluation and export need of a trained RLModule: its deterministic policy."""
+
+    def deterministic_actor(self) -> nn.Module:
+        """A plain torch network mapping observations (N, obs_dim) to env actions (N, 2) in [-1, 1]."""
+        ...
+
+    def inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
+        """The env actions (N, 2) of the module's own ``forward_inference`` on ``obs`` (the export parity reference)."""
+        ...
