@@ -47,7 +47,8 @@ from ray.tune.registry import register_env
 from coin_app.adapters.lcf import LocalCoordination
 from coin_app.backends.factory import make_driving_env
 from coin_app.sim import schema
-from coin_app.sim.config import config_from_dict
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.config import ScenarioConfig, config_from_dict, scenario_name
 
 OUTCOMES = ("finished", "succeeded", "collided")  # agent outcome counts of CoinMultiAgentEnv.outcomes
 SCENARIO_CONFIG_KEY = "scenario_config"  # env_config key of an already parsed (typed) scenario config
