@@ -21,7 +21,7 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
-from coin_app.algorithms.cig_td3.networks import CentralCritic, CentralCriticConfig  # noqa: E402
+from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig  # noqa: E402
 
 
 def time_update(
@@ -48,7 +48,7 @@ def time_update(
         if separate:
             q1, q2 = critic.q_values(obs, state, action, others_state, others_action, others_mask)
             v = critic.baseline(obs, state, others_state, others_action, others_mask)
-            recon, kl = critic.cvae_loss(obs, state, action, others_state, others_action, others_mask, target_y, 1.0, g)
+            recon, kl = critic.cvae_loss(obs, state, action, others_state, others_action, others_mask, target_y, g)
         else:
             q1, q2, v, recon, kl = critic(obs, state, action, others_state, others_action, others_mask, target_y, g)
         loss = q1.square().mean() + q2.square().mean() + v.square().mean() + recon + kl
@@ -59,6 +59,7 @@ def time_update(
 
 
 def main() -> None:
+    """Time the critic for every number of other slots and occupancy and print a table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--others", type=int, nargs="+", default=[29, 47])

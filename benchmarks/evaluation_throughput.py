@@ -19,8 +19,8 @@ def main() -> int:
     import pandas as pd
 
     from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
+    from coin_app.evaluation.sweep_results import load_trials
     from coin_app.sim.seeds import eval_test_seeds
-    from tuning.results import load_trials
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sweep_dir")

@@ -35,9 +35,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from coin_app.algorithms.checkpoints import deterministic_actor  # noqa: E402
-from coin_app.algorithms.registry import fresh_module  # noqa: E402
 from coin_app.inference import FORMATS, export_policy, load_policy  # noqa: E402
+from coin_app.training import fresh_module  # noqa: E402
 
 TARGET_MS = 0.05
 
@@ -78,7 +77,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for algo in args.algos:
-            actor = deterministic_actor(fresh_module(algo)).eval()
+            actor = fresh_module(algo).deterministic_actor().eval()
             obs_dim = next(m for m in actor.modules() if isinstance(m, torch.nn.Linear)).in_features
             policies = {"torch eager": eager(actor)}
             for fmt, (suffix, _, _) in FORMATS.items():

@@ -17,13 +17,16 @@ import argparse
 import time
 
 import numpy as np
+import ray
 import torch
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
-from coin_app.algorithms.cig_td3.config import CigTd3Config
+from coin_app.algorithms.cig_td3 import columns as col
+from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.cig_td3.learner import loss_config
 from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, local_critic_loss, td_targets
+from coin_app.sim import schema
 
 
 def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -33,22 +36,23 @@ def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.G
     next_mask = np.zeros((b, n), bool)
     next_mask[:, : present + 1] = True
     f = np.float32
+    S, A = schema.STATE_DIM, schema.ACT_DIM
     return {
-        "obs": rng.random((b, obs_dim), dtype=f),
-        "state": rng.standard_normal((b, 10)).astype(f),
-        "actions": rng.uniform(-1, 1, (b, 2)).astype(f),
-        "rewards": rng.standard_normal(b).astype(f),
-        "global_rewards": rng.standard_normal(b).astype(f),
-        "terminateds": rng.random(b) < 0.05,
-        "truncateds": np.zeros(b, bool),
-        "new_obs": rng.random((b, obs_dim), dtype=f),
-        "new_state": rng.standard_normal((b, 10)).astype(f),
-        "others_state": rng.standard_normal((b, n, 10)).astype(f) * mask[..., None],
-        "others_actions": rng.uniform(-1, 1, (b, n, 2)).astype(f) * mask[..., None],
-        "others_mask": mask,
-        "next_others_state": rng.standard_normal((b, n, 10)).astype(f) * next_mask[..., None],
-        "next_others_obs": rng.random((b, n, obs_dim), dtype=f) * next_mask[..., None],
-        "next_others_mask": next_mask,
+        col.OBS: rng.random((b, obs_dim), dtype=f),
+        col.STATE: rng.standard_normal((b, S)).astype(f),
+        col.ACTIONS: rng.uniform(-1, 1, (b, A)).astype(f),
+        col.REWARDS: rng.standard_normal(b).astype(f),
+        col.GLOBAL_REWARDS: rng.standard_normal(b).astype(f),
+        col.TERMINATEDS: rng.random(b) < 0.05,
+        col.TRUNCATEDS: np.zeros(b, bool),
+        col.NEXT_OBS: rng.random((b, obs_dim), dtype=f),
+        col.NEXT_STATE: rng.standard_normal((b, S)).astype(f),
+        col.OTHERS_STATE: rng.standard_normal((b, n, S)).astype(f) * mask[..., None],
+        col.OTHERS_ACTIONS: rng.uniform(-1, 1, (b, n, A)).astype(f) * mask[..., None],
+        col.OTHERS_MASK: mask,
+        col.NEXT_OTHERS_STATE: rng.standard_normal((b, n, S)).astype(f) * next_mask[..., None],
+        col.NEXT_OTHERS_OBS: rng.random((b, n, obs_dim), dtype=f) * next_mask[..., None],
+        col.NEXT_OTHERS_MASK: next_mask,
     }
 
 
@@ -89,8 +93,6 @@ def time_updates(cfg: CigTd3Config, updates: int) -> tuple[float, dict[str, floa
 
 def time_loop(cfg: CigTd3Config, steps: int) -> float:
     """Env steps per second of ``algo.train()`` after the warm-up (updates every env step)."""
-    import ray
-
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     cfg = cfg.copy(copy_frozen=False).training(warmup_steps=steps, learner_threads=torch.get_num_threads())
     cfg = cfg.reporting(min_sample_timesteps_per_iteration=steps)

@@ -13,10 +13,11 @@ horizon 300, small networks). The intersection is the default: vehicles first ar
 ~15k env steps, while the bottleneck (the hardest COIN map; IPPO reaches 24 % after 1M steps in
 CoPO's MetaDrive benchmark) gave ITD3 no arrival within 45k.
 
-Each (algorithm, seed) run trains in its own process (two at a time on this 2-core machine)
-and evaluates its deterministic actor on the validation seeds every ``--eval-every`` env
-steps. Writes ``curves.csv`` (algo, seed, env_steps, metric columns) and ``curves.png``
-(mean ± std of the success rate over seeds) and prints the final table.
+Each (algorithm, seed) run trains in its own process (``--procs`` at a time, each with an equal
+share of the CPU cores as torch threads) and evaluates its deterministic actor on the
+validation seeds every ``--eval-every`` env steps. Writes ``curves.csv`` (algo, seed,
+env_steps, metric columns) and ``curves.png`` (mean ± std of the success rate over seeds) and
+prints the final table.
 """
 
 from __future__ import annotations
@@ -38,8 +39,9 @@ def run_one(job: tuple[str, int, str, int, int, dict, int, int]) -> list[dict]:
     import ray
     import torch
 
-    from coin_app.algorithms.registry import build_config, evaluate_algorithm, get, quick_settings
+    from coin_app.algorithms.registry import get, quick_settings
     from coin_app.sim.seeds import validation_seeds
+    from coin_app.training import build_config, evaluate_algorithm
 
     torch.set_num_threads(1)
     ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
@@ -92,8 +94,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
 
 def main() -> None:
     """Run every (algorithm, seed), then write the CSV, the PNG and a summary."""
-    from coin_app.algorithms.registry import quick_settings
-    from coin_app.cli import parse_overrides
+    from coin_app.algorithms.registry import parse_overrides, quick_settings
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--algos", nargs="+", default=["cig_td3", "itd3"])
@@ -103,7 +104,7 @@ def main() -> None:
     ap.add_argument("--eval-every", type=int, default=2500)
     ap.add_argument("--eval-episodes", type=int, default=5)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--procs", type=int, default=2)
+    ap.add_argument("--procs", type=int, default=2, help="runs trained at once (each gets cpu_count // procs torch threads)")
     ap.add_argument("--out", default="runs/curves")
     args = ap.parse_args()
     # runs in parallel share the cores: one torch thread each unless --set learner_threads=N

@@ -3,7 +3,7 @@
 Usage: python benchmarks/replay_sampling.py [--transitions 200000] [--batch 256] [--max-others 29 47] [--repeats 200]
 
 Fills a buffer with ``--transitions`` transitions from a synthetic stream of ``--envs`` episodes in
-parallel with ``--agents`` agents each (obs_dim 91, state_dim 10): every step an agent ends with
+parallel with ``--agents`` agents each (obs_dim 91, state_dim ``schema.STATE_DIM``): every step an agent ends with
 probability 1/150 (2/3 terminated, 1/3 truncated; its terminal observation is at the next step) and
 a replacement with a fresh id has its first observation one step later (so at most ``--agents``
 observations per step); episodes last ``--horizon`` steps; chunks of ``--fragment`` env steps are
@@ -23,7 +23,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from coin_app.algorithms.cig_td3.replay import JointStepReplayBuffer, TransitionBatch  # noqa: E402
+from coin_app.algorithms.cig_td3 import columns as col  # noqa: E402
+from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer  # noqa: E402
+from coin_app.algorithms.cig_td3.transitions import TransitionBatch  # noqa: E402
+from coin_app.sim import schema  # noqa: E402
 
 
 def synthetic_chunks(
@@ -46,7 +49,7 @@ def synthetic_chunks(
     next_agent = np.full(num_envs, agents, np.int64)
     alive = np.ones(slots, bool)
     obs = rng.random((slots, obs_dim), dtype=np.float32)
-    state = rng.random((slots, 10), dtype=np.float32)
+    state = rng.random((slots, schema.STATE_DIM), dtype=np.float32)
     t = 0
     parts: list[dict[str, np.ndarray]] = []
     out: list[TransitionBatch] = []
@@ -54,25 +57,25 @@ def synthetic_chunks(
     while count < total:
         idx = np.flatnonzero(alive)
         new_obs = obs + 0.01 * rng.standard_normal((slots, obs_dim), dtype=np.float32)
-        new_state = state + 0.01 * rng.standard_normal((slots, 10), dtype=np.float32)
+        new_state = state + 0.01 * rng.standard_normal((slots, schema.STATE_DIM), dtype=np.float32)
         end = rng.random(slots) < 1 / 150
         last = t == horizon - 1
         term = end & (rng.random(slots) < 2 / 3) & ~last
         trunc = (end & ~term) | last
         parts.append(
             {
-                "episode": episode[env_of[idx]],
-                "agent": agent[idx],
-                "env_step": np.full(idx.shape[0], t, np.int64),
-                "obs": obs[idx],
-                "state": state[idx],
-                "actions": rng.uniform(-1, 1, (idx.shape[0], 2)).astype(np.float32),
-                "rewards": rng.standard_normal(idx.shape[0]).astype(np.float32),
-                "global_rewards": np.zeros(idx.shape[0], np.float32),
-                "terminateds": term[idx],
-                "truncateds": trunc[idx],
-                "next_obs": new_obs[idx],
-                "next_state": new_state[idx],
+                col.EPISODE: episode[env_of[idx]],
+                col.AGENT: agent[idx],
+                col.ENV_STEP: np.full(idx.shape[0], t, np.int64),
+                col.OBS: obs[idx],
+                col.STATE: state[idx],
+                col.ACTIONS: rng.uniform(-1, 1, (idx.shape[0], schema.ACT_DIM)).astype(np.float32),
+                col.REWARDS: rng.standard_normal(idx.shape[0]).astype(np.float32),
+                col.GLOBAL_REWARDS: np.zeros(idx.shape[0], np.float32),
+                col.TERMINATEDS: term[idx],
+                col.TRUNCATEDS: trunc[idx],
+                col.NEXT_OBS: new_obs[idx],
+                col.NEXT_STATE: new_state[idx],
             }
         )
         count += idx.shape[0]
@@ -87,7 +90,7 @@ def synthetic_chunks(
             next_agent[:] = agents
             alive[:] = True
             obs = rng.random((slots, obs_dim), dtype=np.float32)
-            state = rng.random((slots, 10), dtype=np.float32)
+            state = rng.random((slots, schema.STATE_DIM), dtype=np.float32)
             t = 0
         else:  # the slot's terminal obs is at t+1; its replacement (fresh id) has its first obs at t+2
             respawn = ~alive
@@ -120,7 +123,7 @@ def main() -> None:
     n = sum(len(c) for c in chunks)
     print(f"synthetic stream: {n:,} transitions in {len(chunks)} chunks, {args.envs} envs x {args.agents} agents, obs_dim 91")
     for max_others in args.max_others:
-        buf = JointStepReplayBuffer(n, obs_dim=91, state_dim=10, act_dim=2, max_others=max_others, seed=0)
+        buf = JointStepReplayBuffer(n, obs_dim=91, state_dim=schema.STATE_DIM, act_dim=schema.ACT_DIM, max_others=max_others, seed=0)
         t0 = time.perf_counter()
         for c in chunks:
             buf.add(c)
@@ -133,7 +136,7 @@ def main() -> None:
             out = buf.sample(args.batch)
             times.append(time.perf_counter() - t0)
         times_ms = 1000 * np.array(times)
-        others, next_others = out["others_mask"].sum(1).mean(), out["next_others_mask"].sum(1).mean()
+        others, next_others = out[col.OTHERS_MASK].sum(1).mean(), out[col.NEXT_OTHERS_MASK].sum(1).mean()
         print(
             f"max_others={max_others:>3}: sample(B={args.batch}) median {np.median(times_ms):.2f} ms "
             f"(p90 {np.percentile(times_ms, 90):.2f} ms); add {n / add_s:,.0f} transitions/s; sampleable {len(buf):,}; "
@@ -142,7 +145,7 @@ def main() -> None:
             flush=True,
         )
     small = synthetic_chunks(20 * args.envs * args.agents, args.envs, args.agents, args.horizon, fragment=1, seed=1, first_episode=10**6)
-    buf = JointStepReplayBuffer(n, obs_dim=91, state_dim=10, act_dim=2, max_others=max(args.max_others), seed=0)
+    buf = JointStepReplayBuffer(n, obs_dim=91, state_dim=schema.STATE_DIM, act_dim=schema.ACT_DIM, max_others=max(args.max_others), seed=0)
     for c in chunks:
         buf.add(c)
     t0 = time.perf_counter()

@@ -3,39 +3,43 @@
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import math
 import shlex
 import sys
 import time
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
-METRIC_ROWS = (
-    ("success_rate", "success rate", "{:.3f}"),
-    ("collision_rate", "collision rate", "{:.3f}"),
-    ("out_of_road_rate", "off-road rate", "{:.3f}"),
-    ("efficiency", "efficiency", "{:.0f}"),
-    ("safety", "safety", "{:.0f}"),
-    ("avg_travel_steps", "avg travel steps", "{:.1f}"),
-)
+from cluster import jobs
+from coin_app.algorithms.checkpoints import inference_actions, load_module, read_metadata, scenario_of
+from coin_app.algorithms.registry import parse_overrides
+from coin_app.evaluation.arena_suite import evaluate_suite, markdown_table, parse_cases, plot_scenarios, summarize
+from coin_app.evaluation.evaluate import evaluate_policy, record
+from coin_app.evaluation.metrics import METRIC_KEYS, EpisodeRecorder, aggregate
+from coin_app.evaluation.policies import as_policy
+from coin_app.evaluation.report import ReportOptions, build_report
+from coin_app.inference import export_policy, load_policy
+from coin_app.inference.formats import check_format
+from coin_app.inference.switching import write_pair
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, ScenarioConfig, make_config
+from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.heuristic import HeuristicDriver
+from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
+from coin_app.sim.rollout import DictEnvs, rollout
+from coin_app.sim.scenarios import config_from_dict
+from coin_app.sim.seeds import eval_test_seeds
+from coin_app.training import train
+from tuning.sweep import run_sweep, write_generalization
 
-
-def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``key=value`` strings to a dict; values are Python literals when they parse as one."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"bad --set {item!r}; expected key=value, e.g. --set crash_penalty=10")
-        try:
-            out[key] = ast.literal_eval(raw)
-        except (ValueError, SyntaxError):
-            out[key] = raw
-    return out
+CONSOLE_FORMATS = {"efficiency": "{:.0f}", "safety": "{:.0f}", "avg_travel_steps": "{:.1f}"}  # the rates: "{:.3f}"
+# (key, label, format) of the six COIN metrics as the commands print them
+METRIC_ROWS = tuple((k, k.replace("_", " ").replace("out of road", "off-road"), CONSOLE_FORMATS.get(k, "{:.3f}")) for k in METRIC_KEYS)
 
 
 def format_metrics(metrics: dict[str, float]) -> str:
@@ -49,11 +53,6 @@ def format_metrics(metrics: dict[str, float]) -> str:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run the heuristic driver on a scenario; print the metrics and write a GIF and a trajectory plot."""
-    from coin_app.evaluation.metrics import EpisodeRecorder
-    from coin_app.sim.config import make_config
-    from coin_app.sim.driving_env import DrivingEnv
-    from coin_app.sim.heuristic import HeuristicDriver
-    from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
 
     overrides = parse_overrides(args.set)
     if args.num_agents is not None:
@@ -66,38 +65,30 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     env = DrivingEnv(config)
-    driver = HeuristicDriver(env)
-    recorder, trace = EpisodeRecorder(), EpisodeTrace()
-    _, infos = env.reset(seed=args.seed)
-    recorder.reset(infos)
-    trace.record(env, infos)
-    frames = [] if args.no_gif else [render_frame(env)]
+    recorder, trace, frames = EpisodeRecorder(), EpisodeTrace(), []
     print(f"demo: {config.scenario}, {config.num_agents} agents, seed {args.seed}, up to {args.steps} steps -> {out}")
     t0 = time.perf_counter()
     agent_steps = 0
-    step = 0
-    for step in range(1, args.steps + 1):
-        agent_steps += len(env.agents)
-        _, rewards, terms, truncs, infos = env.step(driver.actions())
-        recorder.step(infos, terms, truncs, rewards)
-        trace.record(env, infos)
-        if not args.no_gif and step % args.gif_every == 0:
+    for step in rollout(DictEnvs([env]), HeuristicDriver(env), [args.seed], args.steps):
+        result = step.results[0]
+        record(step, [recorder])
+        trace.record(env, result.infos)
+        agent_steps += len(result.rewards)  # one reward per agent that acted
+        if not args.no_gif and step.t % args.gif_every == 0:  # t = 0: the reset frame
             frames.append(render_frame(env))
-        if step % 50 == 0 or env.episode_over:
+        if step.t > 0 and (step.t % 50 == 0 or env.episode_over):
             m = recorder.metrics()
             print(
-                f"  step {step:>5}  active {len(env.agents):>3}  vehicles {m['num_vehicles']:>4}  "
+                f"  step {step.t:>5}  active {len(env.agents):>3}  vehicles {m['num_vehicles']:>4}  "
                 f"arrived {m['num_arrived']:>3}  crashed {m['num_crashed']:>3}  off-road {m['num_out_of_road']:>3}  "
                 f"{agent_steps / (time.perf_counter() - t0):,.0f} agent-steps/s",
                 flush=True,
             )
-        if env.episode_over:
-            break
     metrics = recorder.metrics()
     traj = plot_trajectories(trace, env.sim.map, out / "trajectories.png", title=f"{config.scenario}: heuristic driver, seed {args.seed}")
     gif = None if args.no_gif else write_gif(frames, out / "episode.gif", fps=10 / args.gif_every)
     (out / "metrics.json").write_text(json.dumps({k: v for k, v in metrics.items()}, indent=2, default=float))
-    print(f"\nsummary: {step} env steps, {metrics['num_vehicles']} vehicles, {time.perf_counter() - t0:.1f} s")
+    print(f"\nsummary: {step.t} env steps, {metrics['num_vehicles']} vehicles, {time.perf_counter() - t0:.1f} s")
     print(format_metrics(metrics))
     print(f"  trajectory plot: {traj}")
     if gif is not None:
@@ -108,7 +99,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Train an algorithm of the registry; checkpoints and a summary go to ``--out``."""
-    from coin_app.algorithms.registry import train
 
     overrides = parse_overrides(args.set)
     if args.num_agents is not None:
@@ -131,12 +121,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any]) -> Any:
     """The scenario config to evaluate ``source`` on: its training scenario (checkpoint / export metadata) plus overrides."""
-    from coin_app.algorithms.checkpoints import scenario_of
-    from coin_app.sim.config import config_from_dict
 
     if source.is_dir():
-        from coin_app.algorithms.checkpoints import read_metadata
-
         if read_metadata(source).get("scenario") == "arena" or scenario == "arena":
             raise ValueError(f"{source} is an arena policy; evaluate it with: python -m coin_app evaluate-arena {source}")
         config = scenario_of(source, **overrides)
@@ -145,7 +131,6 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
         return config
     if not source.is_file():
         raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx)")
-    from coin_app.inference import load_policy
 
     meta = load_policy(source).meta
     scenario = scenario or meta.get("scenario")
@@ -158,10 +143,6 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate a checkpoint or exported policy deterministically on test seeds and print the six metrics."""
-    from coin_app.evaluation.evaluate import evaluate_policy
-    from coin_app.evaluation.metrics import aggregate
-    from coin_app.evaluation.policies import as_policy
-    from coin_app.sim.seeds import eval_test_seeds
 
     if args.episodes < 1:
         raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
@@ -193,15 +174,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Export a checkpoint's deterministic actor to a Ray-free file and check it against the RLModule."""
-    from coin_app.algorithms.checkpoints import deterministic_actor, inference_actions, load_module, read_metadata
-    from coin_app.inference import export_policy, load_policy
-    from coin_app.inference.formats import check_format
 
     check_format(args.format, args.out)  # before loading anything
     checkpoint = Path(args.checkpoint)
     meta = read_metadata(checkpoint)
     module = load_module(checkpoint)
-    actor = deterministic_actor(module)
+    actor = module.deterministic_actor()
     keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
     out = export_policy(actor, args.out, args.format, meta=keep | {"checkpoint": str(checkpoint.resolve())})
     exported = load_policy(out)
@@ -216,8 +194,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_pair(args: argparse.Namespace) -> int:
     """Write a switching-policy file: the short-range policy inside --switch-radius of the target, the long-range one outside."""
-    from coin_app.evaluation.policies import as_policy
-    from coin_app.inference.switching import write_pair
 
     out = write_pair(args.out, args.long, args.short, args.switch_radius)
     policy = as_policy(out)  # loads both parts: a bad source fails now, not in the evaluation
@@ -227,7 +203,6 @@ def cmd_pair(args: argparse.Namespace) -> int:
 
 def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     """Run the seed-2 evaluation suite (Tables I and II) on a policy; writes per-scenario rows and the case table."""
-    from coin_app.evaluation.arena_suite import evaluate_suite, markdown_table, parse_cases, summarize
 
     cases = parse_cases(args.cases)
     out = Path(args.out)
@@ -235,7 +210,6 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     rows = evaluate_suite(args.policy, cases, args.scenarios_per_case, args.max_steps, args.workers)
     out.mkdir(parents=True, exist_ok=True)
-    import pandas as pd
 
     pd.DataFrame(rows).to_csv(out / "arena_scenarios.csv", index=False)
     summary = summarize(rows)
@@ -246,8 +220,6 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     print(table)
     print(f"  per-scenario rows: {out / 'arena_scenarios.csv'}\n  case table: {out / 'arena_table.md'} (and arena_cases.csv)")
     if args.plots:
-        from coin_app.evaluation.arena_suite import plot_scenarios
-
         plots = plot_scenarios(args.policy, cases, args.plots, out / "plots", args.max_steps)
         print(f"  trajectory plots: {len(plots)} in {out / 'plots'}")
     return 0
@@ -255,7 +227,6 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     """Run or resume a Tune sweep of one paper experiment; print where results went and each trial's figures."""
-    from tuning.sweep import run_sweep
 
     summary = run_sweep(
         args.experiment,
@@ -291,7 +262,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def cmd_generalize(args: argparse.Namespace) -> int:
     """Evaluate every final checkpoint of a sweep at each agent count; write the tidy generalization CSV."""
-    from tuning.sweep import write_generalization
 
     out = write_generalization(Path(args.experiment_dir), counts=args.counts, test_seeds=args.test_seeds)
     print(f"generalization table: {out}")
@@ -300,7 +270,6 @@ def cmd_generalize(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Evaluate sweeps (or read results) and write the paper's tables, tests, figures and report.html."""
-    from coin_app.evaluation.report import ReportOptions, build_report
 
     options = ReportOptions(
         method=args.method,
@@ -329,13 +298,20 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 1 if summary["failures"] else 0
 
 
+def _check_command(command: list[str]) -> None:
+    """Refuse a coin_app command that does not parse, before it is sent to a cluster."""
+    try:
+        build_parser().parse_args(command)
+    except SystemExit as exc:
+        raise ValueError(f"bad coin_app command {' '.join(command)!r} (see python -m coin_app --help)") from exc
+
+
 def cmd_submit(args: argparse.Namespace) -> int:
     """Submit a coin_app command as a Ray job; print the job id (and follow it with --wait)."""
-    from coin_app import jobs
 
     command = args.command[1:] if args.command[:1] == ["--"] else args.command
     address = args.address or jobs.DEFAULT_ADDRESS
-    job_id = jobs.submit(command, address, args.install, args.submission_id)
+    job_id = jobs.submit(command, address, args.install, args.submission_id, check_command=_check_command)
     print(f"submitted job {job_id} to {address}: python -m coin_app {' '.join(command)}")
     print(f"  follow it: python -m coin_app job logs {job_id} --address {address}")
     if not args.wait:
@@ -348,7 +324,6 @@ def cmd_submit(args: argparse.Namespace) -> int:
 
 def cmd_job(args: argparse.Namespace) -> int:
     """Status, logs or stop of a submitted job (``ray job status|logs|stop``)."""
-    from coin_app import jobs
 
     try:
         if args.action == "status":
@@ -364,9 +339,6 @@ def cmd_job(args: argparse.Namespace) -> int:
 
 def cmd_scenarios(args: argparse.Namespace) -> int:
     """List the scenarios, presets and every config key with its default."""
-    from dataclasses import fields
-
-    from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, ScenarioConfig, make_config
 
     for name, n in DEFAULT_NUM_AGENTS.items():
         cfg = make_config(name)
@@ -378,7 +350,6 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
         if f.name not in ("scenario", "dynamics"):
             print(f"  {f.name:<20} {getattr(cfg, f.name)!r}")
     print("  dynamics             a dict of DynamicsConfig fields, e.g. --set \"dynamics={'max_speed_kmh': 60}\"")
-    from coin_app.sim.arena.config import ArenaConfig
 
     arena = ArenaConfig()
     print(f"arena          {arena.num_vehicles:>3} vehicles, {arena.num_obstacles} obstacles  obs {arena.obs_dim}  coin-arena-v0 (nav_ppo)")

@@ -6,8 +6,8 @@ import ray
 import torch
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
-from coin_app.algorithms.cig_td3.algorithm import CigTd3
-from coin_app.algorithms.registry import build_config
+from coin_app.algorithms.cig_td3.cig_td3 import CigTd3
+from coin_app.training import build_config
 
 torch.set_num_threads(1)
 TINY = {

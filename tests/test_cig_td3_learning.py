@@ -15,10 +15,11 @@ import numpy as np
 import ray
 import torch
 
-from coin_app.algorithms.registry import QUICK_SETTINGS, build_config
+from coin_app.algorithms.registry import QUICK_SETTINGS
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import aggregate
 from coin_app.sim.seeds import eval_test_seeds, validation_seeds
+from coin_app.training import build_config, evaluate_algorithm
 
 
 def test_cig_td3_beats_random_policy():
@@ -32,7 +33,7 @@ def test_cig_td3_beats_random_policy():
         while algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0) < 4000:
             algo.train()
             # checkpoint selection on validation seeds (never on the test seeds)
-            score = algo.evaluate_actor(validation_seeds(6))["episode_return"]
+            score = evaluate_algorithm(algo, validation_seeds(6))["episode_return"]
             if score > best:
                 best, best_state = score, copy.deepcopy(actor.state_dict())
         algo.stop()

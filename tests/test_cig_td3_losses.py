@@ -62,7 +62,7 @@ class FakeCentral(nn.Module):
     def baseline(self, obs, state, others_state, others_action, mask):
         return self.u(torch.cat([obs, state, self.pool(others_state, others_action, mask)], -1)).squeeze(-1)
 
-    def cvae_loss(self, obs, state, action, others_state, others_action, mask, target_y, kl_beta):
+    def cvae_loss(self, obs, state, action, others_state, others_action, mask, target_y):
         recon = ((self.w1.weight.sum() - target_y.mean()) ** 2).reshape(())
         return recon, torch.tensor(0.25)
 
@@ -72,7 +72,7 @@ class FakeCentral(nn.Module):
         recon, kl = (
             (torch.tensor(0.0), torch.tensor(0.0))
             if target_y is None
-            else self.cvae_loss(obs, state, action, others_state, others_action, mask, target_y, 1.0)
+            else self.cvae_loss(obs, state, action, others_state, others_action, mask, target_y)
         )
         return SimpleNamespace(q1=q1, q2=q2, v=v, recon_mse=recon, kl=kl)
 
@@ -145,7 +145,7 @@ def test_local_and_central_losses_equal_reference():
     g1, g2 = central.q_values(*args)
     v = central.baseline(batch["obs"], batch["state"], batch["others_state"], batch["others_actions"], batch["others_mask"])
     target_y = torch.cat([batch["new_obs"], batch["new_state"], batch["rewards"][:, None]], -1)
-    recon, kl = central.cvae_loss(*args, target_y, 2.0)
+    recon, kl = central.cvae_loss(*args, target_y)
     expect = ((g1 - y) ** 2).mean() + ((g2 - y) ** 2).mean() + ((v - y) ** 2).mean() + 0.5 * (recon + 2.0 * kl)
     assert torch.allclose(loss_g, expect)
     # without the baseline and the CVAE only the twin global Q terms remain

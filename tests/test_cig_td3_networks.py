@@ -7,17 +7,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from coin_app.algorithms.cig_td3.networks import (
-    GLOBAL_MODULES,
-    LOCAL_MODULES,
-    Actor,
-    CentralCritic,
-    CentralCriticConfig,
-    GraphModule,
-    TwinQ,
-    build_graph,
-    mlp,
-)
+from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig
+from coin_app.algorithms.cig_td3.graph import GLOBAL_MODULES, GraphModule, build_graph
+from coin_app.algorithms.cig_td3.individual import Actor, TwinQ, mlp
+from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
 
 torch.set_num_threads(1)
 
@@ -214,7 +207,7 @@ def test_forward_equals_separate_methods():
     x, y = make_inputs(), target_for()
     out = run_all(critic, x, y, seed=3)
     q1, q2 = critic.q_values(**x)
-    recon, kl = critic.cvae_loss(**x, target_y=y, kl_beta=0.5, generator=torch.Generator().manual_seed(3))
+    recon, kl = critic.cvae_loss(**x, target_y=y, generator=torch.Generator().manual_seed(3))
     assert torch.allclose(out.q1, q1, atol=1e-6) and torch.allclose(out.q2, q2, atol=1e-6)
     assert torch.allclose(out.q1, critic.q1(**x), atol=1e-6)
     assert torch.allclose(out.recon_mse, recon) and torch.allclose(out.kl, kl)
@@ -243,7 +236,7 @@ def test_every_module_switch_builds_runs_and_backpropagates(local_module, global
         assert out.recon_mse > 0 and out.kl >= 0
     else:
         assert out.recon_mse == 0 and out.kl == 0
-        assert critic.cvae_loss(**make_inputs(), target_y=target_for(), kl_beta=1.0) == (0, 0)
+        assert critic.cvae_loss(**make_inputs(), target_y=target_for()) == (0, 0)
     sum(t.sum() for t in out).backward()
     assert critic.q1_branch.head.weight.grad is not None and critic.v_branch.head.weight.grad is not None
 
@@ -307,13 +300,13 @@ def test_graph_modules_equal_dense_reference(kind):
 def test_cvae_loss_ignores_padded_pairs():
     critic = make_critic()
     x, y = make_inputs(), target_for(per_pair=True)
-    ref = critic.cvae_loss(**x, target_y=y, kl_beta=1.0, generator=torch.Generator().manual_seed(5))
+    ref = critic.cvae_loss(**x, target_y=y, generator=torch.Generator().manual_seed(5))
     x2, y2 = {k: v.clone() for k, v in x.items()}, y.clone()
     pad = ~x["others_mask"]
     x2["others_state"][pad] = 123.0
     x2["others_action"][pad] = -7.0
     y2[:, 1:][pad] = 1e6
-    out = critic.cvae_loss(**x2, target_y=y2, kl_beta=1.0, generator=torch.Generator().manual_seed(5))
+    out = critic.cvae_loss(**x2, target_y=y2, generator=torch.Generator().manual_seed(5))
     assert torch.equal(ref[0], out[0]) and torch.equal(ref[1], out[1])
     y3 = y.clone()
     y3[1, 2] += 1.0  # a valid pair's target does matter
@@ -328,7 +321,7 @@ def test_cvae_loss_equals_hand_written_reference():
     critic = make_critic()
     cvae = critic.local
     x, y = make_inputs(), target_for()
-    recon, kl = critic.cvae_loss(**x, target_y=y, kl_beta=0.25, generator=torch.Generator().manual_seed(11))
+    recon, kl = critic.cvae_loss(**x, target_y=y, generator=torch.Generator().manual_seed(11))
 
     valid_pairs = [(b, j) for b in range(B) for j in range(N + 1) if j == 0 or x["others_mask"][b, j - 1]]
     eps = torch.randn(len(valid_pairs), L, generator=torch.Generator().manual_seed(11))  # row-major (b, j) order

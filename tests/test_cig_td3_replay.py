@@ -11,18 +11,16 @@ from __future__ import annotations
 
 import pickle
 from collections import defaultdict
+from dataclasses import fields
 
 import numpy as np
 import pytest
+from ray.rllib.core.columns import Columns
 from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 
-from coin_app.algorithms.cig_td3.replay import (
-    JointStepReplayBuffer,
-    TransitionBatch,
-    agent_key,
-    episode_key,
-    episodes_to_transitions,
-)
+from coin_app.algorithms.cig_td3 import columns as col
+from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
+from coin_app.algorithms.cig_td3.transitions import TransitionBatch, agent_key, episode_key, episodes_to_transitions
 
 OBS_DIM, STATE_DIM, ACT_DIM = 6, 10, 2
 MAX_OTHERS = 12  # >= the most other agents with an observation at one step of the scripted stream (6 acting + 6 spawns)
@@ -324,6 +322,21 @@ def test_scripted_stream_every_column_matches_the_record():
     assert max(len(v) for v in truth.present.values()) > 5
 
 
+def test_column_names_are_rllib_columns_and_the_sample_keys():
+    assert (col.OBS, col.ACTIONS, col.REWARDS, col.TERMINATEDS, col.TRUNCATEDS, col.NEXT_OBS) == (
+        Columns.OBS,
+        Columns.ACTIONS,
+        Columns.REWARDS,
+        Columns.TERMINATEDS,
+        Columns.TRUNCATEDS,
+        Columns.NEXT_OBS,
+    )
+    assert {f.name for f in fields(TransitionBatch)} == set(col.EGO + col.ORIGIN) | {"ended_episodes"}
+    buf = JointStepReplayBuffer(1000, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=0)
+    fill(buf, CALLS[:6])
+    assert set(buf.sample(4)) == set(col.EGO + col.OTHERS + col.ORIGIN)
+
+
 def test_transition_is_held_back_until_late_spawns_arrive():
     truth, envs = make_stream()
     buf = JointStepReplayBuffer(1000, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=0)
@@ -358,7 +371,7 @@ def test_converter_on_list_episodes_and_chunk_structure():
         for i in range(len(b)):
             q, a, t = _q_of(truth, int(b.episode[i])), int(b.agent[i]), int(b.env_step[i])
             np.testing.assert_array_equal(b.obs[i], obs_of(q, a, t))
-            np.testing.assert_array_equal(b.next_state[i], state_of(q, a, t + 1, truth.kind[(q, a, t)] is not None))
+            np.testing.assert_array_equal(b.new_state[i], state_of(q, a, t + 1, truth.kind[(q, a, t)] is not None))
             assert b.global_rewards[i] == np.float32(global_reward_of(q, t + 1))
     assert seen == set(truth.kind)
     assert n_chunks > len(CALLS)

@@ -12,7 +12,7 @@ from pathlib import Path
 SCRIPT = """
 import ray, torch
 torch.set_num_threads(1)
-from coin_app.algorithms.registry import build_config
+from coin_app.training import build_config
 ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
 S = {"num_agents": 3, "horizon": 60, "max_agent_steps": 60, "warmup_steps": 100, "train_batch_size_per_learner": 16,
      "hidden": 16, "latent_dim": 4, "node_width": 8, "policy_delay": 2, "eval_every": 0}

@@ -15,9 +15,9 @@ import pytest
 import ray
 import yaml
 
-from coin_app import jobs
+from cluster import jobs
 from coin_app.cli import build_parser, main
-from tuning.results import load_trials
+from coin_app.evaluation.sweep_results import load_trials
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from ray.rllib.core.rl_module.rl_module import RLModule
 
 from coin_app.adapters.lcf import LocalCoordination, decode, encode
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv
@@ -22,6 +23,7 @@ from coin_app.algorithms.copo.advantages import (
     NEI_ADVANTAGES,
     NEI_REWARDS,
     NEI_TARGETS,
+    CoPOAdvantages,
 )
 from coin_app.algorithms.copo.coordination import (
     coordinated_advantage,
@@ -32,8 +34,9 @@ from coin_app.algorithms.copo.coordination import (
     neighbour_and_global_rewards,
 )
 from coin_app.algorithms.ppo_family.losses import surrogate_loss
-from coin_app.algorithms.registry import build_config
+from coin_app.cli import main
 from coin_app.sim.road_map import load_map
+from coin_app.training import build_config
 
 NO_BRAKES = {"brake_linear": 0.0, "brake_sat_intercept": 0.0, "brake_sat_slope": 0.0, "coast_decel": 0.0, "throttle_accel": 8.0}
 RESPAWNING = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
@@ -220,8 +223,6 @@ def test_three_advantages_match_a_reference_implementation(ray_session):
             for t in range(len(sa)):
                 present.setdefault((ma.id_, infos[t]["env_step"]), []).append((aid, np.asarray(infos[t]["state"][:2]) * scale, rewards[t]))
     want = {k: [] for k in ("ego", "nei", "glob", "nei_r", "glob_r", "lcf")}
-    from coin_app.algorithms.copo.advantages import CoPOAdvantages
-
     order = CoPOAdvantages(gamma=gamma, lambda_=lam, radius=40.0, position_scale=scale).single_agent_episode_iterator(episodes, False)
     for sa in order:
         n, infos = len(sa), sa.get_infos()
@@ -289,17 +290,13 @@ def test_copo_trains_moves_the_lcf_and_pushes_it_to_every_env_runner(ray_session
     finally:
         algo.stop()
     # the checkpoint carries the LCF; the exported actor acts with the learned mean LCF folded in
-    from ray.rllib.core.rl_module.rl_module import RLModule
-
-    from coin_app.algorithms.checkpoints import deterministic_actor
-
     restored = RLModule.from_checkpoint(str(tmp_path / "ckpt/learner_group/learner/rl_module/shared"))
     assert restored.lcf_distribution() == pytest.approx((mean, std))
     obs = torch.rand(16, 91)
     with_lcf = torch.cat([obs, torch.full((16, 1), float(encode(mean)))], 1)
     with torch.no_grad():
         want = restored.forward_inference({"obs": with_lcf})["action_dist_inputs"][:, :2].clamp(-1, 1)
-        np.testing.assert_allclose(deterministic_actor(restored)(obs).numpy(), want.numpy(), atol=1e-6)
+        np.testing.assert_allclose(restored.deterministic_actor()(obs).numpy(), want.numpy(), atol=1e-6)
 
 
 def test_bad_copo_settings_are_refused():
@@ -315,8 +312,6 @@ def test_bad_copo_settings_are_refused():
 
 
 def test_copo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
-    from coin_app.cli import main
-
     out = tmp_path / "run"
     sets = ["horizon=40", "max_agent_steps=40", "train_batch_size_per_learner=100", "minibatch_size=50", "hidden=16"]
     assert (

@@ -3,17 +3,11 @@
 import numpy as np
 import pytest
 
-from coin_app.evaluation.evaluate import (
-    TEST_SEED_BASE,
-    VALIDATION_SEED_BASE,
-    eval_test_seeds,
-    evaluate_policy,
-    run_episode,
-    validation_seeds,
-)
+from coin_app.evaluation.evaluate import evaluate_policy, run_episode
 from coin_app.evaluation.metrics import EpisodeRecorder
 from coin_app.sim.config import make_config
 from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.seeds import TEST_SEED_BASE, VALIDATION_SEED_BASE, eval_test_seeds, validation_seeds
 
 
 def policy(obs):

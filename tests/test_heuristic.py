@@ -3,8 +3,11 @@
 import numpy as np
 import pytest
 
-from coin_app.sim.heuristic import route_paths, single_vehicle_outcomes
+from coin_app.sim.config import make_config
+from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.heuristic import HeuristicDriver, route_paths, single_vehicle_outcomes
 from coin_app.sim.road_map import load_map
+from coin_app.sim.rollout import DictEnvs, rollout
 
 SCENARIOS = ["intersection", "roundabout", "bottleneck"]
 
@@ -35,3 +38,26 @@ def test_batched_outcomes_equal_one_env_at_a_time():
     together = single_vehicle_outcomes("intersection", seeds)
     alone = [single_vehicle_outcomes("intersection", [s])[0] for s in seeds]
     assert together == alone
+
+
+def test_driver_as_rollout_policy_equals_its_dict_actions():
+    config = make_config("intersection", num_agents=12, horizon=300)
+    env = DrivingEnv(config)
+    via_rollout = [tuple(step.results[0]) for step in rollout(DictEnvs([env]), HeuristicDriver(env), [5], 10_000)]
+    env = DrivingEnv(config)
+    driver = HeuristicDriver(env)
+    obs, infos = env.reset(seed=5)
+    by_hand = [(obs, {}, {}, {}, infos)]
+    while not env.episode_over:
+        by_hand.append(env.step(driver.actions()))
+    np.testing.assert_equal(via_rollout, by_hand)
+    outcomes = {k for *_, infos in by_hand for i in infos.values() for k in ("arrive_dest", "crash_vehicle") if i[k]}
+    assert outcomes == {"arrive_dest", "crash_vehicle"}  # a busy episode, not a trivial one
+
+
+def test_driver_refuses_a_batch_that_is_not_its_acting_vehicles():
+    env = DrivingEnv(make_config("intersection", num_agents=4))
+    driver = HeuristicDriver(env)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="4 acting vehicles"):
+        driver(np.zeros((3, env.config.obs_dim)))

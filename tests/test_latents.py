@@ -1,10 +1,16 @@
 """CVAE latents for the t-SNE figure: the same z_ij the centralized critic computes, pairs drawn correctly."""
 
+from pathlib import Path
+from types import SimpleNamespace
+
 import numpy as np
 import torch
 
-from coin_app.algorithms.cig_td3.networks import CentralCritic, CentralCriticConfig
+from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig
+from coin_app.evaluation import latents
 from coin_app.evaluation.latents import _pair_means, _pick_pairs
+from coin_app.sim.config import make_config
+from coin_app.sim.driving_env import DrivingEnv
 
 
 def test_pair_means_equal_the_critics_own_latents():
@@ -42,3 +48,29 @@ def test_pairs_are_distinct_agents_of_the_same_env():
     assert all(e != p and slot_env[e] == slot_env[p] for e, p in zip(egos, partners))
     assert len(set(zip(egos, partners))) == len(egos)
     assert 20 not in egos and 20 not in partners
+
+
+def test_collected_latents_follow_the_episode(monkeypatch):
+    torch.manual_seed(0)
+    config = make_config("bottleneck", num_agents=5, horizon=40, max_agent_steps=40)
+    actor = torch.nn.Sequential(torch.nn.Linear(config.obs_dim, 2), torch.nn.Tanh())
+    with torch.no_grad():
+        actor[0].bias[1] = 2.0  # full throttle: vehicles crash or leave the road, so the number acting changes
+    central = CentralCritic(CentralCriticConfig(obs_dim=config.obs_dim, latent_dim=4, hidden=16, node_width=8))
+    monkeypatch.setattr(latents, "cvae_module", lambda checkpoint: SimpleNamespace(actor=actor, central=central))
+    monkeypatch.setattr(latents, "scenario_of", lambda checkpoint: config)
+    sample = latents.collect_latents(Path("checkpoint"), [3], pairs_per_step=3, sample_seed=1)
+    # the same episode by hand: min(3, n (n - 1)) ordered pairs of the n acting vehicles at every env step
+    env = DrivingEnv(config)
+    obs, _ = env.reset(seed=3)
+    expected = []
+    while not env.episode_over:
+        n = len(env.agents)
+        expected += [env.sim.episode_step] * min(3, n * (n - 1))
+        with torch.no_grad():
+            act = actor(torch.as_tensor(np.stack([obs[a] for a in env.agents]))).numpy()
+        obs.update(env.step(dict(zip(env.agents, act)))[0])
+    assert sample.env_step.tolist() == expected
+    assert len(set(np.bincount(expected))) > 1  # the number of pairs changes along the episode
+    assert sample.z.shape == (len(expected), 4) and np.isfinite(sample.z).all()
+    assert (sample.scenario == "bottleneck").all() and (sample.distance > 0).all()

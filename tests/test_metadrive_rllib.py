@@ -14,10 +14,10 @@ from ray.rllib.algorithms.ppo import PPOConfig  # noqa: E402
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig  # noqa: E402
 
 from coin_app.adapters.rllib_env import register_envs  # noqa: E402
-from coin_app.algorithms.common import policy_mapping_fn
-from coin_app.algorithms.registry import build_config  # noqa: E402
+from coin_app.algorithms.common import policy_mapping_fn, scenario_config_of  # noqa: E402
 from coin_app.backends.metadrive import open_in_this_process  # noqa: E402
 from coin_app.cli import main  # noqa: E402
+from coin_app.training import build_config  # noqa: E402
 
 SMALL = {"backend": "metadrive", "num_agents": 4, "horizon": 40, "max_agent_steps": 40}
 
@@ -104,7 +104,7 @@ def test_ppo_family_iteration_on_metadrive(algorithm):
     try:
         result = algo.train()
         assert math.isfinite(float(result["learners"]["shared"]["vf_loss"]))
-        assert algo.config.env_config["backend"] == "metadrive"
+        assert scenario_config_of(algo.config).backend == "metadrive"
     finally:
         algo.stop()
     assert not open_in_this_process()

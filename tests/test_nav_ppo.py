@@ -9,11 +9,11 @@ import pytest
 import torch
 from torch import nn
 
-from coin_app.algorithms.registry import build_config
 from coin_app.cli import main
 from coin_app.evaluation.arena_suite import PAPER_TABLE_I, evaluate_suite, parse_cases, summarize
 from coin_app.inference import export_numpy, load_policy
 from coin_app.inference.switching import SwitchingPolicy, target_distance, write_pair
+from coin_app.training import build_config
 
 
 def arena_obs(distances):
@@ -105,7 +105,8 @@ TINY = ["train_batch_size_per_learner=400", "minibatch_size=200", "num_epochs=2"
 
 def test_both_stages_train_export_pair_and_evaluate(ray_session, tmp_path, capsys):
     cfg = build_config("nav_ppo", "arena", {"stage": "short"}, 0)
-    assert cfg.env_config["generator"] == "short" and cfg.env_config["max_vehicles"] == 8 and not cfg.use_kl_loss
+    arena = cfg.env_config["scenario_config"]  # the stage's scenario mix, parsed once
+    assert arena.generator == "short" and arena.max_vehicles == 8 and not cfg.use_kl_loss
     assert cfg.model_config["fcnet_hiddens"] == [256, 256]
     exported = {}
     for stage, budget in (("long", ["--steps", "400"]), ("short", ["--steps", "1000000000", "--max-minutes", "0.0001"])):

@@ -8,8 +8,8 @@ import ray
 import torch
 
 from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS, CriticInputs
-from coin_app.algorithms.registry import build_config
 from coin_app.sim.road_map import load_map
+from coin_app.training import build_config
 
 # cars that leave the road fast (no brakes) so that vehicles respawn within the sample
 NO_BRAKES = {"brake_linear": 0.0, "brake_sat_intercept": 0.0, "brake_sat_slope": 0.0, "coast_decel": 0.0, "throttle_accel": 8.0}

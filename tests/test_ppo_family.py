@@ -1,4 +1,5 @@
-"""IPPO: the PPO losses by hand, the learner's clipped value loss wiring, training, checkpoint, export, evaluation."""
+"""The PPO family: specs, the modules' deterministic actors, the PPO losses by hand, the clipped value loss wiring,
+training, checkpoint, export, evaluation."""
 
 import json
 import math
@@ -7,12 +8,58 @@ import re
 import numpy as np
 import pytest
 import torch
+from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 
-from coin_app.algorithms.checkpoints import deterministic_actor, load_module
+from coin_app.algorithms.checkpoints import actor_module, load_module
+from coin_app.algorithms.copo.copo import COPO
+from coin_app.algorithms.nav_ppo.config import NAV_PPO
+from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS
+from coin_app.algorithms.ppo_family.config import CENTRAL_KEYS, CPPO, HYPERPARAMETERS, IPPO, MFPO
 from coin_app.algorithms.ppo_family.learner import OLD_VALUES, OldValuePredictions
 from coin_app.algorithms.ppo_family.losses import clipped_value_loss, surrogate_loss
-from coin_app.algorithms.registry import build_config
+from coin_app.algorithms.spec import DRIVING_SCENARIOS, ActorModule
 from coin_app.cli import main
+from coin_app.training import build_config, fresh_module
+
+
+def test_specs_declare_keys_capabilities_and_scenarios():
+    specs = (IPPO, CPPO, MFPO, COPO, NAV_PPO)
+    assert [s.name for s in specs] == ["ippo", "cppo", "mfpo", "copo", "nav_ppo"]
+    assert IPPO.keys() == tuple(HYPERPARAMETERS) and CPPO.keys() == MFPO.keys() == (*HYPERPARAMETERS, *CENTRAL_KEYS)
+    assert COPO.keys()[: len(HYPERPARAMETERS)] == tuple(HYPERPARAMETERS) and "initial_lcf_mean" in COPO.keys()
+    assert all(s.capabilities.on_policy and not s.capabilities.joint_replay for s in specs)
+    assert [s.capabilities.centralized_critic for s in specs] == [False, True, True, True, False]
+    assert all(s.scenarios == DRIVING_SCENARIOS for s in specs[:4]) and NAV_PPO.scenarios == ("arena",)
+    assert all(s.quick == {"hidden": 64} for s in specs)
+    assert NAV_PPO.scenario_defaults({})["generator"] == "agnn" and NAV_PPO.scenario_defaults({"stage": "short"})["generator"] == "short"
+
+
+@pytest.mark.parametrize("name", ["ippo", "cppo", "mfpo", "copo", "nav_ppo"])
+def test_deterministic_actor_is_the_clipped_mean_of_forward_inference(name):
+    overrides = {"hidden": 16, "initial_lcf_mean": 0.4} if name == "copo" else {"hidden": 16}
+    module = fresh_module(name, overrides=overrides)
+    assert isinstance(module, ActorModule)
+    torch.manual_seed(0)
+    with torch.no_grad():  # RLlib initializes the policy head near zero; move every weight so actions differ and clip
+        for p in module.parameters():
+            p.add_(torch.randn_like(p))
+    obs = torch.rand(64, 13 if name == "nav_ppo" else 91)  # CoPO: the plain observation, the learned mean LCF folded in
+    with torch.no_grad():
+        actions = module.deterministic_actor()(obs)
+    assert actions.shape == (64, 2) and actions.abs().max() == 1.0 and (actions.abs() < 1).any()
+    torch.testing.assert_close(actions, module.inference_actions(obs), atol=1e-5, rtol=0)  # the export parity bound
+
+
+def test_a_ppo_module_saved_before_the_contract_still_gives_its_actor():
+    new = fresh_module("ippo", overrides={"hidden": 16})
+    old = DefaultPPOTorchRLModule(
+        observation_space=new.observation_space, action_space=new.action_space, model_config=new.model_config, inference_only=False
+    )
+    old.load_state_dict(new.state_dict())
+    assert not isinstance(old, ActorModule)  # RLlib's class, as a checkpoint of the previous layout stores it
+    obs = torch.rand(32, new.observation_space.shape[0])
+    with torch.no_grad():
+        assert torch.equal(actor_module(old).deterministic_actor()(obs), new.deterministic_actor()(obs))
 
 
 def test_surrogate_loss_by_hand():
@@ -90,7 +137,7 @@ def test_ippo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
     obs = torch.rand(20, 91)
     with torch.no_grad():
         mean = module.forward_inference({"obs": obs})["action_dist_inputs"][:, :2]
-        np.testing.assert_allclose(deterministic_actor(module)(obs).numpy(), mean.clamp(-1, 1).numpy(), atol=1e-6)
+        np.testing.assert_allclose(module.deterministic_actor()(obs).numpy(), mean.clamp(-1, 1).numpy(), atol=1e-6)
     assert main(["export", str(ckpt), "--out", str(tmp_path / "ippo.npz")]) == 0
     gap = float(re.search(r"forward_inference\| on 256 random obs = ([0-9.e+-]+)", capsys.readouterr().out).group(1))
     assert gap < 1e-5
@@ -102,8 +149,6 @@ def test_ippo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
 
 @pytest.mark.parametrize("variant", ["cppo", "mfpo"])
 def test_centralized_variants_train(ray_session, variant):
-    from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS
-
     algo = build_config(variant, "bottleneck", TINY, 0).build_algo()
     try:
         learner = algo.learner_group._learner

@@ -11,8 +11,8 @@ import ray
 
 from coin_app.cli import main
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
+from coin_app.evaluation.sweep_results import load_trials
 from coin_app.sim.seeds import TEST_SEED_BASE, VALIDATION_SEED_BASE
-from tuning.results import load_trials
 
 METRIC_COLUMNS = [c for c in RESULT_COLUMNS if c != "wall_time_s"]
 

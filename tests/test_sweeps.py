@@ -11,12 +11,13 @@ from pathlib import Path
 import pytest
 import ray
 
+from coin_app import training
 from coin_app.algorithms import registry
 from coin_app.cli import main
+from coin_app.evaluation.sweep_results import load_trials, trial_name
 from tuning import EXPERIMENTS, get_experiment
 from tuning.ablations import VARIANTS
-from tuning.experiment import expand_grid, trial_name, trial_overrides
-from tuning.results import load_trials
+from tuning.experiment import expand_grid, trial_overrides
 from tuning.sweep import check_address, validate_trials
 
 REPO = Path(__file__).resolve().parent.parent
@@ -46,9 +47,9 @@ def test_ablation_variants_change_exactly_the_named_modules():
     by_variant = {t["variant"]: t for t in expand_grid(space) if t["seed"] == 0}
     assert trial_overrides(by_variant["full"]) == {}
     assert trial_overrides(by_variant["wo_both"]) == {"local_module": "none", "global_module": "none", "vae_weight": 0.0}
-    cfg = registry.build_config("cig_td3", "intersection", trial_overrides(by_variant["sparse_graph"]), 0)
+    cfg = training.build_config("cig_td3", "intersection", trial_overrides(by_variant["sparse_graph"]), 0)
     assert cfg.graph == 40.0 and cfg.local_module == "cvae" and cfg.global_module == "gat"
-    cfg = registry.build_config("cig_td3", "intersection", trial_overrides(by_variant["wo_gat"]), 0)
+    cfg = training.build_config("cig_td3", "intersection", trial_overrides(by_variant["wo_gat"]), 0)
     assert cfg.global_module == "none" and cfg.local_module == "cvae"
     # smoke scale: quick scenario + smoke settings, then the variant, then the user's overrides
     smoke = expand_grid(get_experiment("ablations").param_space("intersection", "smoke", overrides={"horizon": 200}))

@@ -5,7 +5,7 @@ sets: ablations) and, per scale, the seeds, the env-step budget per trial, the c
 cadence and, for generalization, the agent counts and test seeds to evaluate the final
 checkpoints at. :meth:`Experiment.param_space` turns it into the dict Tune expands with
 ``tune.grid_search``; :func:`expand_grid` expands the same grid in plain Python so every
-trial's config is validated (``registry.build_config``) before any work starts.
+trial's config is validated (``training.build_config``) before any work starts.
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ray import tune
+
+from coin_app.algorithms import registry
 
 SCALES = ("paper", "smoke")
 
@@ -62,8 +64,6 @@ class Experiment:
 
     def check(self, scenario: str, methods: tuple[str, ...], seeds: tuple[int, ...] | None) -> None:
         """A ValueError naming the bad scenario, method or seed list and what is allowed."""
-        from coin_app.algorithms import registry
-
         if scenario not in self.scenarios:
             raise ValueError(f"experiment {self.name!r} runs on {', '.join(self.scenarios)}; got scenario {scenario!r}")
         for m in methods:
@@ -115,16 +115,8 @@ def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:
 
 def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     """The registry overrides of one trial: smoke settings (smoke scale), then the variant's, then the user's ``--set``."""
-    from coin_app.algorithms import registry
-
     algo = config["algo"]
     smoke: dict[str, Any] = {}
     if config["scale"] == "smoke":
         smoke = registry.quick_settings(algo) | (SMOKE_TD3 if algo in ("cig_td3", "itd3") else SMOKE_PPO)
     return smoke | config["variant_overrides"][config["variant"]] | config["overrides"]
-
-
-def trial_name(config: dict[str, Any]) -> str:
-    """``<algo>-<variant>-s<seed>`` (``<algo>-s<seed>`` for the default variant)."""
-    variant = "" if config["variant"] == "default" else f"-{config['variant']}"
-    return f"{config['algo']}{variant}-s{config['seed']}"

@@ -1,7 +1,7 @@
 """Run, resume and summarize a sweep (``python -m coin_app sweep``).
 
 * Everything is checked before any work: the experiment name, scenario, methods and seeds,
-  every trial's full config (``registry.build_config``), the storage, the cluster address
+  every trial's full config (``training.build_config``), the storage, the cluster address
   (a TCP probe with a short timeout, so an unreachable head fails fast) and that a fresh
   sweep does not overwrite an existing one (``--resume`` continues it instead).
 * A fresh sweep writes ``coin_sweep.json`` (what was asked) into its experiment directory and
@@ -27,8 +27,14 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
+import ray
+from ray import tune
+
+from coin_app.evaluation.generalization import evaluate_at_counts
+from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings, trial_name
 from tuning import get_experiment
-from tuning.results import SETTINGS_FILE, load_trials, read_settings
+from tuning.experiment import expand_grid
+from tuning.trainable import CoinTrial, build_trial_config
 
 EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
 
@@ -62,8 +68,6 @@ def experiment_path(storage: str, name: str) -> Path:
 
 def validate_trials(space: dict[str, Any]) -> list[dict[str, Any]]:
     """Every trial config of the param space, each built once so a bad value is refused before any work."""
-    from tuning.experiment import expand_grid
-    from tuning.trainable import build_trial_config
 
     trials = expand_grid(space)
     for t in trials:
@@ -89,11 +93,6 @@ def run_sweep(
     command: str | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) one sweep; returns its summary (experiment directory, trials, generalization CSV)."""
-    import ray
-    from ray import tune
-
-    from tuning.experiment import trial_name
-    from tuning.trainable import CoinTrial
 
     exp = get_experiment(experiment)
     sc = exp.scale(scale)
@@ -201,7 +200,6 @@ def write_generalization(
     log: Callable[[str], None] = print,
 ) -> Path:
     """Evaluate every finished trial's final checkpoint at each agent count; write ``generalization.csv`` in ``path``."""
-    from coin_app.evaluation.generalization import evaluate_at_counts
 
     settings = read_settings(path)
     counts = list(counts or settings["counts"])

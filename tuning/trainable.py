@@ -2,7 +2,7 @@
 
 A class trainable, so Tune's own ``CheckpointConfig`` (frequency, keep-N, at end) and
 ``Tuner.restore`` apply. Each ``step`` is one RLlib iteration and reports
-``registry.iteration_metrics`` (env steps, returns, agent outcomes, learner losses, periodic
+``training.iteration_metrics`` (env steps, returns, agent outcomes, learner losses, periodic
 validation metrics); the trial is done once ``steps`` env steps are sampled. Checkpoints are
 coin_app checkpoints (RLlib's layout plus ``coin_app.json``), so ``python -m coin_app
 evaluate|export`` take any of them directly.
@@ -15,12 +15,12 @@ from typing import Any
 
 from ray import tune
 
+from coin_app.training import build_config, checkpoint_meta, iteration_metrics, save
 from tuning.experiment import trial_overrides
 
 
 def build_trial_config(config: dict[str, Any]) -> Any:
     """The validated RLlib config of one trial (raises ValueError naming any bad value)."""
-    from coin_app.algorithms.registry import build_config
 
     return build_config(config["algo"], config["scenario"], trial_overrides(config), int(config["seed"]))
 
@@ -38,7 +38,6 @@ class CoinTrial(tune.Trainable):
 
     def setup(self, config: dict[str, Any]) -> None:
         """Build the algorithm; remember what every checkpoint's metadata says."""
-        from coin_app.algorithms.registry import checkpoint_meta
 
         self.steps = int(config["steps"])
         self.last: dict[str, Any] = {}
@@ -54,7 +53,6 @@ class CoinTrial(tune.Trainable):
 
     def step(self) -> dict[str, Any]:
         """One RLlib training iteration; done once ``steps`` env steps are sampled."""
-        from coin_app.algorithms.registry import iteration_metrics
 
         sampled = int(self.algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
         if sampled >= self.steps and self.last:  # restored at or past the budget (a resume right after the last step)
@@ -64,7 +62,6 @@ class CoinTrial(tune.Trainable):
 
     def save_checkpoint(self, checkpoint_dir: str) -> None:
         """Write a coin_app checkpoint (algorithm state and metadata) into Tune's checkpoint directory."""
-        from coin_app.algorithms.registry import save
 
         save(self.algo, Path(checkpoint_dir), self.meta)
 

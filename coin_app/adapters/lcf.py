@@ -1,4 +1,4 @@
-"""Local coordination factors (LCF) of CoPO, env side (``shared/reference/copo_baselines.md`` §2.3).
+"""Local coordination factors (LCF) of CoPO, env side (CoPO paper; ``docs/decisions.md`` §7.4).
 
 Each agent gets one LCF ``lcf ~ N(mean, std)`` clipped to [-1, 1] when its id first appears
 (spawn or respawn) and keeps it for its whole life; the agent's observation gets one more

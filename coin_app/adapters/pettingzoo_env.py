@@ -21,7 +21,10 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from coin_app.backends.factory import make_driving_env
-from coin_app.sim.config import ScenarioConfig, config_from_dict
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.rendering import render_frame
+from coin_app.sim.scenarios import config_from_dict
 
 
 class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
@@ -44,7 +47,6 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         render_mode: str | None = None,
         **overrides: Any,
     ):
-        from coin_app.sim.arena.config import ArenaConfig
 
         config: Any
         if isinstance(scenario, (ScenarioConfig, ArenaConfig)):
@@ -110,7 +112,6 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
-        from coin_app.sim.rendering import render_frame
 
         return render_frame(self.driving_env)
 

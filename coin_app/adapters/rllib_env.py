@@ -1,6 +1,6 @@
 """RLlib (2.60, new API stack) ``MultiAgentEnv`` adapter of the driving env, and its registration.
 
-Contract of :class:`CoinMultiAgentEnv` (``shared/reference/rllib_2_60.md`` sections 0, 1, 3):
+Contract of :class:`CoinMultiAgentEnv` (``docs/decisions.md`` §6.1-6.3):
 
 * ``possible_agents`` is the whole id pool of an episode; ``observation_spaces`` /
   ``action_spaces`` map every pool id to one shared ``Box`` object, so an agent that
@@ -17,7 +17,7 @@ Contract of :class:`CoinMultiAgentEnv` (``shared/reference/rllib_2_60.md`` secti
   the vector env resets this env.
 * ``truncateds["__all__"]`` is True when the episode is over and every agent that finished
   in the last step finished by a time limit. RLlib still marks such an episode (and its
-  agents) as terminated as well (section 0.5).
+  agents) as terminated as well (``docs/decisions.md`` §6.2 item 5).
 * A vehicle's own step limit (``max_step``) and the env's force stop are per-agent
   ``truncated=True, terminated=False``; arrival, crash and leaving the road are
   ``terminated=True``.
@@ -48,7 +48,8 @@ from coin_app.adapters.lcf import LocalCoordination
 from coin_app.backends.factory import make_driving_env
 from coin_app.sim import schema
 from coin_app.sim.arena.config import ArenaConfig
-from coin_app.sim.config import ScenarioConfig, config_from_dict, scenario_name
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.scenarios import config_from_dict, scenario_name
 
 OUTCOMES = ("finished", "succeeded", "collided")  # agent outcome counts of CoinMultiAgentEnv.outcomes
 SCENARIO_CONFIG_KEY = "scenario_config"  # env_config key of an already parsed (typed) scenario config

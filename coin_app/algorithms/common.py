@@ -14,7 +14,8 @@ from ray.rllib.callbacks.callbacks import RLlibCallback
 
 from coin_app.adapters.rllib_env import ADAPTER_KEYS, ENV_IDS, OUTCOMES, SCENARIO_CONFIG_KEY, CoinMultiAgentEnv
 from coin_app.sim.arena.config import ArenaConfig
-from coin_app.sim.config import ScenarioConfig, config_from_dict
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.scenarios import config_from_dict
 
 SHARED_MODULE_ID = "shared"
 
@@ -29,9 +30,20 @@ def scenario_config_of(config: AlgorithmConfig) -> ScenarioConfig | ArenaConfig:
     if not isinstance(config.env, str) or config.env not in ENV_IDS:
         raise ValueError(f"coin_app algorithms need one of the registered envs {sorted(ENV_IDS)}, got env={config.env!r}")
     env_config = dict(config.env_config or {})
-    if SCENARIO_CONFIG_KEY in env_config:  # parsed once where the run was set up
+    if SCENARIO_CONFIG_KEY in env_config:  # parsed once where the run was set up (training.build_config)
         return env_config[SCENARIO_CONFIG_KEY]
-    return config_from_dict(ENV_IDS[config.env], {k: v for k, v in env_config.items() if k not in ADAPTER_KEYS})
+    overrides = {k: v for k, v in sorted(env_config.items()) if k not in ADAPTER_KEYS}  # a config built by hand
+    return _parsed(ENV_IDS[config.env], repr(overrides), overrides)
+
+
+_PARSED: dict[tuple[str, str], ScenarioConfig | ArenaConfig] = {}
+
+
+def _parsed(scenario: str, key: str, overrides: dict[str, Any]) -> ScenarioConfig | ArenaConfig:
+    """``config_from_dict(scenario, overrides)``, parsed once per distinct overrides (``key`` is their repr)."""
+    if (scenario, key) not in _PARSED:
+        _PARSED[scenario, key] = config_from_dict(scenario, overrides)
+    return _PARSED[scenario, key]
 
 
 def coin_envs(env_runner: Any) -> list[CoinMultiAgentEnv]:

@@ -55,6 +55,7 @@ import numpy as np
 from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.driving_env import checked_actions
+from coin_app.sim.rendering import render_frame
 from coin_app.sim.road_map import RoadMap, load_map
 from coin_app.sim.sensors import local_state
 from coin_app.sim.simulator import ACTIVE, DYING, MAX_RESPAWN_PER_STEP, agent_name
@@ -118,12 +119,12 @@ def _import_metadrive(assets: str) -> Any:
     if not metadrive_available():
         raise ImportError(f"backend 'metadrive' needs the metadrive-simulator package, which is not installed; {INSTALL_HINT}")
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame (top-down renderer) without a display
-    from metadrive.engine.base_engine import BaseEngine
+    from metadrive.engine.base_engine import BaseEngine  # optional: the MetaDrive extra
 
     original = BaseEngine.__dict__.get("_coin_original_pull", BaseEngine.__dict__["try_pull_asset"])
     BaseEngine._coin_original_pull = original
     BaseEngine.try_pull_asset = staticmethod(lambda: None) if assets == "skip" else original
-    import metadrive.envs.marl_envs as marl
+    import metadrive.envs.marl_envs as marl  # optional: the MetaDrive extra
 
     return marl
 
@@ -131,7 +132,7 @@ def _import_metadrive(assets: str) -> Any:
 def _env_class(scenario: str, assets: str) -> type:
     """A subclass of MetaDrive's env for ``scenario`` that seeds its spawns and records final local states."""
     marl = _import_metadrive(assets)
-    from metadrive.base_class.randomizable import Randomizable
+    from metadrive.base_class.randomizable import Randomizable  # optional: the MetaDrive extra
 
     base = getattr(marl, ENV_CLASSES[scenario])
 
@@ -365,8 +366,6 @@ class MetaDriveDrivingEnv:
         """Top-down RGB frame (H, W, 3) uint8: coin_app's renderer (``"topdown"``) or MetaDrive's (``"metadrive_topdown"``)."""
         self._require_open()
         if mode == "topdown":
-            from coin_app.sim.rendering import render_frame
-
             return render_frame(self, size=size)
         if mode == "metadrive_topdown":
             return np.asarray(self.md.render(mode="topdown", window=False, screen_size=size))

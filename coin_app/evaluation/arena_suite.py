@@ -16,6 +16,7 @@ Cases run in worker processes (one CPU thread each); each loads the policy from 
 
 from __future__ import annotations
 
+import multiprocessing as mp
 import os
 import time
 from collections.abc import Callable
@@ -23,10 +24,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
+import torch
 
+from coin_app.evaluation.policies import as_policy
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
+from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.rendering import ArenaTrace, plot_arena_episode
 
 # Table I: (our agent success, A-GNN success, our agent collision rate, A-GNN collision rate); None where the paper has "-"
 PAPER_TABLE_I: dict[tuple[int, int], tuple[float, float, float | None, float | None]] = {
@@ -98,10 +104,7 @@ def suite_config(max_steps: int = 400) -> ArenaConfig:
 def load_arena_policy(source: str | Path) -> Callable[[np.ndarray], np.ndarray]:
     """``"heuristic"`` (the scripted driver) or any policy source of ``as_policy`` (checkpoint, .npz, pair .json)."""
     if str(source) == "heuristic":
-        from coin_app.sim.arena.heuristic import heuristic_actions
-
         return heuristic_actions
-    from coin_app.evaluation.policies import as_policy
 
     return as_policy(source)
 
@@ -125,7 +128,6 @@ def run_scenario(policy: Callable[[np.ndarray], np.ndarray], env: ArenaEnv, layo
 
 def plot_scenarios(source: str | Path, cases: list[tuple[int, int]], count: int, out: Path, max_steps: int = 400) -> list[Path]:
     """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores)."""
-    from coin_app.sim.arena.rendering import ArenaTrace, plot_arena_episode
 
     policy = load_arena_policy(source)
     cfg = suite_config(max_steps)
@@ -146,8 +148,6 @@ def evaluate_case(job: tuple[str, tuple[int, int], list[int], int]) -> list[dict
     """Rows (one per scenario) of test scenarios ``indices`` of one case (a worker job)."""
     source, (n, m), indices, max_steps = job
     try:
-        import torch
-
         torch.set_num_threads(1)
     except ImportError:
         pass
@@ -170,7 +170,6 @@ def evaluate_suite(
     log: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
     """Per-scenario rows of every case (deterministic: the same rows on every run)."""
-    import multiprocessing as mp
 
     if scenarios_per_case < 1:
         raise ValueError(f"bad scenarios per case {scenarios_per_case}; allowed: an integer >= 1")
@@ -207,7 +206,6 @@ def evaluate_suite(
 
 def summarize(rows: list[dict[str, Any]]) -> Any:
     """Per case: scenarios, vehicles, success-to-goal rate, collision rate (events / metres), mean step time; next to the paper's."""
-    import pandas as pd
 
     df = pd.DataFrame(rows)
     out = []

@@ -4,7 +4,7 @@
 a perplexity by a vectorized bisection per point, symmetrized; a Student-t embedding fitted by
 gradient descent with momentum, per-coordinate gains and early exaggeration. It is O(n^2) in
 memory and time, meant for the few thousand latent samples of the figure (2,000 points: ~30 MB,
-well under a minute here). :func:`kmeans` is Lloyd's algorithm with k-means++ seeding. Both are
+well under a minute of CPU time). :func:`kmeans` is Lloyd's algorithm with k-means++ seeding. Both are
 deterministic for a given ``seed``.
 """
 

@@ -7,24 +7,25 @@ per env step serves every agent of every episode. On MetaDrive each episode runs
 fresh engine: MetaDrive's physics carries tiny state across resets of one engine, so
 only a fresh engine makes an episode depend on its seed alone. MetaDrive allows one
 engine per process; if this process already has one open (an env runner's), the
-episodes run in a worker process instead.
+episodes run in a worker process instead. Both backends go through the one rollout loop,
+:func:`coin_app.sim.rollout.rollout`.
 
 The seed sets (training, validation, test) are defined in :mod:`coin_app.sim.seeds`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import multiprocessing as mp
+from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
+import cloudpickle
 
+from coin_app.backends import metadrive as metadrive_env
 from coin_app.evaluation.metrics import EpisodeRecorder
 from coin_app.sim.config import ScenarioConfig
-from coin_app.sim.driving_env import result_dicts
-from coin_app.sim.simulator import ACTIVE, DrivingSimulator
-
-Policy = Callable[[np.ndarray], np.ndarray]
+from coin_app.sim.rollout import BatchedEnvs, DictEnvs, Policy, RolloutStep, rollout
+from coin_app.sim.simulator import DrivingSimulator
 
 
 def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int], max_steps: int | None = None) -> list[dict[str, float]]:
@@ -34,32 +35,10 @@ def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int]
         raise ValueError("evaluate_policy needs at least one seed")
     if config.backend == "metadrive":
         return _evaluate_metadrive(policy, config, seeds, max_steps)
-    sim = DrivingSimulator(config, num_envs=len(seeds))
-    res = sim.reset(seeds)
-    returns = np.zeros(sim.num_slots)
-    recorders = [EpisodeRecorder() for _ in seeds]
-    for e, rec in enumerate(recorders):
-        rec.reset(result_dicts(res, sim.env_slots(e), returns, e)[4])
-    obs = res.obs.copy()
-    finished = np.zeros(len(seeds), bool)
     limit = max_steps if max_steps is not None else config.force_stop_factor * config.horizon
-    for _ in range(limit):
-        active = np.nonzero(sim.status == ACTIVE)[0]
-        actions = np.zeros((sim.num_slots, 2))
-        if len(active):
-            act = np.asarray(policy(obs[active]), dtype=float)
-            if act.shape != (len(active), 2):
-                raise ValueError(f"policy returned actions of shape {act.shape}; expected ({len(active)}, 2)")
-            actions[active] = act
-        res = sim.step(actions)
-        fresh = res.acted | res.spawned
-        obs[fresh] = res.obs[fresh]
-        for e in np.nonzero(~finished)[0]:
-            _, rewards, terms, truncs, infos = result_dicts(res, sim.env_slots(e), returns, e)
-            recorders[e].step(infos, terms, truncs, rewards)
-        finished |= res.episode_over
-        if finished.all():
-            break
+    recorders = [EpisodeRecorder() for _ in seeds]
+    for step in rollout(BatchedEnvs(DrivingSimulator(config, num_envs=len(seeds))), policy, seeds, limit):
+        record(step, recorders)
     return [rec.metrics() for rec in recorders]
 
 
@@ -69,29 +48,24 @@ def run_episode(env: Any, policy: Policy, seed: int, max_steps: int, trace: Any 
     ``trace``: an :class:`~coin_app.sim.rendering.EpisodeTrace` to record the native env's vehicles into.
     """
     recorder = EpisodeRecorder()
-    obs, infos = env.reset(seed)
-    recorder.reset(infos)
-    if trace is not None:
-        trace.record(env, infos)
-    for _ in range(max_steps):
-        agents = list(env.agents)
-        act = np.asarray(policy(np.stack([obs[a] for a in agents])), dtype=float) if agents else np.zeros((0, 2))
-        if act.shape != (len(agents), 2):
-            raise ValueError(f"policy returned actions of shape {act.shape}; expected ({len(agents)}, 2)")
-        new_obs, rewards, terms, truncs, infos = env.step(dict(zip(agents, act)))
-        obs.update(new_obs)
-        recorder.step(infos, terms, truncs, rewards)
+    for step in rollout(DictEnvs([env]), policy, [seed], max_steps):
+        record(step, [recorder])
         if trace is not None:
-            trace.record(env, infos)
-        if env.episode_over:
-            break
+            trace.record(env, step.results[0].infos)
     return recorder.metrics()
+
+
+def record(step: RolloutStep, recorders: Sequence[EpisodeRecorder]) -> None:
+    """Feed a rollout step to the recorder of each env it reports (the reset starts the recorder's episode)."""
+    for e, result in step.results.items():
+        if step.t == 0:
+            recorders[e].reset(result.infos)
+        else:
+            recorders[e].step(result.infos, result.terminateds, result.truncateds, result.rewards)
 
 
 def _evaluate_metadrive(policy: Policy, config: ScenarioConfig, seeds: list[int], max_steps: int | None) -> list[dict[str, float]]:
     """MetaDrive episodes, each in a fresh engine; in a worker process if this one already runs MetaDrive."""
-    from coin_app.backends import metadrive as metadrive_env
-
     if metadrive_env.open_in_this_process():
         return _in_worker_process(policy, config, seeds, max_steps)
     limit = max_steps if max_steps is not None else config.force_stop_factor * config.horizon + 1
@@ -103,18 +77,13 @@ def _evaluate_metadrive(policy: Policy, config: ScenarioConfig, seeds: list[int]
 
 
 def _worker(payload: bytes) -> list[dict[str, float]]:
-    import cloudpickle
-
+    """``evaluate_policy`` on a cloudpickled (policy, config, seeds, max_steps)."""
     policy, config, seeds, max_steps = cloudpickle.loads(payload)
     return evaluate_policy(policy, config, seeds, max_steps)
 
 
 def _in_worker_process(policy: Policy, config: ScenarioConfig, seeds: list[int], max_steps: int | None) -> list[dict[str, float]]:
     """``evaluate_policy`` in a fresh spawned process (the policy travels by cloudpickle)."""
-    import multiprocessing as mp
-
-    import cloudpickle
-
     payload = cloudpickle.dumps((policy, config, seeds, max_steps))
     with mp.get_context("spawn").Pool(1) as pool:
         return pool.apply(_worker, (payload,))

@@ -14,7 +14,11 @@ from typing import Any
 
 import pandas as pd
 
-REPORTED = ("success_rate", "collision_rate", "out_of_road_rate", "efficiency", "safety", "avg_travel_steps", "episode_return")
+from coin_app.evaluation.metrics import METRIC_KEYS
+from coin_app.evaluation.protocol import EvalRun, check_grid, run_evaluation
+from coin_app.sim.seeds import eval_test_seeds
+
+REPORTED = (*METRIC_KEYS, "episode_return")
 COLUMNS = ("method", "variant", "seed", "scenario", "agent_count", "trained_agent_count", "metric", "value", "std", "episodes")
 
 
@@ -25,8 +29,6 @@ def evaluate_at_counts(
     log: Callable[[str], None] = print,
 ) -> pd.DataFrame:
     """Tidy metrics of every run (``method``, ``variant``, ``seed``, ``checkpoint``) at every agent count in ``counts``."""
-    from coin_app.evaluation.protocol import EvalRun, check_grid, run_evaluation
-    from coin_app.sim.seeds import eval_test_seeds
 
     check_grid([0], list(counts), None)
     if test_seeds < 1:

@@ -14,6 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from coin_app.algorithms.checkpoints import load_module, scenario_of
+from coin_app.algorithms.cig_td3.pairwise import PairCVAE, PairPacker
+from coin_app.sim.rollout import BatchedEnvs, rollout
+from coin_app.sim.simulator import DrivingSimulator
 
 
 @dataclass
@@ -28,9 +34,6 @@ class LatentSample:
 
 def cvae_module(checkpoint: Path) -> object:
     """The checkpoint's RLModule if its centralized critic has a CVAE; a ValueError naming it otherwise."""
-    from coin_app.algorithms.checkpoints import load_module
-    from coin_app.algorithms.cig_td3.networks import PairCVAE
-
     module = load_module(Path(checkpoint))
     central = getattr(module, "central", None)
     if central is None or not isinstance(central.local, PairCVAE):
@@ -40,46 +43,34 @@ def cvae_module(checkpoint: Path) -> object:
 
 def collect_latents(checkpoint: Path, seeds: list[int], pairs_per_step: int = 8, sample_seed: int = 0) -> LatentSample:
     """CVAE latent means of ego-partner pairs along deterministic episodes of ``checkpoint`` on ``seeds``."""
-    import torch
-
-    from coin_app.algorithms.checkpoints import scenario_of
-    from coin_app.sim.simulator import ACTIVE, DrivingSimulator
-
     module = cvae_module(checkpoint)
     config = scenario_of(Path(checkpoint))
     if config.backend != "native":
         raise ValueError(f"latents are collected on the native backend; {checkpoint} was trained on {config.backend!r}")
     actor, central = module.actor.eval(), module.central.eval()
     rng = np.random.default_rng(sample_seed)
-    sim = DrivingSimulator(config, num_envs=len(seeds))
-    res = sim.reset([int(s) for s in seeds])
-    obs, state = res.obs.copy(), res.state.copy()
-    env_of = np.zeros(sim.num_slots, dtype=int)
-    for e in range(len(seeds)):
-        env_of[sim.env_slots(e)] = e
+    envs = BatchedEnvs(DrivingSimulator(config, num_envs=len(seeds)))
+    sim = envs.sim
     zs, steps, dists = [], [], []
-    for step in range(config.force_stop_factor * config.horizon):
-        active = np.nonzero(sim.status == ACTIVE)[0]
-        if len(active) == 0:
-            break
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        """The actor's actions for the acting vehicles; on the way, the latents of this step's sampled pairs."""
         with torch.no_grad():
-            act = actor(torch.as_tensor(obs[active], dtype=torch.float32)).numpy()
-        egos, partners = _pick_pairs(active, env_of[active], pairs_per_step, rng)
+            action = actor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        active = envs.acting  # the slots of the rows of obs
+        egos, partners = _pick_pairs(active, sim.env_of[active], pairs_per_step, rng)
         if len(egos):
-            where = {slot: k for k, slot in enumerate(active)}
-            ei, pj = np.array([where[s] for s in egos]), np.array([where[s] for s in partners])
+            row = np.zeros(sim.num_slots, dtype=np.int64)
+            row[active] = np.arange(len(active))
             with torch.no_grad():
-                mu = _pair_means(central, obs[egos], state[egos], act[ei], state[partners], act[pj])
+                mu = _pair_means(central, envs.obs[egos], envs.state[egos], action[row[egos]], envs.state[partners], action[row[partners]])
             zs.append(mu)
-            steps.append(np.full(len(egos), step))
+            steps.append(sim.env_step[sim.env_of[egos]])  # env steps taken before this one
             dists.append(np.linalg.norm(sim.pos[egos] - sim.pos[partners], axis=1))
-        actions = np.zeros((sim.num_slots, 2))
-        actions[active] = act
-        res = sim.step(actions)
-        fresh = res.acted | res.spawned
-        obs[fresh], state[fresh] = res.obs[fresh], res.state[fresh]
-        if res.episode_over.all():
-            break
+        return action
+
+    for _ in rollout(envs, act, seeds, config.force_stop_factor * config.horizon):
+        pass
     z = np.concatenate(zs) if zs else np.zeros((0, central.cfg.latent_dim))
     return LatentSample(
         z,
@@ -111,9 +102,6 @@ def _pair_means(
     central: object, obs: np.ndarray, state: np.ndarray, action: np.ndarray, p_state: np.ndarray, p_action: np.ndarray
 ) -> np.ndarray:
     """Posterior means (P, L) of the CVAE for P explicit (ego, partner) pairs."""
-    import torch
-
-    from coin_app.algorithms.cig_td3.networks import PairPacker
 
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.asarray(a, dtype=np.float32))

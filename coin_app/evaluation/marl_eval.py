@@ -18,7 +18,10 @@ from typing import Any
 
 import pandas as pd
 
-MARL_EVAL_METRICS = ("success_rate", "collision_rate", "out_of_road_rate", "efficiency", "safety", "episode_return")
+from coin_app.evaluation.metrics import METRIC_KEYS
+
+# every COIN metric but avg_travel_steps (undefined in an episode without arrivals), and the return
+MARL_EVAL_METRICS = (*(k for k in METRIC_KEYS if k != "avg_travel_steps"), "episode_return")
 ENVIRONMENT = "coin_app"
 
 

@@ -8,7 +8,7 @@ map the ids that acted to their done flags (an ``"__all__"`` key is ignored). Th
 :class:`~coin_app.sim.driving_env.DrivingEnv` and MetaDrive's multi-agent envs both
 produce exactly this.
 
-Counting rules (``shared/reference/decisions.md``, "Metrics"; the same as COIN's
+Counting rules (``docs/decisions.md`` §5.1; the same as COIN's
 ``coin_eval.py`` and CoPO's ``RecorderEnv``):
 
 * Every distinct agent id seen in an episode is one vehicle; respawned vehicles have fresh

@@ -6,13 +6,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-Policy = Callable[[np.ndarray], np.ndarray]
+from coin_app.algorithms.checkpoints import load_checkpoint_policy
+from coin_app.inference import load_policy as load_exported_policy
+from coin_app.inference.switching import load_pair
+from coin_app.sim.rollout import Policy
 
 
 def as_policy(source: Any) -> Policy:
@@ -25,17 +25,11 @@ def as_policy(source: Any) -> Policy:
         )
     path = Path(source)
     if path.is_dir():
-        from coin_app.algorithms.checkpoints import load_policy as load_checkpoint
-
-        return load_checkpoint(path)
+        return load_checkpoint_policy(path)
     if path.is_file() and path.suffix == ".json":
-        from coin_app.inference.switching import load_pair
-
         return load_pair(path, as_policy)
     if path.is_file():
-        from coin_app.inference import load_policy as load_exported
-
-        return load_exported(path)
+        return load_exported_policy(path)
     raise ValueError(
         f"policy source {path} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx, .json)"
     )

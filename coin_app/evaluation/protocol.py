@@ -22,22 +22,22 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
+import torch
 
-EPISODE_METRICS = (
-    "success_rate",
-    "collision_rate",
-    "out_of_road_rate",
-    "efficiency",
-    "safety",
-    "avg_travel_steps",
-    "episode_return",
-    "num_vehicles",
-)
+from coin_app.algorithms.checkpoints import load_checkpoint_policy, read_metadata, scenario_of
+from coin_app.evaluation.evaluate import evaluate_policy
+from coin_app.evaluation.metrics import METRIC_KEYS
+from coin_app.sim.config import DEFAULT_NUM_AGENTS
+from coin_app.sim.scenarios import config_from_dict
+
+EPISODE_METRICS = (*METRIC_KEYS, "episode_return", "num_vehicles")
 KEYS = ("method", "variant", "trained_seed", "test_seed", "scenario", "agent_count", "trained_agent_count")
 RESULT_COLUMNS = (*KEYS, *EPISODE_METRICS, "episode_length", "wall_time_s", "trained_env_steps", "checkpoint")
 
@@ -70,7 +70,6 @@ class Evaluation:
 
 def check_grid(test_seeds: Sequence[int], counts: Sequence[int] | None, scenarios: Sequence[str] | None) -> None:
     """Refuse a bad evaluation grid before any work starts (ValueError naming the value)."""
-    from coin_app.sim.config import DEFAULT_NUM_AGENTS
 
     if not test_seeds:
         raise ValueError("no test seeds; allowed: one or more integers (the fixed test seeds)")
@@ -92,12 +91,9 @@ def evaluate_run(
 
     ``counts`` are agent counts evaluated in addition to the training count (always evaluated).
     """
-    from coin_app.algorithms.checkpoints import load_policy, read_metadata, scenario_of
-    from coin_app.evaluation.evaluate import evaluate_policy
-    from coin_app.sim.config import config_from_dict
 
     meta = read_metadata(Path(run.checkpoint))
-    policy = load_policy(Path(run.checkpoint))
+    policy = load_checkpoint_policy(Path(run.checkpoint))
     trained = scenario_of(Path(run.checkpoint))
     env_steps = run.trained_env_steps if run.trained_env_steps is not None else meta.get("env_steps")
     rows = []
@@ -136,7 +132,6 @@ def _task(run: EvalRun, test_seeds: list[int], counts: list[int] | None, scenari
 
 
 def _init_worker() -> None:
-    import torch
 
     torch.set_num_threads(1)
 
@@ -150,8 +145,6 @@ def run_evaluation(
     log: Callable[[str], None] = print,
 ) -> Evaluation:
     """Evaluate every run on the test seeds x scenarios x agent counts grid; one row per episode."""
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from multiprocessing import get_context
 
     seeds = [int(s) for s in test_seeds]
     check_grid(seeds, None if counts is None else list(counts), None if scenarios is None else list(scenarios))

@@ -28,9 +28,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from coin_app.algorithms.checkpoints import load_checkpoint_policy, scenario_of
 from coin_app.evaluation import plots, statistics, tables
+from coin_app.evaluation.embedding import kmeans, tsne
+from coin_app.evaluation.evaluate import run_episode
+from coin_app.evaluation.html_report import write_html
+from coin_app.evaluation.latents import collect_latents
 from coin_app.evaluation.marl_eval import run_label, write_marl_eval
-from coin_app.evaluation.protocol import EvalRun, read_results, run_evaluation, write_results
+from coin_app.evaluation.protocol import EvalRun, Evaluation, read_results, run_evaluation, write_results
+from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings
+from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.rendering import EpisodeTrace, plot_trajectories
+from coin_app.sim.seeds import eval_test_seeds
 
 Log = Callable[[str], None]
 
@@ -74,7 +83,6 @@ class Sources:
 
 def gather(paths: Sequence[Path]) -> Sources:
     """Classify every source path; a ValueError naming a path that is none of the allowed kinds."""
-    from tuning.results import SETTINGS_FILE, load_trials, read_settings
 
     out = Sources()
     for raw in paths:
@@ -106,7 +114,6 @@ def evaluate_sources(
     sources: Sources, options: ReportOptions, out: Path, log: Log
 ) -> tuple[pd.DataFrame, list[dict[str, Any]], dict[str, Any]]:
     """The combined per-episode table (new evaluations written to ``out``), failures and evaluation settings."""
-    from coin_app.sim.seeds import eval_test_seeds
 
     frames, failures = [t["table"] for t in sources.tables], []
     groups: dict[tuple, list[EvalRun]] = {}
@@ -132,7 +139,6 @@ def evaluate_sources(
             settings["groups"].append({"runs": len(runs), "counts": counts, "test_seeds": seeds, "workers": options.workers})
         table = pd.concat([e.table for e in evaluations], ignore_index=True)
         wall = sum(e.wall_s for e in evaluations)
-        from coin_app.evaluation.protocol import Evaluation
 
         write_results(Evaluation(table, failures, wall), out, {**settings, "command": options.command})
         frames.append(table)
@@ -169,25 +175,18 @@ def learning_curves(table: pd.DataFrame) -> pd.DataFrame:
 
 def trajectory_plot(checkpoint: str, seed: int, path: Path, title: str) -> Path:
     """One deterministic test episode of a checkpoint drawn with every vehicle's path and outcome points."""
-    from coin_app.algorithms.checkpoints import load_policy, scenario_of
-    from coin_app.evaluation.evaluate import run_episode
-    from coin_app.sim.driving_env import DrivingEnv
-    from coin_app.sim.rendering import EpisodeTrace, plot_trajectories
 
     config = scenario_of(Path(checkpoint))
     if config.backend != "native":
         raise ValueError(f"trajectory plots need the native backend; {checkpoint} uses {config.backend!r}")
     env, trace = DrivingEnv(config), EpisodeTrace()
-    m = run_episode(env, load_policy(Path(checkpoint)), seed, config.force_stop_factor * config.horizon + 1, trace=trace)
+    m = run_episode(env, load_checkpoint_policy(Path(checkpoint)), seed, config.force_stop_factor * config.horizon + 1, trace=trace)
     full = f"{title}: success {m['success_rate']:.2f}, {int(m['num_crashed'])} crashes, {int(m['num_out_of_road'])} off-road"
     return plot_trajectories(trace, env.sim.map, path, title=full, width=6.0, dpi=90)
 
 
 def latent_figure(table: pd.DataFrame, method: str, options: ReportOptions, path: Path, log: Log) -> Path:
     """t-SNE of CVAE latents of ``method``'s lowest-seed model per scenario (App. B.1)."""
-    from coin_app.evaluation.embedding import kmeans, tsne
-    from coin_app.evaluation.latents import collect_latents
-    from coin_app.sim.seeds import eval_test_seeds
 
     rows = statistics.main_rows(statistics.at_training_count(table))
     rows = rows[rows["method"] == method].sort_values("trained_seed")
@@ -229,7 +228,6 @@ def _attempt(name: str, figures: dict[str, Any], log: Log, fn: Callable[[], Path
 
 def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None = None, log: Log = print) -> dict[str, Any]:
     """Evaluate the sources and write every table, figure, the marl-eval JSON and report.html into ``out``."""
-    from coin_app.evaluation.html_report import write_html
 
     options = options or ReportOptions()
     options.check()

@@ -1,7 +1,7 @@
 """Statistics of a results table: mean (std) per method, best/second marks, paired t-tests with Bonferroni.
 
 Input is the per-episode table of :mod:`coin_app.evaluation.protocol`. Conventions (the COIN
-paper's Table 5.1 and Section 5.2, ``shared/papers/coin.md``):
+paper's Table 5.1 and Section 5.2; ``docs/decisions.md`` §5.2):
 
 * A method's figure pools every episode of every trained seed at the training agent count
   (8 seeds x 20 test seeds = 160 episodes in the paper): the mean and the sample std
@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 
 @dataclass(frozen=True)
@@ -141,7 +142,6 @@ def paired_tests(
     Degenerate cases: fewer than two pairs or all differences zero give t = p = NaN (never
     significant); the same nonzero difference in every pair gives t = +-inf and p = 0.
     """
-    from scipy import stats
 
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"bad alpha {alpha}; allowed: a number in (0, 1)")

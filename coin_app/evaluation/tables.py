@@ -10,6 +10,7 @@ mean, std, episode count and rank (1 best, 2 second, 0 neither) per metric, one 
 from __future__ import annotations
 
 import math
+from html import escape
 from pathlib import Path
 
 import pandas as pd
@@ -107,7 +108,6 @@ def write_tables(summary: pd.DataFrame, out_dir: Path, stem: str, title: str, la
 
 def to_html(summary: pd.DataFrame, label_header: str = "Method") -> str:
     """HTML tables, one per scenario, best in <b> and second in <u>."""
-    from html import escape
 
     parts = []
     for scenario, metrics, rows in _blocks(summary):

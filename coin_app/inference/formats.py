@@ -20,6 +20,7 @@ from typing import Any
 
 from coin_app.inference.numpy_policy import export_numpy, load_numpy
 from coin_app.inference.onnx_policy import export_onnx, load_onnx
+from coin_app.inference.switching import load_pair
 from coin_app.inference.torchscript_policy import export_torchscript, load_torchscript
 
 # name -> (file suffix, exporter(actor, path, meta), loader(path))
@@ -51,8 +52,6 @@ def load_policy(path: str | Path) -> Any:
     if not path.is_file():
         raise ValueError(f"policy file {path} does not exist")
     if path.suffix == ".json":
-        from coin_app.inference.switching import load_pair
-
         return load_pair(path, load_policy)
     for suffix, _, loader in FORMATS.values():
         if path.suffix == suffix:

@@ -46,7 +46,7 @@ class ExportedPolicy:
 
 def mlp_layers(module: Any) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
     """Weights (out, in), biases and activation names of a torch MLP (``nn.Sequential`` of Linear and activations)."""
-    from torch import nn
+    from torch import nn  # optional: inference stays importable without torch (numpy and ONNX policies need none)
 
     seq = module if isinstance(module, nn.Sequential) else next((m for m in module.modules() if isinstance(m, nn.Sequential)), None)
     if seq is None:

@@ -30,7 +30,7 @@ class OnnxPolicy(ExportedPolicy):
 
     def __init__(self, path: str | Path, threads: int = 1):
         try:
-            import onnxruntime as ort
+            import onnxruntime as ort  # optional: onnx / onnxruntime come with requirements-onnx.txt
         except ImportError as exc:
             raise ValueError(f"loading {path} (onnx) needs onnxruntime ({EXTRA_HINT})") from exc
         options = ort.SessionOptions()
@@ -54,8 +54,8 @@ class OnnxPolicy(ExportedPolicy):
 def export_onnx(actor: Any, path: str | Path, meta: dict[str, Any] | None = None) -> Path:
     """Write a torch actor MLP to ``path`` as an ONNX graph; returns the path."""
     try:
-        import onnx
-        from onnx import TensorProto, helper, numpy_helper
+        import onnx  # optional: onnx / onnxruntime come with requirements-onnx.txt
+        from onnx import TensorProto, helper, numpy_helper  # optional: onnx / onnxruntime come with requirements-onnx.txt
     except ImportError as exc:
         raise ValueError(f"--format onnx needs the onnx package ({EXTRA_HINT})") from exc
     weights, biases, acts = mlp_layers(actor)

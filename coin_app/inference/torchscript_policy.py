@@ -32,7 +32,7 @@ class TorchScriptPolicy(ExportedPolicy):
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """Actions (N, act_dim) for observations (N, obs_dim)."""
-        import torch
+        import torch  # optional: inference stays importable without torch (numpy and ONNX policies need none)
 
         with torch.inference_mode():
             return self.module(torch.from_numpy(self.batch(obs))).numpy()
@@ -40,8 +40,8 @@ class TorchScriptPolicy(ExportedPolicy):
 
 def export_torchscript(actor: Any, path: str | Path, meta: dict[str, Any] | None = None) -> Path:
     """Write a torch actor to ``path`` as TorchScript; returns the path."""
-    import torch
-    from torch import nn
+    import torch  # optional: inference stays importable without torch (numpy and ONNX policies need none)
+    from torch import nn  # optional: inference stays importable without torch (numpy and ONNX policies need none)
 
     first = next((m for m in actor.modules() if isinstance(m, nn.Linear)), None)
     if first is None:
@@ -58,7 +58,7 @@ def export_torchscript(actor: Any, path: str | Path, meta: dict[str, Any] | None
 def load_torchscript(path: str | Path) -> TorchScriptPolicy:
     """Load a TorchScript actor file (``.pt``) written by :func:`export_torchscript`."""
     try:
-        import torch
+        import torch  # optional: inference stays importable without torch (numpy and ONNX policies need none)
     except ImportError as exc:
         raise ValueError(f"loading {path} (torchscript) needs torch; install it or export with --format numpy") from exc
     extra = {EXTRA: ""}

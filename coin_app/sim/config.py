@@ -1,7 +1,7 @@
 """Scenario configuration: every constant of a native driving scenario in one dataclass.
 
 Defaults follow the COIN paper where it speaks (penalties 5, lidar 50 m) and MetaDrive
-0.4.3's multi-agent scenarios elsewhere (``shared/reference/decisions.md``). The preset
+0.4.3's multi-agent scenarios elsewhere (``docs/decisions.md`` §2.1, §3.1). The preset
 ``metadrive_compat`` restores MetaDrive's own values (penalties 10, lidar 40 m).
 """
 
@@ -12,7 +12,6 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.road_map import MAP_NAMES
 
 DEFAULT_NUM_AGENTS = {"intersection": 30, "roundabout": 40, "bottleneck": 20}
@@ -205,25 +204,6 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     if backend == "metadrive":
         _metadrive_rules(scenario, values)
     return dataclasses.replace(ScenarioConfig(scenario=scenario), **values)
-
-
-def config_from_dict(scenario: str, env_config: dict[str, Any]) -> ScenarioConfig | ArenaConfig:
-    """The config of ``scenario`` from a flat dict of overrides (env_config, checkpoint metadata, ``--set``).
-
-    Driving scenarios: ``make_config`` (the dict may hold ``preset``); ``"arena"``: an
-    :class:`~coin_app.sim.arena.config.ArenaConfig` (no presets).
-    """
-    values = dict(env_config)
-    if scenario == "arena":
-        if "preset" in values:
-            raise ValueError(f"the arena has no presets (got preset={values['preset']!r})")
-        return make_arena_config(**values)
-    return make_config(scenario, values.pop("preset", "paper"), **values)
-
-
-def scenario_name(config: ScenarioConfig | ArenaConfig) -> str:
-    """The scenario name of a parsed config (``"arena"`` for an :class:`ArenaConfig`)."""
-    return "arena" if isinstance(config, ArenaConfig) else config.scenario
 
 
 def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:

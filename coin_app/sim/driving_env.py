@@ -26,7 +26,7 @@ class DrivingEnv:
         self.sim = DrivingSimulator(self.config)
         self.possible_agents = [agent_name(i) for i in range(self.sim.max_agent_ids)]
         self.observation_space = gym.spaces.Box(0.0, 1.0, (self.config.obs_dim,), np.float32)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (schema.ACT_DIM,), np.float32)
         self.agents: list[str] = []
         self._slot_of: dict[str, int] = {}
         self._returns = np.zeros(self.sim.num_slots)
@@ -49,7 +49,7 @@ class DrivingEnv:
         """Apply one action per agent in ``agents``; returns obs, rewards, terminations, truncations, infos."""
         if self.episode_over:
             raise RuntimeError("the episode is over (every vehicle is done); call reset() first")
-        arr = np.zeros((self.sim.num_slots, 2))
+        arr = np.zeros((self.sim.num_slots, schema.ACT_DIM))
         for aid, a in checked_actions(actions, self.agents).items():
             arr[self._slot_of[aid]] = a
         return self._unpack(self.sim.step(arr))
@@ -82,7 +82,7 @@ def checked_actions(actions: dict[str, Any], agents: list[str]) -> dict[str, np.
     out = {}
     for aid, a in actions.items():
         a = np.asarray(a, dtype=float).reshape(-1)
-        if a.shape != (2,):
+        if a.shape != (schema.ACT_DIM,):
             raise ValueError(f"action of {aid} must have 2 numbers [steer, throttle_brake], got shape {a.shape}")
         out[aid] = a
     return out

@@ -15,9 +15,11 @@ from functools import cache
 
 import numpy as np
 
+from coin_app.sim import schema
 from coin_app.sim.config import make_config
 from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.road_map import RoadMap, load_map
+from coin_app.sim.rollout import BatchedEnvs, rollout
 from coin_app.sim.simulator import ACTIVE, DrivingSimulator
 
 LANE_CHANGE_COST = 15.0  # metres of detour charged per lane change
@@ -25,6 +27,7 @@ EXTENSION = 40.0  # metres of straight path appended past the final lane's end
 PROGRESS_WINDOW = 20  # path points searched ahead of the last progress each step
 CURVE_LOOKAHEAD = 40.0  # metres of path scanned for curvature when choosing the speed
 GAP_RANGE = 40.0  # metres within which a vehicle ahead limits the speed
+OUTCOME_PRIORITY = (schema.ARRIVE_DEST, schema.OUT_OF_ROAD, schema.CRASH_VEHICLE, schema.MAX_STEP)  # MetaDrive's terminal priority
 
 
 def _lane_graph(m: RoadMap, min_radius: float) -> dict[int, list[tuple[int, float, bool]]]:
@@ -50,7 +53,7 @@ def _lane_points(m: RoadMap, lane: int, s0: float, s1: float) -> np.ndarray:
     """Centre-line points of ``lane`` every metre for s in [s0, s1]."""
     s = np.arange(s0, s1 + 1e-9, 1.0)
     if len(s) == 0:
-        return np.zeros((0, 2))
+        return np.zeros((0, schema.ACT_DIM))
     return m.position(np.full(len(s), lane), s, np.zeros(len(s)))
 
 
@@ -114,7 +117,13 @@ def route_path(m: RoadMap, route: int, min_radius: float = 4.0) -> np.ndarray:
 
 
 class HeuristicDriver:
-    """Route-following driver for every agent of a :class:`DrivingEnv` or simulator (privileged state)."""
+    """Route-following driver for every agent of a :class:`DrivingEnv` or simulator (privileged state).
+
+    Called on a batch of observations it is a :data:`~coin_app.sim.rollout.Policy` for
+    :func:`~coin_app.sim.rollout.rollout`: it ignores the observations and drives the acting
+    vehicles of its own simulator. Its actions are float32 (the env's action space) when it
+    drives a :class:`DrivingEnv`, float64 on a bare simulator.
+    """
 
     def __init__(
         self,
@@ -128,6 +137,7 @@ class HeuristicDriver:
     ):
         self.env = env if isinstance(env, DrivingEnv) else None
         self.sim = env.sim if isinstance(env, DrivingEnv) else env
+        self.dtype = env.action_space.dtype if isinstance(env, DrivingEnv) else np.dtype(np.float64)
         m = self.sim.map
         paths = route_paths(m.name)
         k = max(len(p) for p in paths)
@@ -145,6 +155,13 @@ class HeuristicDriver:
         self.progress = np.zeros(self.sim.num_slots, dtype=np.int64)
         self._owner = np.full(self.sim.num_slots, -1, dtype=np.int64)
 
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Actions (N, 2) of the N acting vehicles in slot order (the rows of a rollout's observation batch)."""
+        active = np.nonzero(self.sim.status == ACTIVE)[0]
+        if len(obs) != len(active):
+            raise ValueError(f"the heuristic driver drives the {len(active)} acting vehicles of its simulator; got {len(obs)} observations")
+        return self.act_slots(active).astype(self.dtype)
+
     def actions(self) -> dict[str, np.ndarray]:
         """Actions for every agent that acts next in the wrapped :class:`DrivingEnv`."""
         if self.env is None:
@@ -157,7 +174,7 @@ class HeuristicDriver:
 
     def act_all(self) -> np.ndarray:
         """Actions (num_slots, 2) for every slot of the simulator (zeros where nobody acts)."""
-        out = np.zeros((self.sim.num_slots, 2))
+        out = np.zeros((self.sim.num_slots, schema.ACT_DIM))
         active = np.nonzero(self.sim.status == ACTIVE)[0]
         if len(active):
             out[active] = self.act_slots(active)
@@ -230,20 +247,13 @@ def single_vehicle_outcomes(scenario: str, seeds: list[int], max_steps: int = 80
     single env reset with ``seeds[e]``); outcomes are ``arrive_dest``, ``crash_vehicle``,
     ``out_of_road``, ``max_step`` or ``running``.
     """
-    sim = DrivingSimulator(make_config(scenario, num_agents=1, allow_respawn=False), num_envs=len(seeds))
-    driver = HeuristicDriver(sim)
-    sim.reset(list(seeds))
+    envs = BatchedEnvs(DrivingSimulator(make_config(scenario, num_agents=1, allow_respawn=False), num_envs=len(seeds)))
     outcome = ["running"] * len(seeds)
-    for _ in range(max_steps):
-        res = sim.step(driver.act_all())
-        for slot in np.nonzero(res.terminated | res.truncated)[0]:
-            e = int(sim.env_of[slot])
-            for key in ("arrive_dest", "out_of_road", "crash_vehicle", "max_step"):
-                if getattr(res, key)[slot]:
-                    outcome[e] = key
-                    break
-        if res.episode_over.all():
-            break
+    for step in rollout(envs, HeuristicDriver(envs.sim), seeds, max_steps):
+        for e, result in step.results.items():
+            for aid, terminated in result.terminateds.items():
+                if terminated or result.truncateds[aid]:
+                    outcome[e] = next((key for key in OUTCOME_PRIORITY if result.infos[aid][key]), outcome[e])
     return outcome
 
 

@@ -23,6 +23,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from PIL import Image
 
 from coin_app.sim.road_map import RoadMap
 from coin_app.sim.simulator import ACTIVE, DYING, EMPTY
@@ -333,7 +334,6 @@ def write_gif(frames: Sequence[np.ndarray], path: str | Path, fps: float = 10) -
     dithering), which is several times faster than a palette per frame. Pillow merges a
     frame identical to the previous one into it (adding its duration).
     """
-    from PIL import Image
 
     if len(frames) == 0:
         raise ValueError("write_gif needs at least one frame")

@@ -1,7 +1,7 @@
 """Sensors: 2-D lidar against vehicle boxes, and MetaDrive's 19 ego/navigation features.
 
 Feature formulas and their quirks are MetaDrive 0.4.3's ``LidarStateObservation``
-(``shared/reference/metadrive_scenarios.md`` §4), reproduced on purpose so that a policy
+(``docs/decisions.md`` §3.2), reproduced on purpose so that a policy
 trained on one simulator can be evaluated on the other.
 """
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from coin_app.sim import schema
 from coin_app.sim.collision import boxes_overlap, footprint_samples
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.dynamics import bicycle_step
@@ -115,7 +116,7 @@ class DrivingSimulator:
         self.heading_prev = np.zeros(n)
         self.speed = np.zeros(n)
         self.yaw_rate = np.zeros(n)
-        self.action = np.zeros((n, 2))
+        self.action = np.zeros((n, schema.ACT_DIM))
         self.route = np.zeros(n, dtype=np.int64)
         self.ref_idx = np.zeros(n, dtype=np.int64)
         self.lane = np.zeros(n, dtype=np.int64)
@@ -497,7 +498,7 @@ class DrivingSimulator:
         n = self.num_slots
         out_slots = np.nonzero(acted | spawned)[0]
         obs = np.zeros((n, self.cfg.obs_dim), np.float32)
-        state = np.zeros((n, 10), np.float32)
+        state = np.zeros((n, schema.STATE_DIM), np.float32)
         if len(out_slots):
             obs[out_slots], state[out_slots] = self.observe(out_slots)
         zeros = np.zeros(n, bool)

@@ -104,7 +104,7 @@ class CigTd3TorchLearner(TorchLearner):
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
         """Count the update; on policy steps soft-update every target network."""
         super().after_gradient_based_update(timesteps=timesteps)
-        for module_id, module in self.module._rl_modules.items():
+        for module_id, module in self.module.items():
             config = self.config.get_config_for_module(module_id)
             if self.is_policy_step(config):
                 for main_net, target_net in module.unwrapped().get_target_network_pairs():
@@ -124,7 +124,7 @@ class CigTd3TorchLearner(TorchLearner):
                     "local_q_target": m.unwrapped().local_q_target.state_dict(),
                     "central_target": None if m.unwrapped().central_target is None else m.unwrapped().central_target.state_dict(),
                 }
-                for mid, m in self.module._rl_modules.items()
+                for mid, m in self.module.items()
             },
         }
         return state

@@ -18,7 +18,7 @@ Notation (one row per sampled agent transition i at env step t):
     L_pi  = -mean[ Q^l_1(o, mu(o)) + w (Q^g_1(o, mu(o), s, S, A, M) - V(o, s, S, A, M)) ]  (Eq. 12)
 
 V does not depend on the ego action, so with a deterministic policy it leaves the actor's
-gradient unchanged (decisions.md); it is still trained and logged, as Eq. 12 is written.
+gradient unchanged (``docs/decisions.md`` §2.2); it is still trained and logged, as Eq. 12 is written.
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+
+from coin_app.algorithms.cig_td3 import columns as col
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,7 @@ def smoothed_target_action(actor_target: nn.Module, obs: torch.Tensor, noise_std
 
 def not_done(batch: dict[str, torch.Tensor]) -> torch.Tensor:
     """1 - d with d = terminated and not truncated (a time-out still bootstraps)."""
-    done = batch["terminateds"].bool() & ~batch["truncateds"].bool()
+    done = batch[col.TERMINATEDS].bool() & ~batch[col.TRUNCATEDS].bool()
     return 1.0 - done.float()
 
 
@@ -66,22 +68,24 @@ def td_targets(
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Individual and global TD targets y^l (Eq. 8) and y^G (Eq. 11); y^G is None without a global critic."""
     nd = not_done(batch)
-    next_a = smoothed_target_action(actor_target, batch["new_obs"], cfg.target_noise, cfg.target_noise_clip)
-    q1_t, q2_t = local_q_target(batch["new_obs"], next_a)
-    y_local = batch["rewards"] + cfg.gamma * nd * torch.minimum(q1_t, q2_t)
+    next_a = smoothed_target_action(actor_target, batch[col.NEXT_OBS], cfg.target_noise, cfg.target_noise_clip)
+    q1_t, q2_t = local_q_target(batch[col.NEXT_OBS], next_a)
+    y_local = batch[col.REWARDS] + cfg.gamma * nd * torch.minimum(q1_t, q2_t)
     if central_target is None:
         return y_local, None
-    mask_next = batch["next_others_mask"].bool()
-    others_next_a = smoothed_target_action(actor_target, batch["next_others_obs"], cfg.target_noise, cfg.target_noise_clip)
+    mask_next = batch[col.NEXT_OTHERS_MASK].bool()
+    others_next_a = smoothed_target_action(actor_target, batch[col.NEXT_OTHERS_OBS], cfg.target_noise, cfg.target_noise_clip)
     others_next_a = others_next_a * mask_next.unsqueeze(-1)
-    g1_t, g2_t = central_target.q_values(batch["new_obs"], batch["new_state"], next_a, batch["next_others_state"], others_next_a, mask_next)
-    y_global = batch["global_rewards"] + cfg.gamma * nd * torch.minimum(g1_t, g2_t)
+    g1_t, g2_t = central_target.q_values(
+        batch[col.NEXT_OBS], batch[col.NEXT_STATE], next_a, batch[col.NEXT_OTHERS_STATE], others_next_a, mask_next
+    )
+    y_global = batch[col.GLOBAL_REWARDS] + cfg.gamma * nd * torch.minimum(g1_t, g2_t)
     return y_local, y_global
 
 
 def local_critic_loss(local_q: nn.Module, batch: dict[str, torch.Tensor], y_local: torch.Tensor) -> tuple[torch.Tensor, dict]:
     """Eq. 7: sum over the twin local critics of the mean squared TD error."""
-    q1, q2 = local_q(batch["obs"], batch["actions"])
+    q1, q2 = local_q(batch[col.OBS], batch[col.ACTIONS])
     loss = ((q1 - y_local) ** 2).mean() + ((q2 - y_local) ** 2).mean()
     return loss, {"local_q1_mean": q1.mean().detach(), "local_q_target_mean": y_local.mean()}
 
@@ -90,11 +94,11 @@ def central_critic_loss(
     central: nn.Module, batch: dict[str, torch.Tensor], y_global: torch.Tensor, cfg: LossConfig
 ) -> tuple[torch.Tensor, dict]:
     """Eqs. 9, 10 and 3: twin global Q losses, the counterfactual baseline loss and the CVAE loss (one critic pass)."""
-    mask = batch["others_mask"].bool()
+    mask = batch[col.OTHERS_MASK].bool()
     target_y = None
     if cfg.vae_weight > 0:
-        target_y = torch.cat([batch["new_obs"], batch["new_state"], batch["rewards"].unsqueeze(-1)], dim=-1)
-    out = central(batch["obs"], batch["state"], batch["actions"], batch["others_state"], batch["others_actions"], mask, target_y)
+        target_y = torch.cat([batch[col.NEXT_OBS], batch[col.NEXT_STATE], batch[col.REWARDS].unsqueeze(-1)], dim=-1)
+    out = central(batch[col.OBS], batch[col.STATE], batch[col.ACTIONS], batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask, target_y)
     loss_q = ((out.q1 - y_global) ** 2).mean() + ((out.q2 - y_global) ** 2).mean()
     stats = {"global_q1_mean": out.q1.mean().detach(), "global_q_target_mean": y_global.mean(), "global_q_loss": loss_q.detach()}
     loss = loss_q
@@ -116,18 +120,18 @@ def actor_loss(
     cfg: LossConfig,
 ) -> tuple[torch.Tensor, dict]:
     """Eq. 12 (ITD3: the individual term only). Gradients reach critic parameters too: take only the actor's."""
-    a = actor(batch["obs"])
-    q_local = local_q.q1_only(batch["obs"], a)
+    a = actor(batch[col.OBS])
+    q_local = local_q.q1_only(batch[col.OBS], a)
     objective = q_local
     stats = {"actor_q_local": q_local.mean().detach()}
     if central is not None and cfg.global_weight > 0:
-        mask = batch["others_mask"].bool()
-        q_global = central.q1(batch["obs"], batch["state"], a, batch["others_state"], batch["others_actions"], mask)
+        mask = batch[col.OTHERS_MASK].bool()
+        q_global = central.q1(batch[col.OBS], batch[col.STATE], a, batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask)
         advantage = q_global
         if cfg.counterfactual_baseline:
             # V has no ego action, so it carries no actor gradient: evaluate it without a graph
             with torch.no_grad():
-                v = central.baseline(batch["obs"], batch["state"], batch["others_state"], batch["others_actions"], mask)
+                v = central.baseline(batch[col.OBS], batch[col.STATE], batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask)
             advantage = q_global - v
             stats["actor_counterfactual_advantage"] = advantage.mean().detach()
         objective = objective + cfg.global_weight * advantage

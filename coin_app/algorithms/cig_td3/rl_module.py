@@ -21,9 +21,9 @@ from ray.rllib.core.learner.utils import make_target_network
 from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, TargetNetworkAPI
 from ray.rllib.core.rl_module.torch.torch_rl_module import TorchRLModule
 
-from coin_app.algorithms.cig_td3.networks import Actor, CentralCritic, CentralCriticConfig, TwinQ
-
-STATE_DIM = 10
+from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig
+from coin_app.algorithms.cig_td3.individual import Actor, TwinQ
+from coin_app.sim import schema
 
 
 class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
@@ -46,7 +46,7 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
             self.central = CentralCritic(
                 CentralCriticConfig(
                     obs_dim=obs_dim,
-                    state_dim=STATE_DIM,
+                    state_dim=schema.STATE_DIM,
                     act_dim=act_dim,
                     latent_dim=int(mc.get("latent_dim", 20)),
                     hidden=hidden,
@@ -81,6 +81,16 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
     def _forward_train(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
         """Nothing: the learner calls the networks itself, loss by loss."""
         return {}
+
+    # ------------------------------------------------------------------ the algorithm contract (ActorModule)
+    def deterministic_actor(self) -> torch.nn.Module:
+        """The tanh actor mu(o) as a plain ``nn.Sequential`` (evaluation and export)."""
+        return self.actor.net
+
+    def inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
+        """The env actions of ``forward_inference`` on ``obs`` (already in [-1, 1])."""
+        with torch.no_grad():
+            return self.forward_inference({Columns.OBS: obs})[Columns.ACTIONS]
 
     # ------------------------------------------------------------------ APIs
     def get_non_inference_attributes(self) -> list[str]:

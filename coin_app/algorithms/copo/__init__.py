@@ -1,1 +1,1 @@
-"""CoPO: coordinated policy optimization with local coordination factors (LCF) and an LCF meta-gradient."""
+"""CoPO: coordinated policy optimization with local coordination factors (LCF) and an LCF meta-gradient (spec and config: ``copo.py``)."""

@@ -1,4 +1,4 @@
-"""CoPO's coordination math as plain functions, readable top to bottom (``copo_baselines.md`` §2.3).
+"""CoPO's coordination math as plain functions, readable top to bottom (CoPO paper, Peng et al. 2021).
 
 * LCF distribution: ``mean = tanh(p0)`` (kept inside (-1, 1)), ``std = exp(clip(p1, -20, 2))``.
 * Neighbour reward of an agent at an env step: the mean reward of the other agents within the

@@ -1,9 +1,14 @@
-"""CoPO's RLModule: RLlib's default PPO module plus a neighbour and a global value head and the LCF parameters.
+"""CoPO's RLModule: the PPO family's module plus a neighbour and a global value head and the LCF parameters.
 
 All three value functions are separate tanh MLPs on the agent's own observation (which ends
 with its LCF feature): CoPO's paper configuration has decentralized critics. The LCF
 distribution parameters ``(atanh mean, log std)`` are a buffer, so checkpoints and the weights
 sent to env runners carry them; the learner's meta-gradient step writes them.
+
+The policy reads the agent's LCF as its last observation feature. The deterministic actor and
+the inference actions act with the learned mean LCF instead: the actor takes the plain
+observation (the LCF feature a constant folded into its first layer's bias), so it runs in any
+evaluation env.
 """
 
 from __future__ import annotations
@@ -11,13 +16,26 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
+from torch import nn
 
+from coin_app.adapters.lcf import encode
 from coin_app.algorithms.copo.coordination import lcf_distribution, lcf_parameters
 from coin_app.algorithms.ppo_family.centralized import value_mlp
+from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 
 
-class CoPOModule(DefaultPPOTorchRLModule):
+def fold_lcf(first: nn.Module, lcf: float) -> nn.Linear:
+    """A copy of ``first`` (Linear on [obs, LCF feature]) acting on obs alone with the LCF feature fixed."""
+    if not isinstance(first, nn.Linear):
+        raise ValueError(f"cannot fold the LCF into {first!r}; expected a Linear first layer")
+    folded = nn.Linear(first.in_features - 1, first.out_features)
+    with torch.no_grad():
+        folded.weight.copy_(first.weight[:, :-1])
+        folded.bias.copy_(first.bias + first.weight[:, -1] * float(encode(lcf)))
+    return folded
+
+
+class CoPOModule(PPOActorModule):
     """PPO policy with ego, neighbour and global value functions and the LCF distribution parameters."""
 
     def setup(self) -> None:
@@ -42,3 +60,14 @@ class CoPOModule(DefaultPPOTorchRLModule):
         """The current LCF (mean, std)."""
         mean, std = lcf_distribution(self.lcf_params)
         return float(mean), float(std)
+
+    def deterministic_actor(self) -> nn.Sequential:
+        """The family's clipped Gaussian-mean actor on the plain observation, with the learned mean LCF folded in."""
+        actor = super().deterministic_actor()
+        actor[0] = fold_lcf(actor[0], self.lcf_distribution()[0])
+        return actor.eval()
+
+    def inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
+        """The family's inference actions on ``obs`` with the learned mean LCF's feature appended."""
+        feature = torch.full((len(obs), 1), float(encode(self.lcf_distribution()[0])), dtype=obs.dtype, device=obs.device)
+        return super().inference_actions(torch.cat([obs, feature], dim=1))

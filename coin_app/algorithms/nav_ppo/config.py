@@ -4,13 +4,13 @@ The paper (§III-C, §IV) trains two PPO-Clip models with ``[256, 256]`` network
 one on scenarios of 4 vehicles and 3 obstacles, and a short-range (parking) one on 1–8 vehicles
 and 0–8 obstacles; at run time the short-range one drives inside ``switch_radius`` of the
 target (``coin_app.inference.switching``). ``--set stage=long|short`` picks the stage; its
-scenario mix is ``STAGES[stage]`` (any arena key in ``--set`` overrides it). The short stage
+scenario mix is ``STAGES[stage]``, the spec's scenario defaults (any arena key in ``--set``
+overrides it; the arena config is parsed once, before the builder sees it). The short stage
 starts vehicles within the switching radius of their targets (``generator="short"``), the
 part of the task that policy will see.
 
 The paper gives no PPO hyper-parameters beyond the loss (clip + value + entropy, no KL term);
-ours are Stable-Baselines3's defaults (the suggested defaults of
-``decentralized_nav_and_agnn.md`` §4) with a larger minibatch for speed, all in
+ours are Stable-Baselines3's PPO defaults with a larger minibatch for speed, all in
 ``HYPERPARAMETERS``. Where the paper trains one "primary" vehicle and copies its policy to
 the others, every vehicle here trains the one shared policy (parameter sharing): the same
 policy for all, without discarding the other vehicles' experience.
@@ -18,12 +18,18 @@ policy for all, without discarding the other vehicles' experience.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
+from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.common import shared_policy_config
+from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
+from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+from coin_app.sim.arena.config import ArenaConfig
 
 STAGES: dict[str, dict[str, Any]] = {
     "long": {"num_vehicles": 4, "num_obstacles": 3, "generator": "agnn"},
@@ -48,34 +54,48 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
 }
 
 
-def nav_ppo_keys() -> tuple[str, ...]:
-    """The ``--set`` keys of nav_ppo."""
-    return tuple(HYPERPARAMETERS)
-
-
-def build_nav_ppo_config(scenario: str, env_cfg: dict[str, Any], algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
-    """RLlib PPO-Clip on the arena for one stage (see module doc)."""
-    from coin_app.sim.arena.config import make_arena_config
-
-    if scenario != "arena":
-        raise ValueError(f"nav_ppo trains on the arena only, got scenario {scenario!r}; allowed: arena")
-    hp = {k: v for k, (v, _) in HYPERPARAMETERS.items()} | dict(algo_cfg)
-    stage = hp.pop("stage")
+def stage_of(algo_cfg: Mapping[str, Any]) -> str:
+    """The training stage of nav_ppo's ``--set`` values (default ``"long"``); a ValueError if it is not one of ``STAGES``."""
+    stage = algo_cfg.get("stage", HYPERPARAMETERS["stage"][0])
     if stage not in STAGES:
         raise ValueError(f"bad value for 'stage': {stage!r}; allowed: {', '.join(STAGES)}")
+    return stage
+
+
+def stage_scenario(algo_cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The arena values of the stage's scenario mix (beneath the user's arena ``--set`` values)."""
+    return dict(STAGES[stage_of(algo_cfg)])
+
+
+def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
+    """RLlib PPO-Clip on the arena for one stage (see module doc)."""
+    if not isinstance(scenario, ArenaConfig):
+        raise ValueError(f"nav_ppo trains on the arena only, got {type(scenario).__name__}; allowed: an ArenaConfig")
+    stage_of(algo_cfg)  # the stage's scenario mix is in ``scenario`` already (the spec's scenario_defaults)
+    hp = {k: v for k, (v, _) in HYPERPARAMETERS.items() if k != "stage"} | {k: v for k, v in algo_cfg.items() if k != "stage"}
     for key in ("hidden", "num_envs_per_env_runner"):
         if not (isinstance(hp[key], int) and not isinstance(hp[key], bool) and hp[key] >= 1):
             raise ValueError(f"bad value for {key!r}: {hp[key]!r}; allowed: an integer >= 1")
-    env_config = {**STAGES[stage], **env_cfg}
-    make_arena_config(**env_config)  # refuses bad arena values before any work
     model = DefaultModelConfig(fcnet_hiddens=[hp.pop("hidden")] * 2, fcnet_activation="tanh", vf_share_layers=False, head_fcnet_hiddens=[])
-    cfg = (
+    config = (
         PPOConfig()
-        .environment("coin-arena-v0", env_config=env_config)
+        .environment("coin-arena-v0", env_config=env_config_of(scenario))
         .env_runners(num_env_runners=hp.pop("num_env_runners"), num_envs_per_env_runner=hp.pop("num_envs_per_env_runner"))
         .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
-        .rl_module(model_config=model)
+        .rl_module(model_config=model, rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
         .debugging(seed=seed)
         .evaluation(evaluation_interval=None)
     )
-    return shared_policy_config(cfg)
+    return shared_policy_config(config)
+
+
+NAV_PPO = AlgorithmSpec(
+    name="nav_ppo",
+    description="seed-2 paper: PPO-Clip navigation (--set stage=long) and parking (stage=short) policies on the arena",
+    hyperparameters=HYPERPARAMETERS,
+    build=build_nav_ppo_config,
+    capabilities=Capabilities(on_policy=True, centralized_critic=False, joint_replay=False),
+    scenarios=("arena",),
+    quick={"hidden": 64},
+    scenario_defaults=stage_scenario,
+)

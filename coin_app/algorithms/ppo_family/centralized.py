@@ -6,8 +6,8 @@ episode (the env's ``env_step`` info and multi-agent episode id, never row order
 exact across respawns and episode chunks; see ``rows.py``), selects neighbours by distance (positions from the
 ``state`` info) and writes the critic input (``neighbours.py``) as column ``CRITIC_OBS``. It
 checks that its rows are the batch's rows (same observations) and refuses otherwise.
-``CentralizedCriticPPOModule`` is RLlib's default PPO module whose ``compute_values`` reads
-that column through its own tanh MLP; the policy is untouched (env runners build only it).
+``CentralizedCriticPPOModule`` is the family's PPO module (``rl_module.py``) whose ``compute_values``
+reads that column through its own tanh MLP; the policy is untouched (env runners build only it).
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.connectors.learner.general_advantage_estimation import GeneralAdvantageEstimation
 from ray.rllib.core.columns import Columns
@@ -23,6 +22,7 @@ from torch import nn
 
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
 from coin_app.algorithms.ppo_family.neighbours import concat_critic_input, mean_field_critic_input, neighbour_indices
+from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.ppo_family.rows import check_aligned, episode_rows, like
 
 CRITIC_OBS = "coin_critic_obs"
@@ -67,8 +67,8 @@ class CriticInputs(ConnectorV2):
         return batch
 
 
-class CentralizedCriticPPOModule(DefaultPPOTorchRLModule):
-    """RLlib's default PPO module with the value function on the centralized critic input."""
+class CentralizedCriticPPOModule(PPOActorModule):
+    """The family's PPO module with the value function on the centralized critic input."""
 
     def setup(self) -> None:
         """Build the default module, plus the centralized value MLP on learner copies."""

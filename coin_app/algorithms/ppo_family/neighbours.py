@@ -1,4 +1,4 @@
-"""Neighbour sets and the centralized-critic inputs of CPPO and MFPO (``copo_baselines.md`` §2.2).
+"""Neighbour sets and the centralized-critic inputs of CPPO and MFPO (README, "PPO baselines").
 
 Rows are agent transitions; ``group`` says which rows share an env step of one episode
 (e.g. ``episode_index * big + env_step`` from the env's ``env_step`` info, never row order), so

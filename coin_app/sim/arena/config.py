@@ -1,16 +1,15 @@
 """Arena configuration: every constant of the navigation-and-parking scenario in one dataclass.
 
 Defaults are the seed-2 paper's where it gives numbers (Δt 0.1 s, success 1.25 m / 0.2 rad /
-0.05 m/s) and ``shared/reference/decisions.md`` ("Seed-2 arena") and
-``decentralized_nav_and_agnn.md`` ("Suggested defaults") elsewhere: wheelbase 2.0 m, friction
-0.99, pedal ±1 m/s², steering ±0.8 rad, 1.0 × 2.5 m vehicles, obstacles of radius 1–3 m, a
-±25 m map, the semi-implicit update order. The reward coefficients (Eqs. 2–6) are left
-symbolic by the paper; ours keep one step's shaping near 1 (the distance reward is at most
-0.7, the angle reward half of it, the proximity penalty 0.2 per entity at 1 m clearance) and
-make the time penalty (2 per step at the 400-step limit) outgrow it, as the paper intends:
-hovering near the target until the limit, collecting distance and angle rewards, must earn
-less than parking at any step (tested). A time penalty of 0.01 with a success reward of 50
-fails that test: the first trained pair learnt to hover.
+0.05 m/s) and our choices elsewhere (``docs/decisions.md`` §8.1, after the A-GNN simulator):
+wheelbase 2.0 m, friction 0.99, pedal ±1 m/s², steering ±0.8 rad, 1.0 × 2.5 m vehicles,
+obstacles of radius 1–3 m, a ±25 m map, the semi-implicit update order. The reward coefficients
+(Eqs. 2–6) are left symbolic by the paper; ours keep one step's shaping near 1 (the distance
+reward is at most 0.7, the angle reward half of it, the proximity penalty 0.2 per entity at 1 m
+clearance) and make the time penalty (2 per step at the 400-step limit) outgrow it, as the
+paper intends: hovering near the target until the limit, collecting distance and angle rewards,
+must earn less than parking at any step (tested). A time penalty of 0.01 with a success reward
+of 50 fails that test: the first trained pair learnt to hover.
 """
 
 from __future__ import annotations

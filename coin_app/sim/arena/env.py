@@ -31,7 +31,7 @@ class ArenaEnv:
         self.sim = ArenaSimulator(self.config)
         self.possible_agents = [f"agent{i}" for i in range(self.config.vehicle_pool)]
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.config.obs_dim,), np.float32)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)  # (steering, pedal)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (schema.ACT_DIM,), np.float32)  # (steering, pedal)
         self.agents: list[str] = []
         self.episode_over = True
         self._rng = training_rng(0)
@@ -66,7 +66,7 @@ class ArenaEnv:
         """Apply one (steering, pedal) action per driving vehicle; returns obs, rewards, terminations, truncations, infos."""
         if self.episode_over:
             raise RuntimeError("the episode is over (every vehicle is done); call reset() first")
-        arr = np.zeros((self.sim.num_vehicles, 2))
+        arr = np.zeros((self.sim.num_vehicles, schema.ACT_DIM))
         for aid, a in checked_actions(actions, self.agents).items():
             arr[int(aid[5:])] = a
         res = self.sim.step(arr)

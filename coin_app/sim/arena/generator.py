@@ -1,7 +1,7 @@
 """Seeded arena scenarios: start poses, target poses and circular obstacles (the A-GNN test procedure).
 
-A clean re-implementation of the procedure documented in
-``shared/reference/decentralized_nav_and_agnn.md`` §2.4 (Ma, Khan, Cremers 2023):
+A clean re-implementation of the A-GNN's documented test-scenario generator (Ma, Khan, Cremers
+2023; summarised in ``docs/decisions.md`` §8.2):
 
 * **1 vehicle**: start and target each uniform in [-25, 25]² × [-π, π].
 * **≥ 2 vehicles** ("collision mode", paths cross near the centroid):

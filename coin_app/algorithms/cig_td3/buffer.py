@@ -1,26 +1,24 @@
 """Joint-step replay buffer for CIG-TD3: the "centralized-critic connector" that injects global state at sample time.
 
-What a CIG-TD3 transition needs (``shared/papers/coin.md`` Eqs. 7-12, Algorithm 1 line 16): the
-ego's ``o_i, s_i, a_i, r_i, r^G, d_i, o'_i, s'_i``, the states and actions ``s_{-i}, a_{-i}`` of
-the other agents that acted at the same env step t, and the states and observations
-``s'_{-i}, o'_{-i}`` of every other agent with an observation at t+1 (the learner computes
-``a'_{-i}`` from ``o'_{-i}`` with the target actor).
+A sample row is one per-agent transition (``transitions.py``) plus the states and actions of the
+other agents that acted at its env step t and the states and observations of every other agent
+with an observation at t+1 (COIN §4.2, Eqs. 9-11; the columns are named in ``columns.py``).
 
-Why a custom buffer (``shared/reference/rllib_2_60.md`` sections 0 and 4)
---------------------------------------------------------------------------
+Why a custom buffer (``docs/decisions.md`` §6.2 and §6.4)
+---------------------------------------------------------
 * RLlib's ``MultiAgentEpisodeReplayBuffer`` crashes when an agent spawns on the last step of a
-  chunk (0.1), is unseeded (0.7), is not checkpointed on the new stack (0.8), and its
-  ``env_t_to_agent_t`` is wrong for respawned agents (0.11). In independent mode it returns
-  one-transition ``SingleAgentEpisode``\\ s, so cross-agent data must be looked up per item
-  in Python (option (b) of section 4): slow and tied to the buffer's internals.
-* Env-side augmentation (option (a)) stores ``N_max`` other-agent rows inside *every* agent's
-  observation (``N_max x d`` floats per agent step, x2 for the next step), cannot show the
+  chunk (§6.2 item 1), is unseeded (item 7), is not checkpointed on the new stack (item 8), and
+  its ``env_t_to_agent_t`` is wrong for respawned agents (item 11). In independent mode it returns
+  one-transition ``SingleAgentEpisode``\\ s, so cross-agent data must be looked up per item in
+  Python (option (b) of §6.4): slow and tied to the buffer's internals.
+* Env-side augmentation (option (a) of §6.4) stores ``N_max`` other-agent rows inside *every*
+  agent's observation (``N_max x d`` floats per agent step, x2 for the next step), cannot show the
   others' actions at t in o_t, and misses agents that spawn at t+1.
 * Here every observation (episode, agent, env step) is stored **once** in an observation pool;
   a step index per (episode, env step) lists the pool rows present at that step, and each pool
   row knows the transition that acts from it. Sampling gathers the others through padded index
   tables with a handful of vectorized numpy ``take``\\ s. Alignment is by the env's own
-  ``infos["env_step"]`` stamp, so it is exact across respawns, terminations and chunk
+  ``infos[schema.ENV_STEP]`` stamp, so it is exact across respawns, terminations and chunk
   boundaries. Sampling uses the buffer's own seeded ``np.random.Generator``; ``get_state`` /
   ``set_state`` include that generator's state.
 
@@ -44,6 +42,14 @@ M=48: 535 + 83 + 106 = ~725 bytes, ~140 MiB for 200k transitions (:attr:`JointSt
 In use with 30 agents per step: ~520 bytes (one pool row, one transition, 1/29 of an entry).
 Env-side augmentation would need ``2 x N x (O + S + A)`` floats, ~40 KB per agent step at N=47.
 
+Adding a batch: plan, evict, write
+----------------------------------
+``add`` first *plans* where everything goes without touching the buffer (layout order, which
+observations are already stored, new pool rows, step entries and their columns, write indices,
+the watermarks after the add); every input error is raised there, so a refused batch stores
+nothing. It then *evicts* (advances the watermarks, making transitions that reference
+overwritten data unsampleable) and finally *writes* the entries, rows and transitions.
+
 Completeness rule (why fresh transitions are not sampleable at once)
 ---------------------------------------------------------------------
 The others at t+1 include agents that spawn at t+1. When a chunk is cut at env step t+1, a
@@ -63,169 +69,75 @@ evicted is masked out of ``others_*`` / ``next_others_*``.
 
 from __future__ import annotations
 
-import hashlib
-import re
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, fields
-from typing import Any
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
-_I64_MASK = (1 << 63) - 1
-_AGENT_RE = re.compile(r"^agent_?(\d+)$")
+from coin_app.algorithms.cig_td3 import columns as col
+from coin_app.algorithms.cig_td3.transitions import TransitionBatch
+from coin_app.sim import schema
+
 STATE_VERSION = 1
 
 
-def episode_key(episode_id: str) -> int:
-    """Stable non-negative int64 key of a multi-agent episode id string (same on every process)."""
-    return int.from_bytes(hashlib.blake2b(str(episode_id).encode(), digest_size=8).digest(), "little") & _I64_MASK
+@dataclass
+class _Layout:
+    """A batch's transitions in buffer layout order (episodes by first appearance, then agent, then env step)."""
+
+    order: np.ndarray  # (n,) batch row of each transition
+    ep_rank: np.ndarray  # (n,) rank of its episode (order of first appearance in the batch)
+    rank_key: np.ndarray  # (E,) episode key of each rank
+    ep: np.ndarray  # (n,) int64 episode key
+    ag: np.ndarray  # (n,) int64 agent key
+    t: np.ndarray  # (n,) int64 env step of o_t
+    term: np.ndarray  # (n,) bool
+    trunc: np.ndarray  # (n,) bool
+    same: np.ndarray  # (n,) bool: same (episode, agent) as the previous transition
+    chain_prev: np.ndarray  # (n,) bool: o_t is the previous transition's o_{t+1} (same agent, consecutive steps)
+    chain_next: np.ndarray  # (n,) bool: o_{t+1} is the next transition's o_t
+
+    @property
+    def done(self) -> np.ndarray:
+        """Terminated or truncated, (n,) bool."""
+        return self.term | self.trunc
 
 
-def agent_key(agent_id: Any) -> int:
-    """Int key of an agent id: ``N`` for ``"agentN"`` / ``"agent_N"`` / int ``N``, else a stable 63-bit hash."""
-    if isinstance(agent_id, (int, np.integer)) and not isinstance(agent_id, bool):
-        return int(agent_id)
-    m = _AGENT_RE.match(str(agent_id))
-    if m:
-        return int(m.group(1))
-    return int.from_bytes(hashlib.blake2b(str(agent_id).encode(), digest_size=8).digest(), "little") & _I64_MASK
+class _Allocation(NamedTuple):
+    """The new pool rows and step entries of an add, and the watermarks they push the pool and entry rings to."""
+
+    reuse_w: np.ndarray  # (n,) pool write index of every o_t that is already stored (-1: it gets a new row)
+    new_t_idx: np.ndarray  # transitions (layout positions) whose o_t gets a new pool row
+    new_n_idx: np.ndarray  # transitions whose o_{t+1} gets a new pool row
+    pairs: np.ndarray  # (U, 2) (episode key, env step) of the entries the new rows go into, sorted
+    inv: np.ndarray  # (R,) entry (index into pairs) of every new row: o_t rows first, then o_{t+1} rows
+    existing: np.ndarray  # (U,) write index of each stored entry, -1 if none
+    is_new: np.ndarray  # (U,) bool: the entry is allocated by this add
+    pool_wm: int  # pool watermark after the add
+    step_wm: int  # step-entry watermark after the add
 
 
 @dataclass
-class TransitionBatch:
-    """Per-agent transitions (one row each) plus the keys of episodes that ended in this batch."""
+class _AddPlan:
+    """Where one add's transitions, observation rows and step entries go (computed before anything is mutated)."""
 
-    episode: np.ndarray  # (n,) int64 episode key (see episode_key)
-    agent: np.ndarray  # (n,) int64 agent key (see agent_key)
-    env_step: np.ndarray  # (n,) int64 env step of o_t (infos["env_step"])
-    obs: np.ndarray  # (n, O) float32 o_t
-    state: np.ndarray  # (n, S) float32 s_t (infos["state"])
-    actions: np.ndarray  # (n, A) float32 a_t
-    rewards: np.ndarray  # (n,) float32 r_t
-    global_rewards: np.ndarray  # (n,) float32 r^G_t (infos["global_reward"] of o_{t+1})
-    terminateds: np.ndarray  # (n,) bool
-    truncateds: np.ndarray  # (n,) bool
-    next_obs: np.ndarray  # (n, O) float32 o_{t+1}
-    next_state: np.ndarray  # (n, S) float32 s_{t+1}
-    ended_episodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (k,) int64
-
-    def __len__(self) -> int:
-        """Number of transitions."""
-        return int(self.episode.shape[0])
-
-    @classmethod
-    def empty(cls, obs_dim: int, state_dim: int = 10, act_dim: int = 2) -> TransitionBatch:
-        """A batch without transitions."""
-        z = np.zeros(0, np.int64)
-        f = np.zeros(0, np.float32)
-        b = np.zeros(0, bool)
-        return cls(
-            episode=z,
-            agent=z.copy(),
-            env_step=z.copy(),
-            obs=np.zeros((0, obs_dim), np.float32),
-            state=np.zeros((0, state_dim), np.float32),
-            actions=np.zeros((0, act_dim), np.float32),
-            rewards=f,
-            global_rewards=f.copy(),
-            terminateds=b,
-            truncateds=b.copy(),
-            next_obs=np.zeros((0, obs_dim), np.float32),
-            next_state=np.zeros((0, state_dim), np.float32),
-        )
-
-    @classmethod
-    def concat(cls, batches: Iterable[TransitionBatch]) -> TransitionBatch:
-        """Concatenate batches (row order kept; ended-episode keys deduplicated)."""
-        batches = list(batches)
-        if not batches:
-            raise ValueError("TransitionBatch.concat needs at least one batch")
-        out = {f.name: np.concatenate([getattr(b, f.name) for b in batches]) for f in fields(cls)}
-        out["ended_episodes"] = np.unique(out["ended_episodes"]).astype(np.int64)
-        return cls(**out)
-
-
-def _info_values(infos: list[Mapping[str, Any]], key: str, agent_id: Any, episode_id: str) -> list[Any]:
-    try:
-        return [info[key] for info in infos]
-    except (KeyError, TypeError) as err:
-        raise KeyError(f"infos of agent {agent_id!r} in episode {episode_id} lack {key!r}; the env must put {key!r} in every info") from err
-
-
-def episodes_to_transitions(episodes: Iterable[Any]) -> TransitionBatch:
-    """Convert ``MultiAgentEpisode`` chunks from ``MultiAgentEnvRunner.sample()`` into per-agent transitions.
-
-    Each agent's ``SingleAgentEpisode`` in a chunk holds ``len(sa)`` actions and ``len(sa) + 1``
-    observations (the first one is the last observation of the previous chunk). Env steps come
-    from ``infos["env_step"]`` (never from RLlib's env/agent time mapping), states from
-    ``infos["state"]`` and the global reward of a transition from ``infos["global_reward"]`` of
-    its next observation. Only an agent's last transition in a chunk can be done; RLlib marks
-    agents alive at the end of an episode as terminated *and* truncated (reference 0.5) while the
-    env never reports both, so ``terminated`` is stored as ``is_terminated and not is_truncated``.
-    Agents with no action in a chunk (spawned on its last step, or done in an earlier chunk) give
-    no transition. Episode ids are mapped to ints with :func:`episode_key`.
-    """
-    cols: dict[str, list[np.ndarray]] = {
-        k: [] for k in ("episode", "agent", "env_step", "obs", "state", "actions", "rewards", "g", "term", "trunc")
-    }
-    ended: list[int] = []
-    for ma in episodes:
-        ekey = episode_key(ma.id_)
-        if ma.is_done:
-            ended.append(ekey)
-        for aid, sa in ma.agent_episodes.items():
-            n = len(sa)
-            if n == 0:
-                continue
-            obs = np.asarray(sa.get_observations(), dtype=np.float32).reshape(n + 1, -1)
-            infos = sa.get_infos()
-            if len(infos) != n + 1:
-                raise ValueError(f"agent {aid!r} of episode {ma.id_}: {len(infos)} infos for {n + 1} observations")
-            steps = np.asarray(_info_values(infos, "env_step", aid, ma.id_), dtype=np.int64)
-            if np.any(np.diff(steps) != 1):
-                raise ValueError(
-                    f"agent {aid!r} of episode {ma.id_}: env steps of consecutive observations are not consecutive: {steps.tolist()}"
-                )
-            states = np.asarray(_info_values(infos, "state", aid, ma.id_), dtype=np.float32).reshape(n + 1, -1)
-            g = np.asarray(_info_values(infos[1:], "global_reward", aid, ma.id_), dtype=np.float32)
-            acts = np.asarray(sa.get_actions(), dtype=np.float32).reshape(n, -1)
-            rews = np.asarray(sa.get_rewards(), dtype=np.float32).reshape(n)
-            trunc = np.zeros(n, bool)
-            term = np.zeros(n, bool)
-            trunc[-1] = bool(sa.is_truncated)
-            term[-1] = bool(sa.is_terminated) and not trunc[-1]
-            cols["episode"].append(np.full(n, ekey, np.int64))
-            cols["agent"].append(np.full(n, agent_key(aid), np.int64))
-            cols["env_step"].append(steps[:-1])
-            cols["obs"].append(obs)
-            cols["state"].append(states)
-            cols["actions"].append(acts)
-            cols["rewards"].append(rews)
-            cols["g"].append(g)
-            cols["term"].append(term)
-            cols["trunc"].append(trunc)
-    ended_arr = np.unique(np.asarray(ended, dtype=np.int64))
-    if not cols["episode"]:
-        batch = TransitionBatch.empty(0, 0, 0)
-        batch.ended_episodes = ended_arr
-        return batch
-    obs_all = cols["obs"]
-    st_all = cols["state"]
-    return TransitionBatch(
-        episode=np.concatenate(cols["episode"]),
-        agent=np.concatenate(cols["agent"]),
-        env_step=np.concatenate(cols["env_step"]),
-        obs=np.concatenate([o[:-1] for o in obs_all]),
-        state=np.concatenate([s[:-1] for s in st_all]),
-        actions=np.concatenate(cols["actions"]),
-        rewards=np.concatenate(cols["rewards"]),
-        global_rewards=np.concatenate(cols["g"]),
-        terminateds=np.concatenate(cols["term"]),
-        truncateds=np.concatenate(cols["trunc"]),
-        next_obs=np.concatenate([o[1:] for o in obs_all]),
-        next_state=np.concatenate([s[1:] for s in st_all]),
-        ended_episodes=ended_arr,
-    )
+    lay: _Layout
+    new_t_idx: np.ndarray  # transitions whose o_t gets a new pool row
+    new_n_idx: np.ndarray  # transitions whose o_{t+1} gets a new pool row
+    row_w: np.ndarray  # (R,) pool write index of every new row (o_t rows first, then o_{t+1} rows)
+    row_entry: np.ndarray  # (R,) step-entry write index the row sits in
+    row_col: np.ndarray  # (R,) its column in that entry
+    pairs: np.ndarray  # (U, 2) (episode key, env step) of every entry that gets rows
+    entry_w: np.ndarray  # (U,) its write index
+    is_new: np.ndarray  # (U,) bool: allocated by this add
+    entry_count: np.ndarray  # (U,) rows in the entry after the add
+    tr_w: np.ndarray  # (n,) write index of every transition
+    obs_w: np.ndarray  # (n,) pool write index of its o_t
+    next_w: np.ndarray  # (n,) pool write index of its o_{t+1}
+    pool_wm: int  # watermarks after the add (write indices below them are evicted)
+    step_wm: int
+    tr_wm: int
 
 
 class JointStepReplayBuffer:
@@ -268,8 +180,8 @@ class JointStepReplayBuffer:
         self,
         capacity: int,
         obs_dim: int,
-        state_dim: int = 10,
-        act_dim: int = 2,
+        state_dim: int = schema.STATE_DIM,
+        act_dim: int = schema.ACT_DIM,
         max_others: int = 47,
         seed: int | None = 0,
         *,
@@ -364,16 +276,12 @@ class JointStepReplayBuffer:
         if n > self.capacity:
             raise ValueError(f"batch of {n} transitions exceeds the buffer capacity {self.capacity}; add it in parts of whole chunks")
         if n:
-            self._add_transitions(batch)
+            plan = self._plan(batch)
+            self._evict(plan)
+            self._write(batch, plan)
         for key in np.asarray(batch.ended_episodes, dtype=np.int64).tolist():
             self._episodes.setdefault(key, [-1, 0])[1] = 1
         self._update_pending(np.arange(self._tr_written - n, self._tr_written, dtype=np.int64))
-
-    def add_episodes(self, episodes: Iterable[Any]) -> TransitionBatch:
-        """Convert ``MultiAgentEnvRunner.sample()`` output with :func:`episodes_to_transitions` and add it; returns the batch."""
-        batch = episodes_to_transitions(episodes)
-        self.add(batch)
-        return batch
 
     def sample(self, batch_size: int) -> dict[str, np.ndarray]:
         """Uniformly sample ``batch_size`` transitions (with replacement) with the other agents at t and t+1 gathered."""
@@ -424,8 +332,9 @@ class JointStepReplayBuffer:
         self._rng = np.random.default_rng()
         self._rng.bit_generator.state = state["rng"]
 
-    # ------------------------------------------------------------------ adding
+    # ------------------------------------------------------------------ adding: checks
     def _config(self) -> dict[str, int]:
+        """The sizes a saved state must match."""
         return {
             "capacity": self.capacity,
             "obs_capacity": self.obs_capacity,
@@ -437,22 +346,23 @@ class JointStepReplayBuffer:
         }
 
     def _check_batch(self, b: TransitionBatch) -> None:
+        """Raise ``ValueError`` when a column of ``b`` has the wrong shape or an env step is negative."""
         n = len(b)
         if n == 0:  # e.g. only episodes that ended without a new transition; column widths are unknown then
             return
         want = {
-            "episode": (n,),
-            "agent": (n,),
-            "env_step": (n,),
-            "obs": (n, self.obs_dim),
-            "state": (n, self.state_dim),
-            "actions": (n, self.act_dim),
-            "rewards": (n,),
-            "global_rewards": (n,),
-            "terminateds": (n,),
-            "truncateds": (n,),
-            "next_obs": (n, self.obs_dim),
-            "next_state": (n, self.state_dim),
+            col.EPISODE: (n,),
+            col.AGENT: (n,),
+            col.ENV_STEP: (n,),
+            col.OBS: (n, self.obs_dim),
+            col.STATE: (n, self.state_dim),
+            col.ACTIONS: (n, self.act_dim),
+            col.REWARDS: (n,),
+            col.GLOBAL_REWARDS: (n,),
+            col.TERMINATEDS: (n,),
+            col.TRUNCATEDS: (n,),
+            col.NEXT_OBS: (n, self.obs_dim),
+            col.NEXT_STATE: (n, self.state_dim),
         }
         for name, shape in want.items():
             got = np.shape(getattr(b, name))
@@ -464,71 +374,94 @@ class JointStepReplayBuffer:
         if n and np.min(b.env_step) < 0:
             raise ValueError(f"env_step must be >= 0, got min {int(np.min(b.env_step))}")
 
-    def _add_transitions(self, b: TransitionBatch) -> None:
-        C, P, K, M = self.capacity, self.obs_capacity, self.step_capacity, self.max_others + 1
-        # Layout order: episodes by first appearance in the batch (not by key: keys hash RLlib's random
-        # uuids, and a key-dependent layout would make same-seed runs sample differently), agent, step.
-        ep_raw = np.asarray(b.episode, np.int64)
-        _, first_idx, ep_inv = np.unique(ep_raw, return_index=True, return_inverse=True)
-        rank_key = ep_raw[np.sort(first_idx)]  # episode key of each rank
-        ep_rank_raw = np.argsort(np.argsort(first_idx))[ep_inv]
-        order = np.lexsort((b.env_step, b.agent, ep_rank_raw))
-        ep_rank = ep_rank_raw[order]
-        ep = ep_raw[order]
-        ag = np.asarray(b.agent, np.int64)[order]
-        t = np.asarray(b.env_step, np.int64)[order]
-        term = np.asarray(b.terminateds, bool)[order]
-        trunc = np.asarray(b.truncateds, bool)[order]
-        done = term | trunc
-        n = ep.shape[0]
-        same = np.zeros(n, bool)
-        same[1:] = (ep[1:] == ep[:-1]) & (ag[1:] == ag[:-1])
-        dup = same[1:] & (t[1:] == t[:-1])
-        if dup.any():
-            k = int(np.flatnonzero(dup)[0])
-            raise ValueError(f"duplicate transition: episode {ep[k]}, agent {ag[k]}, env step {t[k]} appears twice in the batch")
-        after_done = same[1:] & done[:-1]
-        if after_done.any():
-            k = int(np.flatnonzero(after_done)[0])
-            raise ValueError(f"agent {ag[k]} of episode {ep[k]} acts at env step {t[k + 1]} after its done transition at env step {t[k]}")
-        chain_prev = np.zeros(n, bool)  # o_t of k is o_{t+1} of k-1 (same agent, consecutive steps)
-        chain_prev[1:] = same[1:] & (t[1:] == t[:-1] + 1)
-        chain_next = np.zeros(n, bool)
-        chain_next[:-1] = chain_prev[1:]
+    # ------------------------------------------------------------------ adding: plan (no mutation)
+    def _plan(self, b: TransitionBatch) -> _AddPlan:
+        """Where the batch's transitions, new observation rows and step entries go; raises before anything is mutated."""
+        lay = _layout(b)
+        n = lay.ep.shape[0]
+        alloc = self._allocate(lay, self._stored_obs_rows(lay))
+        entry_w, entry_count, row_entry, row_col, row_order = self._place_rows(alloc)
+        R, nt = row_order.shape[0], alloc.new_t_idx.shape[0]
+        row_w = np.empty(R, np.int64)  # rows of one step are adjacent in the pool (locality when sampling)
+        row_w[row_order] = self._pool_written + np.arange(R, dtype=np.int64)
+        # o_t / o_{t+1} row of every transition: a stored row, a new row, or (o_{t+1}) the next transition's o_t
+        obs_w = alloc.reuse_w.copy()
+        obs_w[alloc.new_t_idx] = row_w[:nt]
+        next_w = np.empty(n, np.int64)
+        next_w[alloc.new_n_idx] = row_w[nt:]
+        cn = np.flatnonzero(lay.chain_next)
+        next_w[cn] = obs_w[cn + 1]
+        # transitions are laid out step-major (episode, env step, agent) so that the ones acting at one
+        # step are adjacent in the ring (sampling gathers them together)
+        tr_w = np.empty(n, np.int64)
+        tr_w[np.lexsort((lay.ag, lay.t, lay.ep_rank))] = self._tr_written + np.arange(n, dtype=np.int64)
+        return _AddPlan(
+            lay=lay,
+            new_t_idx=alloc.new_t_idx,
+            new_n_idx=alloc.new_n_idx,
+            row_w=row_w,
+            row_entry=row_entry,
+            row_col=row_col,
+            pairs=alloc.pairs,
+            entry_w=entry_w,
+            is_new=alloc.is_new,
+            entry_count=entry_count,
+            tr_w=tr_w,
+            obs_w=obs_w,
+            next_w=next_w,
+            pool_wm=alloc.pool_wm,
+            step_wm=alloc.step_wm,
+            tr_wm=max(self._tr_wm, self._tr_written + n - self.capacity),
+        )
+
+    def _stored_obs_rows(self, lay: _Layout) -> np.ndarray:
+        """Pool write index of every transition's o_t that is already stored and still valid, else -1."""
+        P, M = self.obs_capacity, self.max_others + 1
         # o_t of a chunk's first transition is normally the o_{t+1} stored with the previous chunk
-        reuse_w = np.full(n, -1, np.int64)
-        for k in np.flatnonzero(~chain_prev).tolist():
-            hit = self._last_obs.get((int(ep[k]), int(ag[k])))
-            if hit is not None and hit[0] == t[k] and hit[1] >= self._pool_wm and self._pool_owner[hit[1] % P] // M >= self._step_wm:
+        reuse_w = np.full(lay.ep.shape[0], -1, np.int64)
+        for k in np.flatnonzero(~lay.chain_prev).tolist():
+            hit = self._last_obs.get((int(lay.ep[k]), int(lay.ag[k])))
+            if hit is not None and hit[0] == lay.t[k] and hit[1] >= self._pool_wm and self._pool_owner[hit[1] % P] // M >= self._step_wm:
                 reuse_w[k] = hit[1]
-        # plan rows and step entries; drop reuses of rows / entries that this very add evicts (tiny capacities)
-        new_n_idx = np.flatnonzero(~chain_next)
-        while True:
+        return reuse_w
+
+    def _allocate(self, lay: _Layout, reuse_w: np.ndarray) -> _Allocation:
+        """The new pool rows and step entries and the watermarks after them; raises when the batch cannot fit."""
+        P, K, M = self.obs_capacity, self.step_capacity, self.max_others + 1
+        reuse_w = reuse_w.copy()
+        new_n_idx = np.flatnonzero(~lay.chain_next)
+        while True:  # drop reuses of rows / entries that this very add evicts (tiny capacities), then plan again
             new_t_idx = np.flatnonzero(reuse_w < 0)
             R = new_t_idx.shape[0] + new_n_idx.shape[0]
             if R > P:
                 raise ValueError(f"batch needs {R} new observation rows > obs_capacity {P}; add it in smaller parts")
-            pool_wm_after = max(self._pool_wm, self._pool_written + R - P)
-            row_rank = np.concatenate([ep_rank[new_t_idx], ep_rank[new_n_idx]])
-            row_t = np.concatenate([t[new_t_idx], t[new_n_idx] + 1])
+            pool_wm = max(self._pool_wm, self._pool_written + R - P)
+            row_rank = np.concatenate([lay.ep_rank[new_t_idx], lay.ep_rank[new_n_idx]])
+            row_t = np.concatenate([lay.t[new_t_idx], lay.t[new_n_idx] + 1])
             pairs, inv = _unique_pairs(row_rank, row_t)
-            pairs[:, 0] = rank_key[pairs[:, 0]]  # (episode key, env step), in layout order
+            pairs[:, 0] = lay.rank_key[pairs[:, 0]]  # (episode key, env step), in layout order
             existing = np.array([self._entry_of.get((int(e), int(s)), -1) for e, s in pairs.tolist()], np.int64).reshape(-1)
             is_new = existing < self._step_wm
             while True:  # entries that this add's allocations would evict count as new as well
-                step_wm_after = max(self._step_wm, self._step_written + int(is_new.sum()) - K)
-                more = ~is_new & (existing < step_wm_after)
+                step_wm = max(self._step_wm, self._step_written + int(is_new.sum()) - K)
+                more = ~is_new & (existing < step_wm)
                 if not more.any():
                     break
                 is_new |= more
             if int(is_new.sum()) > K:
                 raise ValueError(f"batch needs {int(is_new.sum())} new step entries > step_capacity {K}; add it in smaller parts")
-            reused = reuse_w >= 0
-            bad = reused & ((reuse_w < pool_wm_after) | (self._pool_owner[reuse_w % P] // M < step_wm_after))
+            bad = (reuse_w >= 0) & ((reuse_w < pool_wm) | (self._pool_owner[reuse_w % P] // M < step_wm))
             if not bad.any():
-                break
+                return _Allocation(reuse_w, new_t_idx, new_n_idx, pairs, inv, existing, is_new, pool_wm, step_wm)
             reuse_w[bad] = -1
-        # columns of the new rows in their entries; overflow check before any mutation
+
+    def _place_rows(self, alloc: _Allocation) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(entry write indices, rows per entry after the add, entry and column of every new row, pool order of the rows).
+
+        Raises ``ValueError`` when an env step would hold more than ``max_others + 1`` rows.
+        """
+        K, M = self.step_capacity, self.max_others + 1
+        pairs, inv, existing, is_new = alloc.pairs, alloc.inv, alloc.existing, alloc.is_new
         entry_w = existing.copy()
         entry_w[is_new] = self._step_written + np.arange(int(is_new.sum()), dtype=np.int64)
         base = np.where(is_new, 0, self._step_count[np.maximum(existing, 0) % K]).astype(np.int64)
@@ -540,101 +473,112 @@ class JointStepReplayBuffer:
                 f"env step {int(pairs[j, 1])} of episode {int(pairs[j, 0])} has {int(total[j])} agents with an observation "
                 f"(ego + {int(total[j]) - 1} others) but max_others={self.max_others}; raise max_others to at least {int(total[j]) - 1}"
             )
-        row_order = np.argsort(inv, kind="stable")
+        R = inv.shape[0]
+        row_order = np.argsort(inv, kind="stable")  # rows grouped by entry
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         rank = np.empty(R, np.int64)
         rank[row_order] = np.arange(R) - np.repeat(starts, counts)
-        row_col = base[inv] + rank
-        row_entry = entry_w[inv]
+        return entry_w, total, entry_w[inv], base[inv] + rank, row_order
 
-        # ---- mutation starts here: evictions
-        if pool_wm_after > self._pool_wm:
-            ev = np.arange(self._pool_wm, pool_wm_after, dtype=np.int64) % P
+    # ------------------------------------------------------------------ adding: evict
+    def _evict(self, plan: _AddPlan) -> None:
+        """Advance the three watermarks to the plan's; transitions referencing overwritten rows or entries become unsampleable."""
+        P, K, M = self.obs_capacity, self.step_capacity, self.max_others + 1
+        if plan.pool_wm > self._pool_wm:
+            ev = np.arange(self._pool_wm, plan.pool_wm, dtype=np.int64) % P
             self._invalidate(np.concatenate([self._pool_tr_obs[ev], self._pool_tr_next[ev]]))
-            self._pool_wm = pool_wm_after
-        if step_wm_after > self._step_wm:
-            ev_w = np.arange(self._step_wm, step_wm_after, dtype=np.int64)
+            self._pool_wm = plan.pool_wm
+        if plan.step_wm > self._step_wm:
+            ev_w = np.arange(self._step_wm, plan.step_wm, dtype=np.int64)
             ev_s = ev_w % K
             rows = self._step_rows[ev_s]
             live = self._pool_owner[rows] == ev_w[:, None] * M + np.arange(M)[None, :]
             rows = rows[live]
             self._invalidate(np.concatenate([self._pool_tr_obs[rows], self._pool_tr_next[rows]]))
-            for e, s in zip(self._step_episode[ev_s].tolist(), self._step_t[ev_s].tolist()):
-                if self._entry_of.get((e, s), -2) < step_wm_after:
+            for e, s in zip(self._step_episode[ev_s].tolist(), self._step_t[ev_s].tolist()):  # keep _entry_of to stored entries
+                if self._entry_of.get((e, s), -2) < plan.step_wm:
                     self._entry_of.pop((e, s), None)
-            self._step_wm = step_wm_after
-        # transitions are laid out step-major (episode, env step, agent) so that the ones acting at one
-        # step are adjacent in the ring (sampling gathers them together)
-        tr_w = np.empty(n, np.int64)
-        tr_w[np.lexsort((ag, t, ep_rank))] = self._tr_written + np.arange(n, dtype=np.int64)
-        tr_wm_after = max(self._tr_wm, self._tr_written + n - C)
-        if tr_wm_after > self._tr_wm:
-            self._invalidate(np.arange(self._tr_wm, tr_wm_after, dtype=np.int64))
-            self._tr_wm = tr_wm_after
-        # ---- step entries
-        new_slots = entry_w[is_new] % K
+            self._step_wm = plan.step_wm
+        if plan.tr_wm > self._tr_wm:
+            self._invalidate(np.arange(self._tr_wm, plan.tr_wm, dtype=np.int64))
+            self._tr_wm = plan.tr_wm
+
+    # ------------------------------------------------------------------ adding: write
+    def _write(self, b: TransitionBatch, plan: _AddPlan) -> None:
+        """Write the plan's step entries and pool rows, then its transitions, then the per-agent and per-episode index."""
+        self._write_rows(b, plan)
+        self._write_transitions(b, plan)
+        self._index_agents(plan)
+
+    def _write_rows(self, b: TransitionBatch, plan: _AddPlan) -> None:
+        """Open the new step entries and write the new observation rows into the pool and their entries."""
+        P, K, M = self.obs_capacity, self.step_capacity, self.max_others + 1
+        order, is_new = plan.lay.order, plan.is_new
+        new_slots = plan.entry_w[is_new] % K
         self._step_rows[new_slots] = P
         self._step_count[new_slots] = 0
-        self._step_episode[new_slots] = pairs[is_new, 0]
-        self._step_t[new_slots] = pairs[is_new, 1]
-        for (e, s), w in zip(pairs[is_new].tolist(), entry_w[is_new].tolist()):
+        self._step_episode[new_slots] = plan.pairs[is_new, 0]
+        self._step_t[new_slots] = plan.pairs[is_new, 1]
+        for (e, s), w in zip(plan.pairs[is_new].tolist(), plan.entry_w[is_new].tolist()):
             self._entry_of[(e, s)] = w
         self._step_written += int(is_new.sum())
-        # ---- pool rows
-        row_w = np.empty(R, np.int64)  # rows of one step are adjacent in the pool (locality when sampling)
-        row_w[row_order] = self._pool_written + np.arange(R, dtype=np.int64)
-        phys = row_w % P
-        self._pool_obs[phys[: new_t_idx.shape[0]]] = np.asarray(b.obs, np.float32)[order][new_t_idx]
-        self._pool_obs[phys[new_t_idx.shape[0] :]] = np.asarray(b.next_obs, np.float32)[order][new_n_idx]
-        self._pool_state[phys[: new_t_idx.shape[0]]] = np.asarray(b.state, np.float32)[order][new_t_idx]
-        self._pool_state[phys[new_t_idx.shape[0] :]] = np.asarray(b.next_state, np.float32)[order][new_n_idx]
-        self._pool_owner[phys] = row_entry * M + row_col
+        nt = plan.new_t_idx.shape[0]
+        phys = plan.row_w % P
+        self._pool_obs[phys[:nt]] = np.asarray(b.obs, np.float32)[order][plan.new_t_idx]
+        self._pool_obs[phys[nt:]] = np.asarray(b.new_obs, np.float32)[order][plan.new_n_idx]
+        self._pool_state[phys[:nt]] = np.asarray(b.state, np.float32)[order][plan.new_t_idx]
+        self._pool_state[phys[nt:]] = np.asarray(b.new_state, np.float32)[order][plan.new_n_idx]
+        self._pool_owner[phys] = plan.row_entry * M + plan.row_col
         self._pool_tr_obs[phys] = -1
         self._pool_tr_next[phys] = -1
-        self._pool_written += R
-        self._step_rows[row_entry % K, row_col] = phys
-        ent_slots = entry_w % K
-        self._step_count[ent_slots] = total
-        # ---- transitions
-        obs_w = reuse_w.copy()
-        obs_w[new_t_idx] = row_w[: new_t_idx.shape[0]]
-        next_w = np.empty(n, np.int64)
-        next_w[new_n_idx] = row_w[new_t_idx.shape[0] :]
-        cn = np.flatnonzero(chain_next)
-        next_w[cn] = obs_w[cn + 1]
-        slots = tr_w % C
+        self._pool_written += plan.row_w.shape[0]
+        self._step_rows[plan.row_entry % K, plan.row_col] = phys
+        self._step_count[plan.entry_w % K] = plan.entry_count
+
+    def _write_transitions(self, b: TransitionBatch, plan: _AddPlan) -> None:
+        """Write the transitions (pending, not yet sampleable) and link their o_t / o_{t+1} rows back to them."""
+        C, P, M = self.capacity, self.obs_capacity, self.max_others + 1
+        lay, obs_w, next_w = plan.lay, plan.obs_w, plan.next_w
+        slots = plan.tr_w % C
         self._tr_obs[slots] = obs_w
         self._tr_next[slots] = next_w
         self._tr_entry_t[slots] = self._pool_owner[obs_w % P] // M
         self._tr_entry_t1[slots] = self._pool_owner[next_w % P] // M
-        self._tr_action[slots] = np.asarray(b.actions, np.float32)[order]
-        self._tr_reward[slots] = np.asarray(b.rewards, np.float32)[order]
-        self._tr_greward[slots] = np.asarray(b.global_rewards, np.float32)[order]
-        self._tr_term[slots] = term
-        self._tr_trunc[slots] = trunc
-        self._tr_step[slots] = t
-        self._tr_episode[slots] = ep
-        self._tr_agent[slots] = ag
+        self._tr_action[slots] = np.asarray(b.actions, np.float32)[lay.order]
+        self._tr_reward[slots] = np.asarray(b.rewards, np.float32)[lay.order]
+        self._tr_greward[slots] = np.asarray(b.global_rewards, np.float32)[lay.order]
+        self._tr_term[slots] = lay.term
+        self._tr_trunc[slots] = lay.trunc
+        self._tr_step[slots] = lay.t
+        self._tr_episode[slots] = lay.ep
+        self._tr_agent[slots] = lay.ag
         self._ok[slots] = False
-        self._pool_tr_obs[obs_w % P] = tr_w
-        self._pool_tr_next[next_w % P] = tr_w
-        self._tr_written += n
-        # ---- per-agent last observation (the next chunk's first o_t) and episode frontiers
-        last = np.flatnonzero(~np.concatenate([same[1:], [False]]))
-        for e, a, s, w, d in zip(ep[last].tolist(), ag[last].tolist(), t[last].tolist(), next_w[last].tolist(), done[last].tolist()):
+        self._pool_tr_obs[obs_w % P] = plan.tr_w
+        self._pool_tr_next[next_w % P] = plan.tr_w
+        self._tr_written += plan.tr_w.shape[0]
+
+    def _index_agents(self, plan: _AddPlan) -> None:
+        """Remember every live agent's last observation (the next chunk's first o_t) and every episode's frontier."""
+        lay = plan.lay
+        last = np.flatnonzero(~np.concatenate([lay.same[1:], [False]]))
+        done = lay.done
+        for e, a, s, w, d in zip(
+            lay.ep[last].tolist(), lay.ag[last].tolist(), lay.t[last].tolist(), plan.next_w[last].tolist(), done[last].tolist()
+        ):
             if d:
                 self._last_obs.pop((e, a), None)
             else:
                 self._last_obs[(e, a)] = (s + 1, w)
-        ep_start = np.flatnonzero(np.concatenate([[True], ep[1:] != ep[:-1]]))  # episodes are contiguous
-        ep_max = np.maximum.reduceat(t, ep_start) + 1
-        for e, f in zip(ep[ep_start].tolist(), ep_max.tolist()):
+        ep_start = np.flatnonzero(np.concatenate([[True], lay.ep[1:] != lay.ep[:-1]]))  # episodes are contiguous
+        ep_max = np.maximum.reduceat(lay.t, ep_start) + 1
+        for e, f in zip(lay.ep[ep_start].tolist(), ep_max.tolist()):
             rec = self._episodes.setdefault(e, [-1, 0])
             rec[0] = max(rec[0], f)
         if len(self._last_obs) > self._last_obs_prune_at:
             self._last_obs = {k: v for k, v in self._last_obs.items() if v[1] >= self._pool_wm}
             self._last_obs_prune_at = max(1024, 2 * len(self._last_obs))
 
+    # ------------------------------------------------------------------ validity and completeness
     def _valid(self, tw: np.ndarray) -> np.ndarray:
         """Whether transitions (write indices) and all rows / entries they reference are still stored."""
         s = tw % self.capacity
@@ -703,15 +647,15 @@ class JointStepReplayBuffer:
         e1 = self._tr_entry_t1[slots]
         shift = np.arange(N)[None, :]
         out: dict[str, np.ndarray] = {
-            "obs": self._pool_obs[r0],
-            "state": self._pool_state[r0],
-            "actions": self._tr_action[slots],
-            "rewards": self._tr_reward[slots],
-            "global_rewards": self._tr_greward[slots],
-            "terminateds": self._tr_term[slots],
-            "truncateds": self._tr_trunc[slots],
-            "new_obs": self._pool_obs[r1],
-            "new_state": self._pool_state[r1],
+            col.OBS: self._pool_obs[r0],
+            col.STATE: self._pool_state[r0],
+            col.ACTIONS: self._tr_action[slots],
+            col.REWARDS: self._tr_reward[slots],
+            col.GLOBAL_REWARDS: self._tr_greward[slots],
+            col.TERMINATEDS: self._tr_term[slots],
+            col.TRUNCATEDS: self._tr_trunc[slots],
+            col.NEXT_OBS: self._pool_obs[r1],
+            col.NEXT_STATE: self._pool_state[r1],
         }
         # others acting at t: rows of entry (episode, t) without the ego's column
         cols0 = shift + (shift >= (self._pool_owner[r0] % M)[:, None])
@@ -720,21 +664,54 @@ class JointStepReplayBuffer:
         tr0 = self._pool_tr_obs[rows0]
         ok0 &= tr0 >= self._tr_wm
         ok0 &= tr0 >= 0
-        out["others_state"] = self._pool_state[np.where(ok0, rows0, P)]
-        out["others_actions"] = self._tr_action[np.where(ok0, tr0 % C, C)]
-        out["others_mask"] = ok0
+        out[col.OTHERS_STATE] = self._pool_state[np.where(ok0, rows0, P)]
+        out[col.OTHERS_ACTIONS] = self._tr_action[np.where(ok0, tr0 % C, C)]
+        out[col.OTHERS_MASK] = ok0
         # every other agent with an observation at t+1
         cols1 = shift + (shift >= (self._pool_owner[r1] % M)[:, None])
         rows1 = np.take_along_axis(self._step_rows[e1 % K], cols1, axis=1)
         ok1 = self._pool_owner[rows1] == e1[:, None] * M + cols1
         rows1 = np.where(ok1, rows1, P)
-        out["next_others_state"] = self._pool_state[rows1]
-        out["next_others_obs"] = self._pool_obs[rows1]
-        out["next_others_mask"] = ok1
-        out["env_step"] = self._tr_step[slots].copy()
-        out["episode"] = self._tr_episode[slots].copy()
-        out["agent"] = self._tr_agent[slots].copy()
+        out[col.NEXT_OTHERS_STATE] = self._pool_state[rows1]
+        out[col.NEXT_OTHERS_OBS] = self._pool_obs[rows1]
+        out[col.NEXT_OTHERS_MASK] = ok1
+        out[col.ENV_STEP] = self._tr_step[slots].copy()
+        out[col.EPISODE] = self._tr_episode[slots].copy()
+        out[col.AGENT] = self._tr_agent[slots].copy()
         return out
+
+
+def _layout(b: TransitionBatch) -> _Layout:
+    """The batch in layout order; raises ``ValueError`` on duplicate transitions or an action after a done one."""
+    # Layout order: episodes by first appearance in the batch (not by key: keys hash RLlib's random
+    # uuids, and a key-dependent layout would make same-seed runs sample differently), agent, step.
+    ep_raw = np.asarray(b.episode, np.int64)
+    _, first_idx, ep_inv = np.unique(ep_raw, return_index=True, return_inverse=True)
+    rank_key = ep_raw[np.sort(first_idx)]  # episode key of each rank
+    ep_rank_raw = np.argsort(np.argsort(first_idx))[ep_inv]
+    order = np.lexsort((b.env_step, b.agent, ep_rank_raw))
+    ep = ep_raw[order]
+    ag = np.asarray(b.agent, np.int64)[order]
+    t = np.asarray(b.env_step, np.int64)[order]
+    term = np.asarray(b.terminateds, bool)[order]
+    trunc = np.asarray(b.truncateds, bool)[order]
+    done = term | trunc
+    n = ep.shape[0]
+    same = np.zeros(n, bool)
+    same[1:] = (ep[1:] == ep[:-1]) & (ag[1:] == ag[:-1])
+    dup = same[1:] & (t[1:] == t[:-1])
+    if dup.any():
+        k = int(np.flatnonzero(dup)[0])
+        raise ValueError(f"duplicate transition: episode {ep[k]}, agent {ag[k]}, env step {t[k]} appears twice in the batch")
+    after_done = same[1:] & done[:-1]
+    if after_done.any():
+        k = int(np.flatnonzero(after_done)[0])
+        raise ValueError(f"agent {ag[k]} of episode {ep[k]} acts at env step {t[k + 1]} after its done transition at env step {t[k]}")
+    chain_prev = np.zeros(n, bool)
+    chain_prev[1:] = same[1:] & (t[1:] == t[:-1] + 1)
+    chain_next = np.zeros(n, bool)
+    chain_next[:-1] = chain_prev[1:]
+    return _Layout(order, ep_rank_raw[order], rank_key, ep, ag, t, term, trunc, same, chain_prev, chain_next)
 
 
 def _unique_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
+from ray.job_submission import JobSubmissionClient
+
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_ADDRESS = "http://127.0.0.1:8265"
 EXCLUDES = [".git", ".venv", "venv", "runs", "**/__pycache__", "*.png", "*.gif", ".ruff_cache", ".pytest_cache"]
@@ -56,8 +58,6 @@ def runtime_env(install: str = "pip", repo: Path = REPO) -> dict[str, Any]:
 
 def client(address: str | None) -> Any:
     """A job-submission client of the cluster at ``address`` (its dashboard URL); a clear error if unreachable."""
-    from ray.job_submission import JobSubmissionClient
-
     address = address or DEFAULT_ADDRESS
     _use_local_token()
     parsed = urlparse(address)
@@ -75,25 +75,30 @@ def _use_local_token() -> None:
     Ray 2.60 turns token authentication on for clusters started where a token exists; its job
     client only sends the token when token mode is on in the client process.
     """
-    try:
+    try:  # optional: private Ray API, the only one that also refreshes the auth mode Ray cached at import (RAY_AUTH_MODE is read once)
         from ray._private.authentication.authentication_token_setup import maybe_enable_token_auth_if_token_available
     except ImportError:  # a Ray without token authentication
         return
     maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
 
 
-def submit(command: list[str], address: str | None = None, install: str = "pip", submission_id: str | None = None) -> str:
-    """Submit ``python -m coin_app <command>`` as a Ray job; returns the job id."""
-    from coin_app.cli import build_parser
+def submit(
+    command: list[str],
+    address: str | None = None,
+    install: str = "pip",
+    submission_id: str | None = None,
+    check_command: Callable[[list[str]], None] | None = None,
+) -> str:
+    """Submit ``python -m coin_app <command>`` as a Ray job; returns the job id.
 
+    ``check_command`` (the CLI passes its parser) refuses a bad command here, not on the cluster.
+    """
     if not command:
         raise ValueError("nothing to submit; give a coin_app command after --, e.g. -- sweep seeds --smoke")
     if command[0] in ("submit", "job"):
         raise ValueError(f"cannot submit {command[0]!r} as a job; allowed: a training, sweep or evaluation command")
-    try:
-        build_parser().parse_args(command)  # refuse a bad command here, not on the cluster
-    except SystemExit as exc:
-        raise ValueError(f"bad coin_app command {' '.join(command)!r} (see python -m coin_app --help)") from exc
+    if check_command is not None:
+        check_command(command)
     if command[0] == "sweep" and not any(c.startswith("--storage") for c in command):
         print("warning: without --storage the sweep's results stay in the job's temporary working dir on the head node")
     env = runtime_env(install)

@@ -16,6 +16,12 @@ from typing import Any
 SETTINGS_FILE = "coin_sweep.json"
 
 
+def trial_name(config: dict[str, Any]) -> str:
+    """``<algo>-<variant>-s<seed>`` (``<algo>-s<seed>`` for the default variant)."""
+    variant = "" if config["variant"] == "default" else f"-{config['variant']}"
+    return f"{config['algo']}{variant}-s{config['seed']}"
+
+
 @dataclass
 class TrialRecord:
     """One trial directory of a sweep."""
@@ -28,8 +34,6 @@ class TrialRecord:
     @property
     def name(self) -> str:
         """``<algo>[-<variant>]-s<seed>``."""
-        from tuning.experiment import trial_name
-
         return trial_name(self.config)
 
     @property

@@ -1,0 +1,356 @@
+"""CIG-TD3 (COIN) and ITD3 on RLlib's new API stack: config, algorithm and spec in one file (as RLlib's ``tqc.py``).
+
+``CigTd3Config`` holds every hyper-parameter, documented once in ``HYPERPARAMETERS`` with the
+paper's defaults (COIN §5.1; where the official code differs, its value is noted, and
+``docs/decisions.md`` §2.1 says which side coin_app follows). ``global_critic=False`` is ITD3, the
+independent TD3 baseline with parameter sharing (``CigTd3Config.itd3()``).
+
+``CigTd3`` runs sample -> joint-step replay -> learner updates -> weight sync. Each
+``training_step``: the env runners sample ``rollout_fragment_length`` env steps (uniform random
+actions during the warm-up, from the module's seeded exploration), the episodes are turned into
+per-agent transitions and added to the joint-step replay buffer (the centralized-critic
+connector: it attaches the other agents' states, actions and next observations by env step at
+sample time), then ``updates_per_env_step`` gradient updates per sampled env step run on
+batches of ``train_batch_size_per_learner`` transitions, and the actor weights go back to the
+env runners. The buffer, its RNG and the update credit are part of the algorithm's checkpoint
+state, so a resumed run continues exactly.
+
+``CIG_TD3`` and ``ITD3`` are their :class:`~coin_app.algorithms.spec.AlgorithmSpec` entries.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from ray.rllib.algorithms.algorithm import Algorithm
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig, NotProvided
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.execution.rollout_ops import synchronous_parallel_sample
+from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+from ray.rllib.utils.metrics import (
+    ENV_RUNNER_RESULTS,
+    ENV_RUNNER_SAMPLING_TIMER,
+    LEARNER_RESULTS,
+    LEARNER_UPDATE_TIMER,
+    NUM_AGENT_STEPS_SAMPLED_LIFETIME,
+    NUM_ENV_STEPS_SAMPLED_LIFETIME,
+    REPLAY_BUFFER_ADD_DATA_TIMER,
+    REPLAY_BUFFER_SAMPLE_TIMER,
+    SYNCH_WORKER_WEIGHTS_TIMER,
+    TIMERS,
+)
+
+from coin_app.adapters.rllib_env import ENV_IDS, env_config_of, register_envs
+from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
+from coin_app.algorithms.cig_td3.graph import GLOBAL_MODULES
+from coin_app.algorithms.cig_td3.learner import CigTd3TorchLearner
+from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
+from coin_app.algorithms.cig_td3.rl_module import CigTd3TorchRLModule
+from coin_app.algorithms.cig_td3.transitions import episodes_to_transitions
+from coin_app.algorithms.common import SHARED_MODULE_ID, backend_errors, policy_mapping_fn, scenario_config_of
+from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+from coin_app.sim import schema
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.road_map import load_map
+from coin_app.sim.scenarios import scenario_name
+from coin_app.sim.simulator import MAX_RESPAWN_PER_STEP
+
+# name -> (default, meaning); the single source of the documentation and of training() kwargs
+HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
+    "actor_lr": (2e-4, "Adam learning rate of the actor (paper; official code 1e-4)"),
+    "critic_lr": (3e-4, "Adam learning rate of the twin local critics"),
+    "central_critic_lr": (3e-4, "Adam learning rate of the centralized critic: twin global Q, baseline V and CVAE (official 2e-4)"),
+    "tau": (0.005, "soft target update rate of actor, local and global critics"),
+    "policy_delay": (5, "actor and target updates every this many critic updates (official code 3)"),
+    "exploration_noise": (0.05, "std of the Gaussian noise added to actions while collecting"),
+    "target_noise": (0.1, "std of the target-policy smoothing noise (Eq. 8)"),
+    "target_noise_clip": (0.5, "clip of the target-policy smoothing noise"),
+    "warmup_steps": (30_000, "env steps with uniform random actions before the policy acts (official code)"),
+    "replay_capacity": (1_000_000, "agent transitions kept in the joint-step replay buffer"),
+    "updates_per_env_step": (1.0, "gradient updates per sampled env step (official: one per env step)"),
+    "global_critic": (True, "use the centralized critic (False = ITD3)"),
+    "counterfactual_baseline": (True, "subtract the counterfactual baseline V in the actor loss (Eq. 12)"),
+    "local_module": ("cvae", "pairwise interaction module: cvae | attention (Table B.1) | none (w/o VAE)"),
+    "global_module": ("gat", "global interaction module: gat | gcn | graphsage | none (w/o GAT: mean-pool)"),
+    "graph": ("full", "'full' graph, or a radius in metres for a sparse graph (Tables B.2/B.3: 40)"),
+    "global_weight": (1.0, "weight of the global term in the actor loss (paper 1.0; official 0.8)"),
+    "vae_weight": (1.0, "weight of the CVAE loss in the centralized-critic loss (official 0.01)"),
+    "kl_beta": (1.0, "weight of the KL term inside the CVAE loss"),
+    "hidden": (256, "width of actor, local-critic and CVAE layers"),
+    "latent_dim": (20, "CVAE latent size"),
+    "node_width": (128, "GAT node feature width"),
+    "learner_threads": (2, "torch threads for updates in the algorithm process (use 1 when env runners share its cores)"),
+    "eval_every": (25, "training iterations between deterministic evaluations on validation seeds (0 = off)"),
+    "eval_episodes": (5, "validation episodes (seeds) per periodic evaluation"),
+}
+
+
+class CigTd3Config(AlgorithmConfig):
+    """Configuration of CIG-TD3 (and ITD3) on RLlib's new API stack."""
+
+    def __init__(self, algo_class: type | None = None):
+        super().__init__(algo_class=algo_class or CigTd3)
+        for name, (default, _) in HYPERPARAMETERS.items():
+            setattr(self, name, default)
+        self.gamma = 0.99
+        self.train_batch_size_per_learner = 256
+        self.rollout_fragment_length = 1
+        self.min_sample_timesteps_per_iteration = 500
+        self.lr = None  # separate optimizers; see actor_lr, critic_lr, central_critic_lr
+        self.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)  # parameter sharing
+
+    def training(self, **kwargs: Any) -> CigTd3Config:
+        """Set training options; CIG-TD3 keys are those of ``HYPERPARAMETERS``, the rest go to RLlib."""
+        own = {k: kwargs.pop(k) for k in list(kwargs) if k in HYPERPARAMETERS}
+        super().training(**kwargs)
+        for name, value in own.items():
+            if value is not NotProvided:
+                setattr(self, name, value)
+        return self
+
+    def itd3(self) -> CigTd3Config:
+        """Switch to ITD3: no centralized critic, only the individual twin critics."""
+        return self.training(global_critic=False, counterfactual_baseline=False, local_module="none", global_module="none", vae_weight=0.0)
+
+    # ---------------------------------------------------------------- env facts
+    def scenario_config(self) -> ScenarioConfig:
+        """The scenario config this algorithm trains on: the typed one ``env_config`` carries (parsed once), or parsed from overrides."""
+        return scenario_config_of(self)
+
+    @property
+    def max_others(self) -> int:
+        """Padded number of other agents per transition: everyone who can be present at t+1."""
+        return self.scenario_config().num_agents + MAX_RESPAWN_PER_STEP
+
+    # ---------------------------------------------------------------- validation
+    def validate(self) -> None:
+        """Refuse bad values and invalid ablation combinations before any work starts."""
+        super().validate()
+        errors = []
+        if self.local_module not in LOCAL_MODULES:
+            errors.append(f"local_module={self.local_module!r}; allowed: {' | '.join(LOCAL_MODULES)}")
+        if self.global_module not in GLOBAL_MODULES:
+            errors.append(f"global_module={self.global_module!r}; allowed: {' | '.join(GLOBAL_MODULES)}")
+        if not (self.graph == "full" or (isinstance(self.graph, (int, float)) and not isinstance(self.graph, bool) and self.graph > 0)):
+            errors.append(f"graph={self.graph!r}; allowed: 'full' or a radius in metres > 0")
+        for name in ("actor_lr", "critic_lr", "central_critic_lr", "tau", "updates_per_env_step"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:
+                errors.append(f"{name}={v!r}; allowed: a number > 0")
+        for name in ("exploration_noise", "target_noise", "target_noise_clip", "global_weight", "vae_weight", "kl_beta"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
+                errors.append(f"{name}={v!r}; allowed: a number >= 0")
+        for name in ("policy_delay", "hidden", "latent_dim", "node_width", "replay_capacity", "eval_episodes", "learner_threads"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                errors.append(f"{name}={v!r}; allowed: an integer >= 1")
+        if not isinstance(self.eval_every, int) or self.eval_every < 0:
+            errors.append(f"eval_every={self.eval_every!r}; allowed: an integer >= 0 (0 = off)")
+        if not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            errors.append(f"warmup_steps={self.warmup_steps!r}; allowed: an integer >= 0")
+        if not self.tau <= 1:
+            errors.append(f"tau={self.tau!r}; allowed: 0 < tau <= 1")
+        # ablation combinations
+        if not self.global_critic:
+            if self.counterfactual_baseline:
+                errors.append("counterfactual_baseline=True needs global_critic=True (ITD3 has no global critic; use .itd3())")
+            if self.local_module != "none" or self.global_module != "none":
+                errors.append(
+                    "local_module/global_module configure the global critic; with global_critic=False set both to 'none' (.itd3())"
+                )
+            if self.vae_weight > 0:
+                errors.append("vae_weight > 0 needs global_critic=True (the CVAE lives in the global critic)")
+        elif self.local_module != "cvae" and self.vae_weight > 0:
+            errors.append(f"vae_weight={self.vae_weight} but local_module={self.local_module!r} has no CVAE; set vae_weight=0")
+        if self.graph != "full" and self.global_module == "none":
+            errors.append("a sparse graph radius needs a graph module (gat | gcn | graphsage), not global_module='none'")
+        if self.num_learners != 0:
+            errors.append(f"num_learners={self.num_learners}; CIG-TD3 runs its learner in the algorithm process (num_learners=0)")
+        try:
+            self.scenario_config()
+        except ValueError as exc:
+            errors.append(str(exc))
+        errors += backend_errors(self)
+        if errors:
+            raise ValueError("invalid CIG-TD3 config: " + "; ".join(errors))
+
+    # ---------------------------------------------------------------- RLlib wiring
+    def get_default_rl_module_spec(self) -> RLModuleSpec:
+        """The CIG-TD3 torch RLModule."""
+        return RLModuleSpec(module_class=CigTd3TorchRLModule)
+
+    def get_default_learner_class(self) -> type:
+        """The CIG-TD3 torch Learner."""
+        return CigTd3TorchLearner
+
+    @property
+    def _model_config_auto_includes(self) -> dict[str, Any]:
+        """Hyper-parameters the RLModule needs to build its networks and exploration."""
+        scenario = self.scenario_config() if isinstance(self.env, str) and self.env in ENV_IDS else None
+        return super()._model_config_auto_includes | {
+            "hidden": self.hidden,
+            "latent_dim": self.latent_dim,
+            "node_width": self.node_width,
+            "global_critic": self.global_critic,
+            "counterfactual_baseline": self.counterfactual_baseline,
+            "local_module": self.local_module,
+            "global_module": self.global_module,
+            "graph_radius": None if self.graph == "full" else float(self.graph),
+            "position_scale": load_map(scenario.scenario).scale if scenario else 1.0,
+            "exploration_noise": self.exploration_noise,
+            "warmup_steps": self.warmup_steps,
+        }
+
+
+REPLAY_STATE_KEY = "cig_td3_replay"
+
+
+class CigTd3(Algorithm):
+    """Counterfactual individual-global TD3 (COIN) with a shared policy for all agents."""
+
+    @classmethod
+    def get_default_config(cls) -> CigTd3Config:
+        """A default ``CigTd3Config``."""
+        return CigTd3Config()
+
+    def setup(self, config: CigTd3Config) -> None:
+        """Register the envs, build runners and learners, then the seeded joint-step buffer."""
+        register_envs()
+        torch.set_num_threads(config.learner_threads)
+        super().setup(config)
+        scen = self.config.scenario_config()
+        seed = 0 if self.config.seed is None else int(self.config.seed)
+        self.replay = JointStepReplayBuffer(
+            capacity=self.config.replay_capacity,
+            obs_dim=scen.obs_dim,
+            state_dim=schema.STATE_DIM,
+            act_dim=schema.ACT_DIM,
+            max_others=self.config.max_others,
+            seed=seed,
+            # one step entry per env step: with few agents there are nearly as many steps as transitions
+            step_capacity=max(self.config.replay_capacity // 2 + 64, self.config.replay_capacity // max(1, scen.num_agents - 1)),
+        )
+        self._update_credit = 0.0
+        self._num_updates = 0
+
+    def training_step(self) -> None:
+        """One sample -> replay -> update(s) -> sync cycle."""
+        cfg = self.config
+        with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
+            episodes, runner_results = synchronous_parallel_sample(
+                worker_set=self.env_runner_group,
+                concat=True,
+                sample_timeout_s=cfg.sample_timeout_s,
+                _uses_new_env_runners=True,
+                _return_metrics=True,
+            )
+        self.metrics.aggregate(runner_results, key=ENV_RUNNER_RESULTS)
+        with self.metrics.log_time((TIMERS, REPLAY_BUFFER_ADD_DATA_TIMER)):
+            self.replay.add(episodes_to_transitions(episodes))
+        env_steps = sum(len(e) for e in episodes)
+        lifetime = self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0)
+        batch_size = cfg.train_batch_size_per_learner
+        if lifetime < cfg.warmup_steps or len(self.replay) < batch_size:
+            return
+        self._update_credit += env_steps * cfg.updates_per_env_step
+        n_updates = int(self._update_credit)
+        self._update_credit -= n_updates
+        for _ in range(n_updates):
+            with self.metrics.log_time((TIMERS, REPLAY_BUFFER_SAMPLE_TIMER)):
+                sample = self.replay.sample(batch_size)
+            batch = MultiAgentBatch({SHARED_MODULE_ID: SampleBatch(sample)}, env_steps=batch_size)
+            with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
+                results = self.learner_group.update(
+                    batch=batch,
+                    timesteps={
+                        NUM_ENV_STEPS_SAMPLED_LIFETIME: lifetime,
+                        NUM_AGENT_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
+                            (ENV_RUNNER_RESULTS, NUM_AGENT_STEPS_SAMPLED_LIFETIME), default=0
+                        ),
+                    },
+                )
+            self.metrics.aggregate(results, key=LEARNER_RESULTS)
+        done_before, self._num_updates = self._num_updates, self._num_updates + n_updates
+        if done_before // cfg.policy_delay != self._num_updates // cfg.policy_delay:  # the actor changed
+            with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
+                self.env_runner_group.sync_weights(
+                    from_worker_or_learner_group=self.learner_group, policies=[SHARED_MODULE_ID], inference_only=True
+                )
+
+    # ------------------------------------------------------------------ checkpoints
+    def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
+        """Algorithm state plus the replay buffer (RLlib's new stack leaves it out)."""
+        state = super().get_state(*args, **kwargs)
+        state[REPLAY_STATE_KEY] = {
+            "buffer": self.replay.get_state(),
+            "update_credit": self._update_credit,
+            "num_updates": self._num_updates,
+        }
+        return state
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Restore the algorithm and its replay buffer."""
+        super().set_state(state)
+        extra = state.get(REPLAY_STATE_KEY)
+        if extra is not None:
+            self.replay.set_state(extra["buffer"])
+            self._update_credit = float(extra["update_credit"])
+            self._num_updates = int(extra["num_updates"])
+
+
+# ---------------------------------------------------------------------- the spec (algorithm contract)
+# RLlib keys CIG-TD3 also takes from --set: name -> (default, meaning)
+RLLIB_KEYS: dict[str, tuple[Any, str]] = {
+    "gamma": (0.99, "discount"),
+    "train_batch_size_per_learner": (256, "agent transitions per gradient update (paper: 256)"),
+    "rollout_fragment_length": (1, "env steps each env runner samples per training step"),
+}
+
+# CIG-TD3 / ITD3 on the small quick scenario (CI learning test, learning curves): small networks, faster rates
+QUICK_TD3: dict[str, Any] = {
+    "warmup_steps": 500,
+    "train_batch_size_per_learner": 128,
+    "hidden": 64,
+    "latent_dim": 8,
+    "node_width": 16,
+    "policy_delay": 2,
+    "actor_lr": 6e-4,
+    "critic_lr": 1e-3,
+    "central_critic_lr": 1e-3,
+    "eval_every": 0,
+}
+
+
+def _builder(itd3: bool) -> Any:
+    """The config builder of CIG-TD3 (``itd3=False``) or ITD3."""
+
+    def build(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> CigTd3Config:
+        """A validated CIG-TD3 / ITD3 config on the parsed ``scenario``."""
+        cfg = CigTd3Config().environment(f"coin-{scenario_name(scenario)}-v0", env_config=env_config_of(scenario)).debugging(seed=seed)
+        cfg = cfg.env_runners(num_env_runners=0, rollout_fragment_length=algo_cfg.pop("rollout_fragment_length", 1))
+        cfg = cfg.evaluation(evaluation_interval=None)
+        if itd3:
+            cfg = cfg.itd3()
+        return cfg.training(**algo_cfg)
+
+    return build
+
+
+CIG_TD3 = AlgorithmSpec(
+    name="cig_td3",
+    description="COIN: CIG-TD3 with the interaction-aware centralized critic",
+    hyperparameters={**HYPERPARAMETERS, **RLLIB_KEYS},
+    build=_builder(itd3=False),
+    capabilities=Capabilities(on_policy=False, centralized_critic=True, joint_replay=True, periodic_evaluation=True),
+    quick=QUICK_TD3,
+)
+ITD3 = AlgorithmSpec(
+    name="itd3",
+    description="ITD3: independent TD3 with parameter sharing",
+    hyperparameters={**HYPERPARAMETERS, **RLLIB_KEYS},
+    build=_builder(itd3=True),
+    capabilities=Capabilities(on_policy=False, centralized_critic=False, joint_replay=True, periodic_evaluation=True),
+    quick=QUICK_TD3,
+)

@@ -1,0 +1,64 @@
+"""The individual TD3 networks of CIG-TD3 (COIN §4.2): the actor and the local twin critic, and the MLP builder.
+
+* :class:`Actor`: the deterministic shared policy mu_theta(o_i), tanh output in [-1, 1] (Eq. 12).
+* :class:`TwinQ`: the local (individual) twin critic Q^l_1, Q^l_2 on ``[o_i, a_i]`` (Eqs. 7-8).
+* :func:`mlp`: the plain MLP every CIG-TD3 network is built from.
+
+Plain ``torch.nn``; nothing here imports Ray. Shapes: ``B`` batch rows, ``O`` observation,
+``A`` action (``schema.ACT_DIM``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from coin_app.sim import schema
+
+__all__ = ["Actor", "TwinQ", "mlp"]
+
+
+def mlp(sizes: Sequence[int], activation: Callable[[], nn.Module], out_activation: Callable[[], nn.Module] | None = None) -> nn.Sequential:
+    """Linear layers ``sizes[0] -> ... -> sizes[-1]`` with ``activation()`` between them and ``out_activation()`` last."""
+    if len(sizes) < 2:
+        raise ValueError(f"mlp needs at least an input and an output size, got sizes={list(sizes)}")
+    layers: list[nn.Module] = []
+    for k in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[k], sizes[k + 1]))
+        if k < len(sizes) - 2:
+            layers.append(activation())
+        elif out_activation is not None:
+            layers.append(out_activation())
+    return nn.Sequential(*layers)
+
+
+class Actor(nn.Module):
+    """Deterministic policy mu_theta(o): MLP with ReLU, tanh output in [-1, 1]."""
+
+    def __init__(self, obs_dim: int, act_dim: int = schema.ACT_DIM, hidden: Sequence[int] = (256, 256)) -> None:
+        super().__init__()
+        self.net = mlp([obs_dim, *hidden, act_dim], nn.ReLU, nn.Tanh)
+
+    def forward(self, obs: Tensor) -> Tensor:
+        """Action (B, act_dim) in [-1, 1] for observations (B, obs_dim)."""
+        return self.net(obs)
+
+
+class TwinQ(nn.Module):
+    """Local (individual) twin critic Q^l_1, Q^l_2 on [o, a] (paper Eqs. 7-8)."""
+
+    def __init__(self, obs_dim: int, act_dim: int = schema.ACT_DIM, hidden: Sequence[int] = (256, 256)) -> None:
+        super().__init__()
+        self.q1_net = mlp([obs_dim + act_dim, *hidden, 1], nn.ReLU)
+        self.q2_net = mlp([obs_dim + act_dim, *hidden, 1], nn.ReLU)
+
+    def forward(self, obs: Tensor, act: Tensor) -> tuple[Tensor, Tensor]:
+        """(q1, q2), each of shape (B,)."""
+        x = torch.cat([obs, act], -1)
+        return self.q1_net(x).squeeze(-1), self.q2_net(x).squeeze(-1)
+
+    def q1_only(self, obs: Tensor, act: Tensor) -> Tensor:
+        """Q1 of shape (B,) (actor loss)."""
+        return self.q1_net(torch.cat([obs, act], -1)).squeeze(-1)

@@ -1,0 +1,121 @@
+"""CoPO: its spec, its RLlib config and the algorithm that keeps the env runners' LCF distribution in sync.
+
+CoPO (Peng et al., "Learning to Simulate Self-Driven Particles System with Coordinated Policy
+Optimization", NeurIPS 2021; README, "PPO baselines") is the PPO family's IPPO with local
+coordination factors (LCF): every agent's observation ends with its LCF, the policy learns on
+the coordinated advantage of its ego and neighbour rewards, and a meta-gradient moves the LCF
+distribution towards the global reward (``learner.py``, ``coordination.py``). Its
+hyper-parameters are IPPO's plus ``COPO_KEYS``.
+
+The learner's meta-gradient step moves the distribution after each update; before sampling and
+right after each update the algorithm sets it on every env (local and remote runners, all
+vectorized sub-envs), so agents spawned from then on draw their LCF from the new distribution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from ray.rllib.algorithms.ppo import PPO, PPOConfig
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+
+from coin_app.adapters.rllib_env import env_config_of
+from coin_app.algorithms.common import SHARED_MODULE_ID, coin_envs, shared_policy_config
+from coin_app.algorithms.copo.learner import CoPOLearner
+from coin_app.algorithms.copo.rl_module import CoPOModule
+from coin_app.algorithms.ppo_family.config import (
+    HYPERPARAMETERS,
+    check_number,
+    checked,
+    driving_scenario,
+    policy_model,
+    ppo_base_config,
+    ppo_settings,
+)
+from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.road_map import load_map
+
+# the --set keys CoPO adds to the PPO family's HYPERPARAMETERS: name -> (default, meaning)
+COPO_KEYS: dict[str, tuple[Any, str]] = {
+    "neighbour_radius": (40.0, "neighbour reward: mean reward of the others strictly within this many metres"),
+    "initial_lcf_mean": (0.0, "initial mean of the LCF distribution, in (-1, 1) (LCF 0 = selfish, 1 = altruistic)"),
+    "initial_lcf_std": (0.1, "initial std of the LCF distribution"),
+    "lcf_lr": (1e-4, "Adam learning rate of the LCF distribution parameters (meta-gradient)"),
+    "lcf_num_iters": (5, "meta-gradient passes over each train batch (0 = fixed LCF distribution)"),
+    "lcf_minibatch_size": (None, "meta-gradient minibatch (agent transitions); None = minibatch_size"),
+}
+
+
+def _set_lcf(env_runner: Any, mean: float, std: float) -> int:
+    """Set the LCF distribution on every coin env of an env runner; returns how many."""
+    envs = coin_envs(env_runner)
+    for env in envs:
+        env.set_lcf_distribution(mean, std)
+    return len(envs)
+
+
+class CoPO(PPO):
+    """RLlib PPO whose training step also keeps the env runners' LCF distribution in sync with the learner."""
+
+    def lcf_distribution(self) -> tuple[float, float]:
+        """The learner's current LCF (mean, std)."""
+        results = self.learner_group.foreach_learner(lambda learner: learner.lcf_distribution(SHARED_MODULE_ID))
+        return next(iter(results)).get()
+
+    def push_lcf_distribution(self) -> tuple[float, float]:
+        """Set the learner's LCF distribution on every env runner's envs; returns it."""
+        mean, std = self.lcf_distribution()
+        self.env_runner_group.foreach_env_runner(lambda runner: _set_lcf(runner, mean, std), local_env_runner=True)
+        return mean, std
+
+    def training_step(self) -> None:
+        """Push the LCF distribution, run PPO's training step (update + meta-gradient), push again."""
+        self.push_lcf_distribution()
+        super().training_step()
+        mean, std = self.push_lcf_distribution()
+        self.metrics.log_dict({"lcf_mean": mean, "lcf_std": std}, key="copo", window=1)
+
+
+def build_copo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
+    """CoPO: IPPO's settings plus LCFs in the envs, three value heads, the coordinated advantage and the LCF meta-gradient."""
+    hp, opts = ppo_settings(algo_cfg, COPO_KEYS)
+    radius = check_number("neighbour_radius", opts["neighbour_radius"], lambda v: v > 0, "a number of metres > 0")
+    mean = check_number("initial_lcf_mean", opts["initial_lcf_mean"], lambda v: -1 < v < 1, "a number in (-1, 1)")
+    std = check_number("initial_lcf_std", opts["initial_lcf_std"], lambda v: 0 < v < 7, "a number in (0, 7) (std = exp(p), p <= 2)")
+    check_number("lcf_lr", opts["lcf_lr"], lambda v: v > 0, "a number > 0")
+    check_number("lcf_num_iters", opts["lcf_num_iters"], lambda v: v >= 0, "an integer >= 0", integer=True)
+    if opts["lcf_minibatch_size"] is not None:
+        check_number("lcf_minibatch_size", opts["lcf_minibatch_size"], lambda v: v >= 1, "None or an integer >= 1", integer=True)
+    scenario = driving_scenario("CoPO", scenario)
+    learner_config = {
+        "lcf_lr": opts["lcf_lr"],
+        "lcf_num_iters": opts["lcf_num_iters"],
+        "lcf_minibatch_size": opts["lcf_minibatch_size"],
+        "neighbour_radius": float(radius),
+        "position_scale": load_map(scenario.scenario).scale,
+    }
+    model = {**dataclasses.asdict(policy_model(hp["hidden"])), "initial_lcf": [float(mean), float(std)]}
+    env_config = env_config_of(scenario, lcf={"mean": float(mean), "std": float(std)})
+    config = (
+        ppo_base_config(scenario, hp, seed, env_config, algo_class=CoPO)
+        .learners(learner_class=CoPOLearner, learner_config_dict=learner_config)
+        .rl_module(model_config=model, rl_module_spec=RLModuleSpec(module_class=CoPOModule))
+    )
+    config = shared_policy_config(config)
+    errors = []
+    if config.num_learners > 1:
+        errors.append(f"num_learners={config.num_learners}; allowed: 0 or 1 (one LCF distribution, one meta-gradient)")
+    return checked("COPO", config, errors)
+
+
+COPO = AlgorithmSpec(
+    name="copo",
+    description="CoPO: PPO on LCF-coordinated ego/neighbour advantages, LCF meta-gradient",
+    hyperparameters={**HYPERPARAMETERS, **COPO_KEYS},
+    build=build_copo_config,
+    # the neighbour and global value heads learn from the other agents' rewards
+    capabilities=Capabilities(on_policy=True, centralized_critic=True, joint_replay=False),
+    quick={"hidden": 64},
+)

@@ -1,0 +1,204 @@
+"""Training: the validated config of a run, the train loop, checkpoints, iteration metrics and periodic evaluation.
+
+``build_config`` is where a run is set up: the seed is checked, ``--set`` overrides are routed
+(``registry.split_overrides``), the scenario config is parsed **once** into a frozen
+``ScenarioConfig`` / ``ArenaConfig`` and handed to the algorithm's spec, and the callbacks
+every run gets are attached (agent outcomes; periodic evaluation for algorithms that declare
+it). ``train`` runs RLlib iterations until an env-step or wall-time budget, logs one line per
+iteration and writes coin_app checkpoints (RLlib's layout plus ``coin_app.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import ray
+from ray.rllib.algorithms.algorithm import Algorithm
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+from ray.rllib.callbacks.callbacks import RLlibCallback
+from ray.rllib.core.rl_module.rl_module import RLModule
+
+from coin_app.adapters.rllib_env import make_env, register_envs
+from coin_app.algorithms import registry
+from coin_app.algorithms.checkpoints import network_policy, write_metadata
+from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes, scenario_config_of
+from coin_app.evaluation.evaluate import evaluate_policy
+from coin_app.evaluation.metrics import aggregate
+from coin_app.sim.scenarios import config_from_dict
+from coin_app.sim.seeds import check_training_seed, validation_seeds
+
+EVAL_RESULT_KEY = "coin_eval"  # the periodic evaluation's metrics in an iteration's result
+
+
+def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int) -> AlgorithmConfig:
+    """A validated RLlib config of algorithm ``name`` on ``scenario`` (the scenario config parsed once)."""
+    spec = registry.get(name)
+    check_training_seed(seed)
+    if scenario not in spec.scenarios:
+        raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(spec.scenarios)}")
+    env_cfg, algo_cfg = registry.split_overrides(name, overrides, scenario)
+    scenario_config = config_from_dict(scenario, {**spec.scenario_defaults(algo_cfg), **env_cfg})  # refuses bad values before any work
+    callbacks: list[type[RLlibCallback]] = [AgentOutcomes]
+    if spec.capabilities.periodic_evaluation:
+        callbacks.append(PeriodicEvaluation)
+    cfg = spec.build_config(scenario_config, algo_cfg, seed).callbacks(callbacks)
+    cfg.validate()
+    register_envs()  # the coin-<scenario>-v0 names the config refers to
+    return cfg
+
+
+def fresh_module(name: str, scenario: str | None = None, overrides: dict[str, Any] | None = None, seed: int = 0) -> RLModule:
+    """An untrained shared RLModule of algorithm ``name`` as its config builds it (no Ray session needed)."""
+    scenario = scenario or registry.get(name).scenarios[0]
+    cfg = build_config(name, scenario, dict(overrides or {}), seed)
+    env = make_env(scenario, cfg.env_config)
+    agent = env.possible_agents[0]
+    spaces = {SHARED_MODULE_ID: (env.observation_spaces[agent], env.action_spaces[agent])}
+    env.close()
+    return cfg.get_multi_rl_module_spec(spaces=spaces).build()[SHARED_MODULE_ID]
+
+
+def _learner_actor(learner: Any) -> Any:
+    """The deterministic actor of a learner's shared module."""
+    return learner.module[SHARED_MODULE_ID].unwrapped().deterministic_actor()
+
+
+def evaluate_algorithm(algo: Algorithm, seeds: list[int]) -> dict[str, float]:
+    """Mean metrics of an algorithm's current deterministic actor (the learner's) on ``seeds`` (either backend)."""
+    actor = next(iter(algo.learner_group.foreach_learner(_learner_actor))).get()
+    per_episode = evaluate_policy(network_policy(actor), scenario_config_of(algo.config), seeds)
+    return {k: v["mean"] for k, v in aggregate(per_episode).items()}
+
+
+class PeriodicEvaluation(RLlibCallback):
+    """Every ``eval_every`` iterations, the deterministic actor on ``eval_episodes`` validation seeds (``result["coin_eval"]``)."""
+
+    def on_train_result(self, *, algorithm: Algorithm, result: dict, **kwargs: Any) -> None:
+        """Add the periodic evaluation to this iteration's result when it is due."""
+        every = algorithm.config.eval_every
+        if every and result["training_iteration"] % every == 0:
+            result[EVAL_RESULT_KEY] = evaluate_algorithm(algorithm, validation_seeds(algorithm.config.eval_episodes))
+
+
+def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
+    """The flat per-iteration figures coin_app logs and reports to Tune, from an RLlib ``algo.train()`` result.
+
+    ``env_steps``, ``episode_return_mean``, ``episode_len_mean``, the agent outcomes of the
+    iteration (``agents_finished``, ``train_success_rate``, ``train_collision_rate``; NaN when
+    no agent ended), every scalar learner metric of the shared module (``learner/<name>``) and
+    the last periodic evaluation on validation seeds (``eval/<metric>``), if any.
+    """
+    runners = result.get("env_runners", {})
+    sampled = result.get("num_env_steps_sampled_lifetime", runners.get("num_env_steps_sampled_lifetime", 0))
+    finished = float(runners.get("agents_finished", 0) or 0)
+    out = {
+        "env_steps": int(sampled),
+        "episode_return_mean": float(runners.get("episode_return_mean", float("nan"))),
+        "episode_len_mean": float(runners.get("episode_len_mean", float("nan"))),
+        "agents_finished": finished,
+        "train_success_rate": runners.get("agents_succeeded", 0) / finished if finished else float("nan"),
+        "train_collision_rate": runners.get("agents_collided", 0) / finished if finished else float("nan"),
+    }
+    for key, value in result.get("learners", {}).get(SHARED_MODULE_ID, {}).items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[f"learner/{key}"] = float(value)
+    for key, value in result.get(EVAL_RESULT_KEY, {}).items():
+        out[f"eval/{key}"] = float(value)
+    return out
+
+
+def outcome_text(metrics: dict[str, float]) -> str:
+    """``"  agents 12  success 0.250  collision 0.083"`` from :func:`iteration_metrics` ('' if no agent ended)."""
+    if not metrics["agents_finished"]:
+        return ""
+    n, success, collision = int(metrics["agents_finished"]), metrics["train_success_rate"], metrics["train_collision_rate"]
+    return f"  agents {n}  success {success:.3f}  collision {collision:.3f}"
+
+
+def checkpoint_meta(name: str, scenario: str, seed: int, overrides: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    """The coin_app metadata stored with every checkpoint (what evaluation and export read back)."""
+    env_cfg, _ = registry.split_overrides(name, overrides, scenario)
+    return {"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides, "env_config": env_cfg, **extra}
+
+
+def save(algo: Algorithm, checkpoint: Path, meta: dict[str, Any]) -> None:
+    """Save the algorithm and its coin_app metadata to ``checkpoint``."""
+    algo.save_to_path(str(checkpoint.resolve()))
+    write_metadata(checkpoint, meta)
+
+
+def _eval_line(metrics: dict[str, float]) -> str:
+    """The log line of a periodic evaluation."""
+    shown = ("success_rate", "collision_rate", "out_of_road_rate")
+    return "      eval (validation seeds): " + "  ".join(f"{k} {metrics.get(k, float('nan')):.3f}" for k in shown)
+
+
+def train(
+    name: str,
+    scenario: str,
+    steps: int,
+    seed: int,
+    overrides: dict[str, Any],
+    out: Path,
+    checkpoint_every: int = 10,
+    resume: Path | None = None,
+    log: Callable[[str], None] = print,
+    max_minutes: float | None = None,
+) -> dict[str, Any]:
+    """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end."""
+    if steps < 1:
+        raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
+    if max_minutes is not None and not max_minutes > 0:
+        raise ValueError(f"bad max_minutes {max_minutes}; allowed: a number > 0 or None")
+    if checkpoint_every < 1:
+        raise ValueError(f"bad checkpoint_every {checkpoint_every}; allowed: an integer >= 1")
+    cfg = build_config(name, scenario, overrides, seed)
+    if resume is not None and not (resume / "rllib_checkpoint.json").exists():
+        raise ValueError(f"--resume {resume} is not a checkpoint directory (no rllib_checkpoint.json)")
+    out.mkdir(parents=True, exist_ok=True)
+    if not ray.is_initialized():
+        ray.init(address="local", include_dashboard=False, log_to_driver=False, configure_logging=False)
+        log(f"ray: a local session with {int(ray.cluster_resources().get('CPU', 0))} CPUs (all of this machine's)")
+    algo = cfg.build_algo()
+    if resume is not None:
+        algo.restore_from_path(str(resume.resolve()))
+        log(f"resumed from {resume}")
+    meta = checkpoint_meta(name, scenario, seed, overrides)
+    (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
+    t0 = time.perf_counter()
+    start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
+    result: dict[str, Any] = {}
+    last_eval: dict[str, float] = {}
+    ckpt = out / "checkpoint"
+    while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
+        result = algo.train()
+        m = iteration_metrics(result)
+        sampled = m["env_steps"]
+        it = int(result["training_iteration"])
+        elapsed = time.perf_counter() - t0
+        critic = m.get("learner/local_critic_loss", m.get("learner/vf_loss", np.nan))
+        log(
+            f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
+            f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
+        )
+        if EVAL_RESULT_KEY in result:
+            last_eval = result[EVAL_RESULT_KEY]
+            log(_eval_line(last_eval))
+        if it % checkpoint_every == 0:
+            save(algo, ckpt, meta)
+    save(algo, ckpt, meta)
+    algo.stop()
+    summary = {
+        "checkpoint": str(ckpt),
+        "env_steps": sampled,
+        "iterations": int(result.get("training_iteration", 0)),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "eval": last_eval,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
