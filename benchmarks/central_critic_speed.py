@@ -1,12 +1,16 @@
 """Forward + backward time of the COIN centralized critic (twin Q + V + CVAE loss) on one CPU thread.
 
 Usage: python benchmarks/central_critic_speed.py [--batch 256] [--others 29 47] [--repeats 5] [--occupancy 1.0 0.65]
+       [--gat 2:xavier 1:default]
 
 For each number N of other-agent slots and each occupancy (fraction of the N slots holding a
 real agent; 1.0 = every slot valid, the worst case), times one ``CentralCritic.forward`` with a
 CVAE target plus ``backward`` of the summed losses (twin Q + V + CVAE), and the same through the
 separate ``q_values`` / ``baseline`` / ``cvae_loss`` calls; prints the median of ``--repeats``
 runs (after one warm-up run). Default config: paper widths, CVAE + GAT, full graph, obs_dim 91.
+``--gat HEADS:INIT ...`` times one critic per GAT variant side by side (``gat_heads`` /
+``gat_init`` of ``CentralCriticConfig``; ``1:default`` is the single-head GAT used before issue
+#27, ``2:xavier`` the official code's first layer, the default; ``docs/decisions.md`` §2).
 """
 
 from __future__ import annotations
@@ -69,28 +73,35 @@ def main() -> None:
     parser.add_argument("--global-module", default="gat")
     parser.add_argument("--encoder-layers", type=int, default=3, help="CVAE encoder hidden layers (default as the official code)")
     parser.add_argument("--decoder-layers", type=int, default=2, help="CVAE decoder hidden layers (default as the official code)")
+    parser.add_argument("--gat", nargs="+", default=["2:xavier"], help="GAT variants HEADS:INIT to compare, e.g. 2:xavier 1:default")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    torch.manual_seed(0)
-    cfg = CentralCriticConfig(
-        obs_dim=91,
-        local_module=args.local,
-        global_module=args.global_module,
-        cvae_encoder_layers=args.encoder_layers,
-        cvae_decoder_layers=args.decoder_layers,
-    )
-    critic = CentralCritic(cfg)
-    n_params = sum(p.numel() for p in critic.parameters())
-    print(
-        f"CentralCritic local={args.local} (enc {args.encoder_layers} / dec {args.decoder_layers} hidden layers) "
-        f"global={args.global_module}: {n_params} parameters, 1 thread, batch {args.batch}"
-    )
-    print(f"{'N others':>8} {'occupancy':>9} {'one pass: forward (s)':>22} {'separate calls (s)':>19}")
+    critics = {}
+    for spec in args.gat:
+        heads, _, init = spec.partition(":")
+        torch.manual_seed(0)
+        cfg = CentralCriticConfig(
+            obs_dim=91,
+            local_module=args.local,
+            global_module=args.global_module,
+            cvae_encoder_layers=args.encoder_layers,
+            cvae_decoder_layers=args.decoder_layers,
+            gat_heads=int(heads),
+            gat_init=init or "xavier",
+        )
+        critics[spec] = critic = CentralCritic(cfg)
+        n_params = sum(p.numel() for p in critic.parameters())
+        print(
+            f"CentralCritic local={args.local} (enc {args.encoder_layers} / dec {args.decoder_layers} hidden layers) "
+            f"global={args.global_module} gat={spec}: {n_params} parameters, 1 thread, batch {args.batch}"
+        )
+    print(f"{'N others':>8} {'occupancy':>9} {'gat':>10} {'one pass: forward (s)':>22} {'separate calls (s)':>19}")
     for n in args.others:
         for occ in args.occupancy:
-            t = time_update(critic, args.batch, n, occ, args.repeats)
-            t_sep = time_update(critic, args.batch, n, occ, args.repeats, separate=True)
-            print(f"{n:>8} {occ:>9.2f} {t:>22.3f} {t_sep:>19.3f}")
+            for spec, critic in critics.items():
+                t = time_update(critic, args.batch, n, occ, args.repeats)
+                t_sep = time_update(critic, args.batch, n, occ, args.repeats, separate=True)
+                print(f"{n:>8} {occ:>9.2f} {spec:>10} {t:>22.3f} {t_sep:>19.3f}")
 
 
 if __name__ == "__main__":

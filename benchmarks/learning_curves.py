@@ -6,7 +6,7 @@ Usage: python benchmarks/learning_curves.py [--algos cig_td3 itd3] [--steps 2000
 
 ``--algos`` takes any registered driving algorithm: cig_td3, itd3, ippo, cppo, mfpo, copo
 (e.g. ``--algos ippo cppo mfpo copo --steps 100000 --eval-every 10000`` for the PPO family,
-which samples 1024 env steps per update).
+which samples 1600 env steps per update).
 
 The small scenario is the algorithm's quick settings (``registry.quick_settings``: 4 agents,
 horizon 300, small networks). The intersection is the default: vehicles first arrive there after
@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 
 
-def run_one(job: tuple[str, int, str, int, int, dict, int, int]) -> list[dict]:
-    """Train one (algo, seed) run and return its evaluation rows."""
-    algo_name, seed, scenario, steps, eval_every, overrides, eval_episodes, threads = job
+def run_one(job: tuple[str, str, int, str, int, int, dict, int, int]) -> list[dict]:
+    """Train one (algo, variant, seed) run and return its evaluation rows."""
+    algo_name, variant, seed, scenario, steps, eval_every, overrides, eval_episodes, threads = job
     import ray
     import torch
 
@@ -59,11 +59,57 @@ def run_one(job: tuple[str, int, str, int, int, dict, int, int]) -> list[dict]:
         sampled = int(res["env_runners"]["num_env_steps_sampled_lifetime"])
         ev = evaluate_algorithm(algo, validation_seeds(eval_episodes))
         ev["eval_episode_steps"] = ev.pop("env_steps")  # the evaluation episodes' length, not training steps
-        rows.append({"algo": algo_name, "seed": seed, "env_steps": sampled, "wall_s": round(time.perf_counter() - t0, 1), **ev})
-        print(f"{algo_name} seed {seed}: {sampled} steps, success {ev['success_rate']:.3f}", flush=True)
+        row = {
+            "algo": algo_name,
+            "variant": variant,
+            "seed": seed,
+            "env_steps": sampled,
+            "wall_s": round(time.perf_counter() - t0, 1),
+            **ev,
+        }
+        rows.append(row)
+        state = "  FROZEN (every vehicle timed out)" if frozen(row) else ""
+        print(f"{algo_name} {variant} seed {seed}: {sampled} steps, success {ev['success_rate']:.3f}{state}", flush=True)
     algo.stop()
     ray.shutdown()
     return rows
+
+
+def frozen(row: dict) -> bool:
+    """An evaluation where every vehicle timed out: no arrival, crash or exit (the TD3 full-brake freeze, or a crawl)."""
+    return float(row["num_vehicles"]) > 0 and float(row["num_outcome_timeout"]) == float(row["num_vehicles"])
+
+
+def parse_variants(items: list[str]) -> dict[str, dict]:
+    """``NAME`` or ``NAME:KEY=VALUE,KEY=VALUE`` strings to {name: overrides}."""
+    from coin_app.algorithms.registry import parse_overrides
+
+    out = {}
+    for item in items:
+        name, _, spec = item.partition(":")
+        if not name or name in out:
+            raise ValueError(f"bad --variants entry {item!r}; expected a new NAME or NAME:KEY=VALUE,KEY=VALUE")
+        out[name] = parse_overrides([kv for kv in spec.split(",") if kv])
+    return out
+
+
+def freeze_table(rows: list[dict]) -> str:
+    """Markdown: per (algorithm, variant) the seeds frozen at the end, the share of frozen evaluations and the final success."""
+    lines = [
+        "| algorithm | variant | seeds | frozen at the end | frozen evaluations | final success (mean ± std) | final collision |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for algo, variant in sorted({(r["algo"], r["variant"]) for r in rows}):
+        runs = [r for r in rows if r["algo"] == algo and r["variant"] == variant]
+        seeds = sorted({r["seed"] for r in runs})
+        final = [max((r for r in runs if r["seed"] == s), key=lambda r: r["env_steps"]) for s in seeds]
+        success = [float(r["success_rate"]) for r in final]
+        collision = [float(r["collision_rate"]) for r in final]
+        lines.append(
+            f"| {algo} | {variant} | {len(seeds)} | {sum(frozen(r) for r in final)} | {sum(frozen(r) for r in runs)}/{len(runs)} | "
+            f"{np.mean(success):.3f} ± {np.std(success):.3f} | {np.mean(collision):.3f} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
@@ -104,6 +150,13 @@ def main() -> None:
     ap.add_argument("--eval-every", type=int, default=2500)
     ap.add_argument("--eval-episodes", type=int, default=5)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    ap.add_argument(
+        "--variants",
+        nargs="+",
+        default=["default"],
+        metavar="NAME[:KEY=VALUE,...]",
+        help="settings compared side by side, e.g. paper guard:actor_preact_penalty=1e-3,actor_preact_threshold=2",
+    )
     ap.add_argument("--procs", type=int, default=2, help="runs trained at once (each gets cpu_count // procs torch threads)")
     ap.add_argument("--out", default="runs/curves")
     args = ap.parse_args()
@@ -112,8 +165,12 @@ def main() -> None:
     overrides = parse_overrides(args.set)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    variants = parse_variants(args.variants)
     jobs = [
-        (a, s, args.scenario, args.steps, args.eval_every, overrides, args.eval_episodes, threads) for a in args.algos for s in args.seeds
+        (a, v, s, args.scenario, args.steps, args.eval_every, overrides | extra, args.eval_episodes, threads)
+        for a in args.algos
+        for v, extra in variants.items()
+        for s in args.seeds
     ]
     print(
         f"{len(jobs)} runs of {args.steps} env steps on {args.scenario} ({args.procs} at a time); "
@@ -125,18 +182,30 @@ def main() -> None:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    plot(rows, out / "curves.png", f"{args.scenario}: success vs env steps ({len(args.seeds)} seeds)")
+    for r in rows:
+        r["algo_variant"] = r["algo"] if len(variants) == 1 else f"{r['algo']} {r['variant']}"
+    plot(
+        [r | {"algo": r["algo_variant"]} for r in rows],
+        out / "curves.png",
+        f"{args.scenario}: success vs env steps ({len(args.seeds)} seeds)",
+    )
+    table = freeze_table(rows)
+    (out / "freeze_table.md").write_text(table)
     (out / "settings.json").write_text(
-        json.dumps(vars(args) | {"quick_settings": {a: quick_settings(a) for a in args.algos}, "overrides": overrides}, indent=2)
+        json.dumps(
+            vars(args) | {"quick_settings": {a: quick_settings(a) for a in args.algos}, "overrides": overrides, "variants": variants},
+            indent=2,
+        )
     )
     print("\nfinal evaluation (mean ± std over seeds):")
-    for algo in args.algos:
-        runs = {r["seed"] for r in rows if r["algo"] == algo}
-        final = [max((r for r in rows if r["algo"] == algo and r["seed"] == s), key=lambda r: r["env_steps"]) for s in runs]
+    for label in sorted({r["algo_variant"] for r in rows}):
+        runs = {r["seed"] for r in rows if r["algo_variant"] == label}
+        final = [max((r for r in rows if r["algo_variant"] == label and r["seed"] == s), key=lambda r: r["env_steps"]) for s in runs]
         for key in ("success_rate", "collision_rate", "out_of_road_rate", "episode_return"):
             v = [r[key] for r in final]
-            print(f"  {algo:<8} {key:<17} {np.mean(v):.3f} ± {np.std(v):.3f}")
-    print(f"wrote {out / 'curves.csv'} and {out / 'curves.png'}")
+            print(f"  {label:<16} {key:<17} {np.mean(v):.3f} ± {np.std(v):.3f}")
+    print("\n" + table)
+    print(f"wrote {out / 'curves.csv'}, {out / 'curves.png'} and {out / 'freeze_table.md'}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Sampling (and adding) speed of the CIG-TD3 joint-step replay buffer on a synthetic respawning stream.
 
-Usage: python benchmarks/replay_sampling.py [--transitions 200000] [--batch 256] [--max-others 29 47] [--repeats 200]
+Usage: python benchmarks/replay_sampling.py [--transitions 200000] [--capacity N] [--batch 256] [--max-others 29 47] [--repeats 200]
 
 Fills a buffer with ``--transitions`` transitions from a synthetic stream of ``--envs`` episodes in
 parallel with ``--agents`` agents each (obs_dim 91, state_dim ``schema.STATE_DIM``): every step an agent ends with
@@ -9,7 +9,11 @@ a replacement with a fresh id has its first observation one step later (so at mo
 observations per step); episodes last ``--horizon`` steps; chunks of ``--fragment`` env steps are
 added at a time (as ``MultiAgentEnvRunner.sample()`` would return them). Then prints the median
 time of ``sample(B)`` with every global column, per ``max_others``, and the time per ``add`` of
-one-step chunks. Pin one core with ``taskset -c 0``.
+one-step chunks. The buffer's capacity is ``--capacity`` (default: the stream's length, so it is
+full); its arrays grow with what is stored (module doc of ``coin_app/algorithms/cig_td3/buffer.py``),
+so each line also prints the bytes allocated, the bytes at full capacity and the size of the arrays
+in a checkpoint (``get_state``); e.g. ``--capacity 10000000`` shows what the official capacity
+costs a run that holds ``--transitions``. Pin one core with ``taskset -c 0``.
 """
 
 from __future__ import annotations
@@ -111,6 +115,7 @@ def main() -> None:
     """Fill buffers and print the median sampling time."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--transitions", type=int, default=200_000)
+    ap.add_argument("--capacity", type=int, default=None, help="buffer capacity in transitions (default: the stream's length)")
     ap.add_argument("--batch", type=int, default=256)
     ap.add_argument("--max-others", type=int, nargs="+", default=[29, 47])
     ap.add_argument("--repeats", type=int, default=200)
@@ -121,9 +126,13 @@ def main() -> None:
     args = ap.parse_args()
     chunks = synthetic_chunks(args.transitions, args.envs, args.agents, args.horizon, args.fragment)
     n = sum(len(c) for c in chunks)
-    print(f"synthetic stream: {n:,} transitions in {len(chunks)} chunks, {args.envs} envs x {args.agents} agents, obs_dim 91")
+    capacity = n if args.capacity is None else args.capacity
+    print(
+        f"synthetic stream: {n:,} transitions in {len(chunks)} chunks, {args.envs} envs x {args.agents} agents, obs_dim 91; "
+        f"capacity {capacity:,}"
+    )
     for max_others in args.max_others:
-        buf = JointStepReplayBuffer(n, obs_dim=91, state_dim=schema.STATE_DIM, act_dim=schema.ACT_DIM, max_others=max_others, seed=0)
+        buf = JointStepReplayBuffer(capacity, obs_dim=91, state_dim=schema.STATE_DIM, act_dim=schema.ACT_DIM, max_others=max_others, seed=0)
         t0 = time.perf_counter()
         for c in chunks:
             buf.add(c)
@@ -137,22 +146,27 @@ def main() -> None:
             times.append(time.perf_counter() - t0)
         times_ms = 1000 * np.array(times)
         others, next_others = out[col.OTHERS_MASK].sum(1).mean(), out[col.NEXT_OTHERS_MASK].sum(1).mean()
+        held = min(n, capacity)
+        state_bytes = sum(v.nbytes for v in buf.get_state().values() if isinstance(v, np.ndarray))
         print(
             f"max_others={max_others:>3}: sample(B={args.batch}) median {np.median(times_ms):.2f} ms "
             f"(p90 {np.percentile(times_ms, 90):.2f} ms); add {n / add_s:,.0f} transitions/s; sampleable {len(buf):,}; "
             f"mean others at t {others:.1f}, at t+1 {next_others:.1f}; "
-            f"buffer arrays {buf.nbytes / 2**20:,.0f} MiB ({buf.nbytes / n:,.0f} B/transition)",
+            f"buffer arrays {buf.nbytes / 2**20:,.0f} MiB allocated ({buf.nbytes / held:,.0f} B/transition held) "
+            f"of {buf.capacity_nbytes / 2**20:,.0f} MiB at capacity; checkpoint arrays {state_bytes / 2**20:,.0f} MiB",
             flush=True,
         )
     small = synthetic_chunks(20 * args.envs * args.agents, args.envs, args.agents, args.horizon, fragment=1, seed=1, first_episode=10**6)
-    buf = JointStepReplayBuffer(n, obs_dim=91, state_dim=schema.STATE_DIM, act_dim=schema.ACT_DIM, max_others=max(args.max_others), seed=0)
+    buf = JointStepReplayBuffer(
+        capacity, obs_dim=91, state_dim=schema.STATE_DIM, act_dim=schema.ACT_DIM, max_others=max(args.max_others), seed=0
+    )
     for c in chunks:
         buf.add(c)
     t0 = time.perf_counter()
     for c in small:
         buf.add(c)
     ms = 1000 * (time.perf_counter() - t0) / len(small)
-    print(f"add of a one-step chunk ({args.envs} envs x {args.agents} agents) into the full buffer: {ms:.2f} ms")
+    print(f"add of a one-step chunk ({args.envs} envs x {args.agents} agents) into the filled buffer: {ms:.2f} ms")
 
 
 if __name__ == "__main__":

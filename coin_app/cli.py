@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from cluster import jobs
-from coin_app.algorithms.checkpoints import inference_actions, load_module, read_metadata, scenario_of
+from coin_app.algorithms.checkpoints import export_actor, load_module, read_metadata, scenario_of
 from coin_app.algorithms.registry import parse_overrides
 from coin_app.evaluation.arena_suite import evaluate_suite, markdown_table, parse_cases, plot_scenarios, summarize
 from coin_app.evaluation.evaluate import evaluate_policy, record
@@ -179,13 +179,19 @@ def cmd_export(args: argparse.Namespace) -> int:
     checkpoint = Path(args.checkpoint)
     meta = read_metadata(checkpoint)
     module = load_module(checkpoint)
-    actor = module.deterministic_actor()
+    actor, reference, extra = export_actor(module)
     keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
-    out = export_policy(actor, args.out, args.format, meta=keep | {"checkpoint": str(checkpoint.resolve())})
+    out = export_policy(actor, args.out, args.format, meta=keep | extra | {"checkpoint": str(checkpoint.resolve())})
     exported = load_policy(out)
     obs = np.random.default_rng(0).uniform(0.0, 1.0, (256, exported.obs_dim)).astype(np.float32)
-    gap = float(np.abs(inference_actions(module, obs) - exported(obs)).max())
+    gap = float(np.abs(reference(obs) - exported(obs)).max())
     print(f"export: {checkpoint} -> {out} ({args.format}, {out.stat().st_size / 1024:.0f} KiB, obs {exported.obs_dim})")
+    if "lcf" in extra:
+        lcf = extra["lcf"]
+        print(
+            f"  CoPO: the actor takes [obs | (lcf + 1) / 2]; evaluate draws each vehicle's LCF from "
+            f"N({lcf['mean']:.4f}, {lcf['std']:.4f}) in the file's metadata (train with --set eval_lcf=mean for the mean LCF)"
+        )
     print(f"  parity: max |action - RLModule.forward_inference| on 256 random obs = {gap:.1e}")
     if gap > 1e-5:
         raise ValueError(f"exported {args.format} actor differs from the RLModule by {gap:.1e} (> 1e-5); {out} is not trustworthy")

@@ -11,6 +11,7 @@ iteration and writes coin_app checkpoints (RLlib's layout plus ``coin_app.json``
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -25,7 +26,7 @@ from ray.rllib.core.rl_module.rl_module import RLModule
 
 from coin_app.adapters.rllib_env import make_env, register_envs
 from coin_app.algorithms import registry
-from coin_app.algorithms.checkpoints import network_policy, write_metadata
+from coin_app.algorithms.checkpoints import actor_policy, write_metadata
 from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes, scenario_config_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import aggregate
@@ -63,15 +64,15 @@ def fresh_module(name: str, scenario: str | None = None, overrides: dict[str, An
     return cfg.get_multi_rl_module_spec(spaces=spaces).build()[SHARED_MODULE_ID]
 
 
-def _learner_actor(learner: Any) -> Any:
-    """The deterministic actor of a learner's shared module."""
-    return learner.module[SHARED_MODULE_ID].unwrapped().deterministic_actor()
+def _learner_policy(learner: Any) -> Any:
+    """The evaluation policy of a learner's shared module (CoPO: LCFs as the module's ``evaluation_lcf`` says)."""
+    return actor_policy(learner.module[SHARED_MODULE_ID].unwrapped())
 
 
 def evaluate_algorithm(algo: Algorithm, seeds: list[int]) -> dict[str, float]:
     """Mean metrics of an algorithm's current deterministic actor (the learner's) on ``seeds`` (either backend)."""
-    actor = next(iter(algo.learner_group.foreach_learner(_learner_actor))).get()
-    per_episode = evaluate_policy(network_policy(actor), scenario_config_of(algo.config), seeds)
+    policy = next(iter(algo.learner_group.foreach_learner(_learner_policy))).get()
+    per_episode = evaluate_policy(policy, scenario_config_of(algo.config), seeds)
     return {k: v["mean"] for k, v in aggregate(per_episode).items()}
 
 
@@ -90,12 +91,14 @@ def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
 
     ``env_steps``, ``episode_return_mean``, ``episode_len_mean``, the agent outcomes of the
     iteration (``agents_finished``, ``train_success_rate``, ``train_collision_rate``; NaN when
-    no agent ended), every scalar learner metric of the shared module (``learner/<name>``) and
+    no agent ended), the acting vehicles' ``mean_speed`` (m/s; NaN without driving agents),
+    every scalar learner metric of the shared module (``learner/<name>``) and
     the last periodic evaluation on validation seeds (``eval/<metric>``), if any.
     """
     runners = result.get("env_runners", {})
     sampled = result.get("num_env_steps_sampled_lifetime", runners.get("num_env_steps_sampled_lifetime", 0))
     finished = float(runners.get("agents_finished", 0) or 0)
+    agent_steps = float(runners.get("agents_agent_steps", 0) or 0)
     out = {
         "env_steps": int(sampled),
         "episode_return_mean": float(runners.get("episode_return_mean", float("nan"))),
@@ -103,6 +106,7 @@ def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
         "agents_finished": finished,
         "train_success_rate": runners.get("agents_succeeded", 0) / finished if finished else float("nan"),
         "train_collision_rate": runners.get("agents_collided", 0) / finished if finished else float("nan"),
+        "mean_speed": runners.get("agents_speed_sum", 0.0) / agent_steps if agent_steps else float("nan"),
     }
     for key, value in result.get("learners", {}).get(SHARED_MODULE_ID, {}).items():
         if isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -112,12 +116,46 @@ def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+class FreezeDetector:
+    """Warns when vehicles stand still after the warm-up for ``patience`` iterations in a row (the TD3 full-brake freeze).
+
+    A TD3-family actor can saturate at full brake: vehicles stop, every braking action gives the
+    same next state, the critic is flat there and the return is exactly 0 (README, "TD3 freeze").
+    ``update`` takes :func:`iteration_metrics` and returns a warning line once the mean speed of
+    the acting vehicles has stayed below ``speed_threshold`` m/s for ``patience`` iterations.
+    """
+
+    def __init__(self, warmup_steps: int = 0, patience: int = 3, speed_threshold: float = 0.5):
+        self.warmup_steps, self.patience, self.speed_threshold = warmup_steps, patience, speed_threshold
+        self.still = 0
+
+    def update(self, metrics: dict[str, float]) -> str | None:
+        """The warning for this iteration, or None."""
+        speed = metrics.get("mean_speed", float("nan"))
+        if metrics["env_steps"] <= self.warmup_steps or math.isnan(speed):
+            return None
+        self.still = self.still + 1 if speed < self.speed_threshold else 0
+        if self.still < self.patience:
+            return None
+        saturation = metrics.get("learner/actor_saturation", float("nan"))
+        return (
+            f"warning: vehicles have stood still (mean speed {speed:.2f} m/s < {self.speed_threshold}) for {self.still} iterations; "
+            f"saturated actor outputs {saturation:.0%}. A TD3 actor frozen at full brake does not recover by itself "
+            "(README: TD3 freeze): try --set actor_preact_penalty=1e-3 actor_preact_threshold=2"
+        )
+
+
 def outcome_text(metrics: dict[str, float]) -> str:
-    """``"  agents 12  success 0.250  collision 0.083"`` from :func:`iteration_metrics` ('' if no agent ended)."""
-    if not metrics["agents_finished"]:
-        return ""
-    n, success, collision = int(metrics["agents_finished"]), metrics["train_success_rate"], metrics["train_collision_rate"]
-    return f"  agents {n}  success {success:.3f}  collision {collision:.3f}"
+    """``"  agents 12  success 0.250  collision 0.083  speed 6.1 m/s  saturated 4%"`` from :func:`iteration_metrics` (parts that exist)."""
+    text = ""
+    if metrics["agents_finished"]:
+        n, success, collision = int(metrics["agents_finished"]), metrics["train_success_rate"], metrics["train_collision_rate"]
+        text += f"  agents {n}  success {success:.3f}  collision {collision:.3f}"
+    if not math.isnan(metrics.get("mean_speed", float("nan"))):
+        text += f"  speed {metrics['mean_speed']:.1f} m/s"
+    if "learner/actor_saturation" in metrics:
+        text += f"  saturated {metrics['learner/actor_saturation']:.0%}"
+    return text
 
 
 def checkpoint_meta(name: str, scenario: str, seed: int, overrides: dict[str, Any], **extra: Any) -> dict[str, Any]:
@@ -170,6 +208,12 @@ def train(
         log(f"resumed from {resume}")
     meta = checkpoint_meta(name, scenario, seed, overrides)
     (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
+    spec = registry.get(name)
+    warmup = cfg.warmup_steps if "warmup_steps" in spec.hyperparameters else 0
+    if spec.capabilities.joint_replay:
+        agents = scenario_config_of(cfg).num_agents
+        log(f"replay: {cfg.replay_capacity:,} agent transitions, about {cfg.replay_capacity // agents:,} env steps at {agents} agents")
+    freeze = FreezeDetector(warmup)
     t0 = time.perf_counter()
     start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
     result: dict[str, Any] = {}
@@ -186,6 +230,9 @@ def train(
             f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
             f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
         )
+        warning = freeze.update(m)
+        if warning:
+            log(warning)
         if EVAL_RESULT_KEY in result:
             last_eval = result[EVAL_RESULT_KEY]
             log(_eval_line(last_eval))

@@ -79,3 +79,21 @@ def test_checkpoint_keeps_the_buffer_and_resumes_the_same_updates(tmp_path):
     assert first == next_losses(restored)
     algo.stop()
     restored.stop()
+
+
+def test_no_uniform_random_action_after_warmup_steps():
+    # one iteration of 50 env steps spans the warm-up boundary at 37; no updates (the batch never fills), no noise:
+    # from env step 37 on, every stored action is the (fixed) actor's own action
+    algo = tiny_algo(warmup_steps=37, exploration_noise=0.0, train_batch_size_per_learner=100_000, horizon=100, max_agent_steps=100)
+    algo.train()
+    assert algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime")) >= 50
+    sample = algo.replay.sample(len(algo.replay))
+    actor = algo.get_module("shared").actor
+    with torch.no_grad():
+        policy = actor(torch.as_tensor(sample["obs"])).numpy()
+    gap = np.abs(sample["actions"] - policy).max(axis=1)
+    steps = sample["env_step"]
+    assert set(steps[steps >= 37]) and set(steps[steps < 37])  # both sides of the boundary were sampled
+    assert gap[steps >= 37].max() < 1e-5  # the policy's action, exactly from the boundary on
+    assert np.median(gap[steps < 37]) > 0.1  # uniform random actions before it
+    algo.stop()

@@ -1,6 +1,7 @@
 """CIG-TD3 learner: policy delay, no gradient leaks, target updates, ablations, seeding, resume."""
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -9,6 +10,8 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
+from coin_app.algorithms.cig_td3.learner import loss_config
+from coin_app.algorithms.cig_td3.losses import actor_loss, preact_penalty
 
 torch.set_num_threads(1)
 register_envs()
@@ -201,3 +204,86 @@ def test_unregistered_env_is_refused():
 def test_remote_learners_are_refused():
     with pytest.raises(ValueError, match="num_learners=1"):
         make_config().learners(num_learners=1).validate()
+
+
+def test_actor_has_three_hidden_layers_of_hidden_units():
+    for layers in (3, 2):
+        _, learner = build_learner(actor_layers=layers)
+        linears = [m for m in module_of(learner).actor.net if isinstance(m, torch.nn.Linear)]
+        assert [(lin.in_features, lin.out_features) for lin in linears] == [(O, 32)] + [(32, 32)] * (layers - 1) + [(32, A)]
+        assert isinstance(module_of(learner).actor.net[-1], torch.nn.Tanh)
+
+
+def _actor_loss_of(module, batch_np, cfg):
+    """The actor loss of Eq. 12 on a batch with the module's current networks, re-evaluated independently."""
+    batch = {k: torch.as_tensor(v) for k, v in batch_np.items()}
+    return float(actor_loss(module.actor, module.local_q, module.central, batch, loss_config(cfg))[0])
+
+
+@pytest.mark.parametrize("order", ["critic_first", "joint"])
+def test_actor_loss_is_taken_on_the_updated_critics(order):
+    # ITD3 (no centralized critic, so the actor loss draws no CVAE latent): exactly reproducible
+    cfg = make_config(policy_delay=1, update_order=order).itd3()
+    cfg.validate()
+    torch.manual_seed(0)
+    learner = cfg.build_learner(env=CoinMultiAgentEnv({"scenario": "bottleneck", **ENV_CFG}))
+    m = module_of(learner)
+    batch = random_batch(5, cfg.max_others)
+    before = copy.deepcopy(m)
+    logged = []
+    log_actor = learner._log_actor
+    learner._log_actor = lambda module_id, loss, stats: (logged.append(float(loss.detach())), log_actor(module_id, loss, stats))
+    learner.update(batch=MultiAgentBatch({"shared": SampleBatch(batch)}, env_steps=B), timesteps={"num_env_steps_sampled_lifetime": 0})
+    updated_critics = copy.deepcopy(m)
+    updated_critics.actor.load_state_dict(before.actor.state_dict())  # the actor loss is taken before the actor's own step
+    on_updated, on_old = _actor_loss_of(updated_critics, batch, cfg), _actor_loss_of(before, batch, cfg)
+    assert abs(on_updated - on_old) > 1e-4  # the critic step moved the loss, so the two orders are distinguishable
+    assert logged == [pytest.approx(on_updated if order == "critic_first" else on_old, abs=1e-6)]
+    assert not same(params(before.actor), params(m.actor)) and not same(params(before.local_q), params(m.local_q))
+
+
+def test_actor_waits_actor_start_steps_after_the_warm_up():
+    cfg, learner = build_learner(policy_delay=1, warmup_steps=100, actor_start_steps=50)
+    m = module_of(learner)
+    for step, env_steps in enumerate((120, 149, 150)):
+        actor0 = params(m.actor)
+        batch = random_batch(step, cfg.max_others)
+        learner.update(
+            batch=MultiAgentBatch({"shared": SampleBatch(batch)}, env_steps=B), timesteps={"num_env_steps_sampled_lifetime": env_steps}
+        )
+        assert same(actor0, params(m.actor)) is (env_steps < 150), env_steps
+
+
+def test_preact_penalty_gradient_by_hand():
+    pre = torch.tensor([[3.0, -0.5], [-2.5, 1.0]], requires_grad=True)
+    # weight 0.1, threshold 1: only |u| > 1 counts: (3 - 1)^2 and (2.5 - 1)^2 over 4 entries
+    loss = preact_penalty(pre, 0.1, 1.0)
+    assert float(loss) == pytest.approx(0.1 * (2.0**2 + 1.5**2) / 4)
+    (grad,) = torch.autograd.grad(loss, pre)
+    # d/du = 0.1 * 2 (|u| - 1) sign(u) / 4 where |u| > 1, else 0
+    assert torch.allclose(grad, torch.tensor([[0.1 * 2 * 2.0 / 4, 0.0], [-0.1 * 2 * 1.5 / 4, 0.0]]))
+    plain = preact_penalty(pre, 0.1)
+    assert float(plain) == pytest.approx(0.1 * (9 + 0.25 + 6.25 + 1) / 4)  # threshold 0: w * mean(u^2)
+
+
+def test_preact_penalty_enters_the_actor_loss_and_saturation_is_logged():
+    batch = {k: torch.as_tensor(v) for k, v in random_batch(3, 5).items()}
+    cfg, learner = build_learner()
+    m = module_of(learner)
+    with torch.no_grad():
+        m.actor.net[-2].bias.fill_(10.0)  # every output saturated: tanh(u) > 0.99 for u > 2.65
+    base, stats = actor_loss(m.actor, m.local_q, None, batch, loss_config(cfg))
+    assert float(stats["actor_saturation"]) == 1.0
+    with_penalty, _ = actor_loss(m.actor, m.local_q, None, batch, dataclasses.replace(loss_config(cfg), preact_penalty=0.01))
+    pre = m.actor.preactivation(batch["obs"])
+    assert float(with_penalty - base) == pytest.approx(0.01 * float(pre.square().mean()), rel=1e-5)
+
+
+def test_exploration_noise_decays_linearly_after_the_warm_up():
+    cfg, learner = build_learner(
+        warmup_steps=100, exploration_noise=0.05, exploration_noise_initial=0.3, exploration_noise_decay_steps=1000
+    )
+    m = module_of(learner)
+    assert [m.noise_std(t) for t in (100, 600, 1100, 5000)] == pytest.approx([0.3, 0.175, 0.05, 0.05])
+    _, constant = build_learner(exploration_noise=0.05)
+    assert module_of(constant).noise_std(10) == 0.05

@@ -26,6 +26,9 @@ class FakeActor(nn.Module):
     def forward(self, obs):
         return torch.tanh(self.lin(obs))
 
+    def preactivation(self, obs):
+        return self.lin(obs)
+
 
 class FakeTwinQ(nn.Module):
     def __init__(self):

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig
-from coin_app.algorithms.cig_td3.graph import GLOBAL_MODULES, GraphModule, build_graph
+from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, GATLayer, GraphModule, build_graph
 from coin_app.algorithms.cig_td3.individual import Actor, TwinQ, mlp
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
 
@@ -78,9 +78,9 @@ def expected_adjacency(x, radius=None, scale=1.0):
     return valid, adj
 
 
-@pytest.mark.parametrize("radius", [None, 1.5])
-def test_gat_attention_rows_sum_to_one_over_valid_neighbours(radius):
-    critic = make_critic(graph_radius=radius, position_scale=1.0)
+@pytest.mark.parametrize("radius,heads", [(None, 2), (1.5, 2), (1.5, 1), (1.5, 3)])
+def test_gat_attention_rows_sum_to_one_over_valid_neighbours(radius, heads):
+    critic = make_critic(graph_radius=radius, position_scale=1.0, gat_heads=heads)
     x = make_inputs()
     x["others_state"][..., :2] *= 1.5  # spread the agents so that some pairs are beyond the radius
     critic.q_values(**x)
@@ -89,8 +89,8 @@ def test_gat_attention_rows_sum_to_one_over_valid_neighbours(radius):
         assert (~adj[valid[:, :, None] & valid[:, None, :]]).any()  # the radius really cuts edges
     for branch in (critic.q1_branch, critic.q2_branch):
         a1, a2 = branch.graph.last_attention
-        assert a1.shape == (B, N + 1, N + 1) and a2.shape == (B, 1, N + 1)
-        for alpha, rows in ((a1, slice(None)), (a2, slice(0, 1))):
+        assert a1.shape == (B, heads, N + 1, N + 1) and a2.shape == (B, 1, 1, N + 1)  # (batch, head, receiver i, neighbour j)
+        for alpha, rows in [(a1[:, k], slice(None)) for k in range(heads)] + [(a2[:, 0], slice(0, 1))]:
             r_valid, r_adj = valid[:, rows], adj[:, rows]
             sums = alpha.sum(-1)
             assert torch.allclose(sums[r_valid], torch.ones(()), atol=1e-6)
@@ -100,9 +100,11 @@ def test_gat_attention_rows_sum_to_one_over_valid_neighbours(radius):
 
 
 # ---------------------------------------------------------------- invariances
-@pytest.mark.parametrize("local_module", LOCAL_MODULES)
-def test_padded_slot_contents_change_nothing(local_module):
-    critic = make_critic(local_module=local_module, graph_radius=2.0)
+@pytest.mark.parametrize(
+    "local_module,gat", [(m, {}) for m in LOCAL_MODULES] + [("cvae", dict(gat_heads=1, gat_init="default")), ("cvae", dict(gat_heads=3))]
+)
+def test_padded_slot_contents_change_nothing(local_module, gat):
+    critic = make_critic(local_module=local_module, graph_radius=2.0, **gat)
     x = make_inputs()
     y = target_for(per_pair=True)
     ref = run_all(critic, x, y)
@@ -259,8 +261,14 @@ def test_switching_a_module_keeps_unrelated_parameter_shapes():
         other = make_critic(global_module=global_module)
         assert shapes(other, not_graph) == shapes(base, not_graph)
         assert shapes(other, ("q1_branch.graph",)) != shapes(base, ("q1_branch.graph",))
-    other = make_critic(graph_radius=40.0, position_scale=150.0, detach_latent=True)
+    other = make_critic(graph_radius=40.0, position_scale=150.0, detach_latent=True, gat_init="default")
     assert shapes(other, ("",)) == shapes(base, ("",))
+    other = make_critic(gat_heads=3)  # only the GAT's shapes change
+    graphs = tuple(f"{b}_branch.graph" for b in ("q1", "q2", "v"))
+    assert {k: v for k, v in shapes(other, ("",)).items() if not k.startswith(graphs)} == {
+        k: v for k, v in shapes(base, ("",)).items() if not k.startswith(graphs)
+    }
+    assert shapes(other, graphs) != shapes(base, graphs)
 
 
 # ---------------------------------------------------------------- graph modules against dense references
@@ -271,12 +279,16 @@ def dense_reference(module, h, adj, valid):
         w = adj[:, 0].float()
         return F.relu(module.pool((w[:, :, None] * h).sum(1) / w.sum(1, keepdim=True)))
     for layer in module.layers:
-        if module.kind == "gat":
-            wh = h @ layer.W.weight.T
-            pair = torch.cat([wh[:, :, None, :].expand(-1, m, m, -1), wh[:, None, :, :].expand(-1, m, m, -1)], -1)  # [Wh_i || Wh_j]
-            e = F.leaky_relu(pair @ torch.cat([layer.a_recv, layer.a_nbr]), 0.2)
-            alpha = torch.softmax(e.masked_fill(~adj, float("-inf")), -1)
-            h = F.relu(alpha @ wh)
+        if module.kind == "gat":  # every head on every node (no ego-only shortcut), heads concatenated
+            heads = []
+            for k in range(layer.a_recv.shape[0]):
+                w_k = layer.W.weight[k * layer.out_dim : (k + 1) * layer.out_dim]  # head k's W_k (F, F_in)
+                wh = h @ w_k.T
+                pair = torch.cat([wh[:, :, None, :].expand(-1, m, m, -1), wh[:, None, :, :].expand(-1, m, m, -1)], -1)  # [Wh_i || Wh_j]
+                e = F.leaky_relu(pair @ torch.cat([layer.a_recv[k], layer.a_nbr[k]]), 0.2)
+                alpha = torch.softmax(e.masked_fill(~adj, float("-inf")), -1)
+                heads.append(F.relu(alpha @ wh))
+            h = torch.cat(heads, -1)
         else:
             nb = adj & ~torch.eye(m, dtype=torch.bool) if module.kind == "graphsage" else adj
             mean = (nb.float() @ h) / nb.float().sum(-1, keepdim=True).clamp_min(1)
@@ -285,15 +297,167 @@ def dense_reference(module, h, adj, valid):
     return h[:, 0]
 
 
-@pytest.mark.parametrize("kind", GLOBAL_MODULES)
-def test_graph_modules_equal_dense_reference(kind):
+@pytest.mark.parametrize("kind,heads", [(k, 2) for k in GLOBAL_MODULES] + [("gat", 1), ("gat", 3)])
+def test_graph_modules_equal_dense_reference(kind, heads):
     torch.manual_seed(0)
-    module = GraphModule(kind, 8, 0.2)
+    module = GraphModule(kind, 8, 0.2, heads=heads)
     x = make_inputs()
     graph = build_graph(x["state"], x["action"], x["others_state"], x["others_action"], x["others_mask"], radius=2.0)
     h = torch.randn(B, N + 1, 8) * graph.valid[..., None]
     out = module(graph.packer.pack(h), graph)
     assert torch.allclose(out, dense_reference(module, h, graph.adj, graph.valid), atol=1e-5)
+
+
+# ---------------------------------------------------------------- GAT heads and initialization
+def small_graph(radius=2.0):
+    x = make_inputs()
+    return build_graph(x["state"], x["action"], x["others_state"], x["others_action"], x["others_mask"], radius=radius)
+
+
+def brute_force_gat_head(h, adj, valid, w, a_recv, a_nbr, slope=0.2):
+    """One GAT head by scalar loops in float64 (Eqs. 4-6): alpha_ij over the neighbours j of i, out_i = ReLU(sum_j alpha_ij W h_j)."""
+    nb, m, _ = h.shape
+    h, w, a_recv, a_nbr = (t.detach().double() for t in (h, w, a_recv, a_nbr))
+    out, alpha = torch.zeros(nb, m, w.shape[0], dtype=torch.float64), torch.zeros(nb, m, m, dtype=torch.float64)
+    for b in range(nb):
+        wh = [w @ h[b, j] for j in range(m)]
+        for i in range(m):
+            if not valid[b, i]:
+                continue  # padded receiver: zero row, zero attention
+            nbrs = [j for j in range(m) if adj[b, i, j]]
+            ex = [math.exp(float(F.leaky_relu(a_recv @ wh[i] + a_nbr @ wh[j], slope))) for j in nbrs]
+            for j, v in zip(nbrs, ex):
+                alpha[b, i, j] = v / sum(ex)
+            out[b, i] = torch.relu(sum(alpha[b, i, j] * wh[j] for j in nbrs))
+    return out, alpha
+
+
+@pytest.mark.parametrize("init", GAT_INITS)
+def test_gat_first_layer_concatenates_its_heads(init):
+    torch.manual_seed(0)
+    width, heads = 8, 2
+    layer = GATLayer(width, width, 0.2, heads=heads, init=init)
+    graph = small_graph()
+    h = torch.randn(B, N + 1, width) * graph.valid[..., None]
+    out, alpha = layer(graph.packer.pack(h), graph)
+    assert out.shape == (B, N + 1, heads * width) and alpha.shape == (B, heads, N + 1, N + 1)
+    for k in range(heads):
+        w_k = layer.W.weight[k * width : (k + 1) * width]
+        half = out[..., k * width : (k + 1) * width]
+        ref, ref_alpha = brute_force_gat_head(h, graph.adj, graph.valid, w_k, layer.a_recv[k], layer.a_nbr[k])
+        assert torch.allclose(half.double(), ref, atol=1e-5) and torch.allclose(alpha[:, k].double(), ref_alpha, atol=1e-6)
+        single = GATLayer(width, width, 0.2, heads=1)  # a one-head layer holding head k's weights gives the same half
+        with torch.no_grad():
+            single.W.weight.copy_(w_k)
+            single.a_recv.copy_(layer.a_recv[k : k + 1])
+            single.a_nbr.copy_(layer.a_nbr[k : k + 1])
+        s_out, s_alpha = single(graph.packer.pack(h), graph)
+        assert torch.allclose(half, s_out, atol=1e-6) and torch.allclose(alpha[:, k], s_alpha[:, 0], atol=1e-7)
+    assert not torch.allclose(out[..., :width], out[..., width:])  # the heads have their own weights
+    ego, ego_alpha = layer.forward_ego(h, graph)  # the ego-only path equals row 0 of the full layer
+    assert ego.shape == (B, heads * width) and ego_alpha.shape == (B, heads, 1, N + 1)
+    assert torch.allclose(ego, out[:, 0], atol=1e-6) and torch.allclose(ego_alpha[:, :, 0], alpha[:, :, 0], atol=1e-7)
+
+
+class SingleHeadGATBefore27(torch.nn.Module):
+    """The single-head GAT layer as it was before issue #27 (nn.Linear default W, Glorot a, gain 1.414): the regression reference."""
+
+    def __init__(self, in_dim, out_dim):
+        super().__init__()
+        self.W = torch.nn.Linear(in_dim, out_dim, bias=False)
+        bound = 1.414 * math.sqrt(6.0 / (2 * out_dim + 1))
+        self.a_recv = torch.nn.Parameter(torch.empty(out_dim).uniform_(-bound, bound))
+        self.a_nbr = torch.nn.Parameter(torch.empty(out_dim).uniform_(-bound, bound))
+
+    def alpha(self, s_recv, s_nbr, adj):
+        e = F.leaky_relu(s_recv.unsqueeze(-1) + s_nbr.unsqueeze(1), 0.2)
+        return torch.softmax(e.masked_fill(~adj, float("-inf")), dim=-1)
+
+    def forward(self, h, graph):
+        u = torch.stack([self.a_recv @ self.W.weight, self.a_nbr @ self.W.weight])
+        wh, s = graph.packer.unpack(self.W(h)), graph.packer.unpack(F.linear(h, u))
+        alpha = self.alpha(s[..., 0], s[..., 1], graph.adj).masked_fill(~graph.valid.unsqueeze(-1), 0.0)
+        return F.relu(alpha @ wh), alpha
+
+    def forward_ego(self, h, graph):
+        alpha = self.alpha(h[:, :1] @ (self.a_recv @ self.W.weight), h @ (self.a_nbr @ self.W.weight), graph.adj[:, :1])
+        return F.relu(self.W((alpha @ h).squeeze(1))), alpha
+
+
+def test_one_head_default_init_reproduces_the_layer_before_issue_27_bit_for_bit():
+    width = 128
+    torch.manual_seed(4)
+    old = [SingleHeadGATBefore27(width, width), SingleHeadGATBefore27(width, width)]
+    torch.manual_seed(4)
+    module = GraphModule("gat", width, 0.2, heads=1, init="default")
+    for o, n in zip(old, module.layers):
+        assert torch.equal(n.W.weight, o.W.weight) and torch.equal(n.a_recv, o.a_recv[None]) and torch.equal(n.a_nbr, o.a_nbr[None])
+    graph = small_graph()
+    h = torch.randn(B, N + 1, width) * graph.valid[..., None]
+    h1, a1 = old[0](graph.packer.pack(h), graph)
+    ref, a2 = old[1].forward_ego(h1, graph)
+    out = module(graph.packer.pack(h), graph)
+    assert torch.equal(out, ref)
+    assert torch.equal(module.last_attention[0], a1[:, None]) and torch.equal(module.last_attention[1], a2[:, None])
+    out.square().sum().backward()
+    ref.square().sum().backward()
+    for o, n in zip(old, module.layers):
+        assert torch.equal(n.W.weight.grad, o.W.weight.grad) and torch.equal(n.a_recv.grad, o.a_recv.grad[None])
+        assert torch.equal(n.a_nbr.grad, o.a_nbr.grad[None])
+
+
+def test_gat_xavier_init_has_pygat_bound_and_std():
+    torch.manual_seed(0)
+    f_in, f, heads, gain = 512, 256, 2, 1.414
+    layer = GATLayer(f_in, f, heads=heads, init="xavier")
+    for w_k in layer.W.weight.detach().split(f):  # per head W_k: fan_in + fan_out = F_in + F (not the stacked heads * F)
+        bound = gain * math.sqrt(6 / (f_in + f))  # uniform(-bound, bound) has std bound / sqrt(3) = gain * sqrt(2 / (F_in + F))
+        assert bound * 0.999 < w_k.abs().max() <= bound
+        assert abs(w_k.std().item() / (gain * math.sqrt(2 / (f_in + f))) - 1) < 0.01
+        assert abs(w_k.mean().item()) < 0.01 * bound
+    a = torch.cat([layer.a_recv, layer.a_nbr], 1).detach()  # head k's (2F, 1) vector a_k: fans 2F and 1
+    bound = gain * math.sqrt(6 / (2 * f + 1))
+    assert a.abs().max() <= bound and abs(a.std().item() / (bound / math.sqrt(3)) - 1) < 0.1
+    # at the critic's width (F_in = F = 128) Xavier with gain 1.414 is sqrt(3) * 1.414 = 2.45 times nn.Linear's default std
+    w_x = GATLayer(128, 128, heads=8, init="xavier").W.weight.detach()
+    w_d = GATLayer(128, 128, heads=8, init="default").W.weight.detach()
+    assert w_d.abs().max() <= 1 / math.sqrt(128)  # kaiming_uniform(a=sqrt(5)) bound 1 / sqrt(fan_in)
+    assert abs(w_x.std().item() / w_d.std().item() / (1.414 * math.sqrt(3)) - 1) < 0.03
+
+
+def n_params(module):
+    return sum(p.numel() for p in module.parameters())
+
+
+def test_gat_module_structure_and_parameter_counts():
+    f = 128
+    module = GraphModule("gat", f)  # defaults: 2 heads, Xavier
+    l1, l2 = module.layers
+    assert (l1.heads, l2.heads) == (2, 1)
+    assert l1.W.weight.shape == (2 * f, f) and l2.W.weight.shape == (f, 2 * f)
+    assert l1.a_recv.shape == l1.a_nbr.shape == (2, f) and l2.a_recv.shape == l2.a_nbr.shape == (1, f)
+    assert n_params(module) == 2 * (f * f + 2 * f) + (2 * f * f + 2 * f) == 66304  # layer 1: 2 x (W_k, a_k); layer 2: W (F, 2F), a
+    assert n_params(GraphModule("gat", f, heads=1, init="default")) == 2 * (f * f + 2 * f) == 33280
+    # the critic passes gat_heads / gat_init to its three graph modules (Q1, Q2, V): +3 x (66304 - 33280) parameters
+    before = CentralCritic(CentralCriticConfig(obs_dim=91, gat_heads=1, gat_init="default"))
+    after = CentralCritic(CentralCriticConfig(obs_dim=91))
+    assert n_params(after) - n_params(before) == 3 * (66304 - 33280)
+    torch.manual_seed(0)
+    critic = make_critic(gat_heads=3, gat_init="default")
+    for branch in (critic.q1_branch, critic.q2_branch, critic.v_branch):
+        assert branch.graph.layers[0].heads == 3 and branch.graph.layers[1].W.weight.shape == (8, 24)
+        assert branch.graph.layers[0].W.weight.abs().max() <= 1 / math.sqrt(8)  # nn.Linear default bound
+    xav = make_critic().q1_branch.graph.layers[0].W.weight
+    assert xav.abs().max() > 1 / math.sqrt(8)  # Xavier's bound 1.414 * sqrt(6 / 16) = 0.87 is wider
+
+
+@pytest.mark.parametrize("kw", [dict(heads=0), dict(heads=2.0), dict(heads=True), dict(init="kaiming")])
+def test_bad_gat_arguments_raise(kw):
+    for kind in GLOBAL_MODULES:
+        with pytest.raises(ValueError, match="gat_heads|gat_init"):
+            GraphModule(kind, 8, **kw)
+    with pytest.raises(ValueError, match="gat_heads|gat_init"):
+        GATLayer(8, 8, **kw)
 
 
 # ---------------------------------------------------------------- CVAE loss
@@ -364,6 +528,10 @@ def test_cvae_loss_equals_hand_written_reference():
         ("hidden", True),
         ("detach_latent", "yes"),
         ("cvae_encoder_layers", 0),
+        ("gat_heads", 0),
+        ("gat_heads", 2.0),
+        ("gat_heads", True),
+        ("gat_init", "kaiming"),
     ],
 )
 def test_bad_config_values_raise_naming_the_value(field, value):
@@ -398,4 +566,12 @@ def test_no_other_agents_at_all():
     out = run_all(critic, x, target_for())
     assert out.q1.shape == out.v.shape == (B,) and torch.isfinite(out.recon_mse)
     a1, a2 = critic.q1_branch.graph.last_attention
-    assert torch.equal(a1, torch.ones(B, 1, 1)) and torch.equal(a2, torch.ones(B, 1, 1))
+    assert torch.equal(a1, torch.ones(B, 2, 1, 1)) and torch.equal(a2, torch.ones(B, 1, 1, 1))
+
+
+def test_a_single_head_layer_loads_the_attention_vectors_of_the_previous_layout():
+    layer = GATLayer(8, 8, heads=1, init="default")
+    old = {k: v.clone() for k, v in layer.state_dict().items()}
+    old["a_recv"], old["a_nbr"] = old["a_recv"][0] * 2.0, old["a_nbr"][0] * 3.0  # (F,) as saved before the multi-head layer
+    layer.load_state_dict(old)
+    assert torch.equal(layer.a_recv[0], old["a_recv"]) and torch.equal(layer.a_nbr[0], old["a_nbr"])

@@ -18,6 +18,7 @@ import pytest
 from ray.rllib.core.columns import Columns
 from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 
+from coin_app.algorithms.cig_td3 import buffer as buffer_module
 from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
 from coin_app.algorithms.cig_td3.transitions import TransitionBatch, agent_key, episode_key, episodes_to_transitions
@@ -508,6 +509,168 @@ def test_bad_inputs_raise_clear_errors():
         JointStepReplayBuffer(10, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS).add(batch)
     with pytest.raises(ValueError, match="max_others must be an integer"):
         JointStepReplayBuffer(10, OBS_DIM, max_others=-1)
+
+
+# ----------------------------------------------------------------------------- memory that grows with use
+M_COLS = MAX_OTHERS + 1
+# bytes of one row of each ring, from the column types the module doc lists (float32 obs / state / action /
+# rewards, int64 write indices and keys, int32 entry columns, bool flags)
+POOL_ROW = 4 * (OBS_DIM + STATE_DIM) + 3 * 8  # obs, state; owner, transition acting from it, transition arriving in it
+TRANSITION = 4 * 8 + 4 * ACT_DIM + 2 * 4 + 2 + 3 * 8 + 1  # o_t, o_t+1, entries t, t+1; action; rewards; flags; step, episode, agent; ok
+ENTRY = 4 * M_COLS + 4 + 2 * 8  # pool rows, row count; episode, env step
+
+
+def stored_bytes(truth: Truth) -> int:
+    """Bytes the rows of everything added so far need: one pool row per distinct observation, one entry per (episode, step)."""
+    added = [k for batch in truth.batches for k in batch]
+    rows = {(q, a, s) for q, a, t in added for s in (t, t + 1)}
+    entries = {(q, s) for q, a, t in added for s in (t, t + 1)}
+    return len(rows) * POOL_ROW + len(added) * TRANSITION + len(entries) * ENTRY
+
+
+def full_bytes(capacity: int) -> int:
+    """Bytes of a full buffer with the default ring sizes (plus the pool's and the actions' padding rows)."""
+    obs_capacity, step_capacity = capacity + capacity // 4 + 64, capacity // 2 + 64
+    return (obs_capacity + 1) * POOL_ROW + capacity * TRANSITION + 4 * ACT_DIM + step_capacity * ENTRY
+
+
+def assert_same_samples(x: JointStepReplayBuffer, y: JointStepReplayBuffer, draws: int = 3, batch_size: int = 32) -> None:
+    """``x`` and ``y`` return the same samples, column by column."""
+    assert len(x) == len(y)
+    for _ in range(draws):
+        sx, sy = x.sample(batch_size), y.sample(batch_size)
+        assert sx.keys() == sy.keys()
+        for k in sx:
+            np.testing.assert_array_equal(sx[k], sy[k])
+
+
+def test_memory_is_proportional_to_what_is_stored(monkeypatch):
+    monkeypatch.setattr(buffer_module, "INITIAL_ROWS", 16)
+    capacity = 10_000_000  # the official code's capacity
+    buf = JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=0)
+    assert buf.capacity_nbytes == full_bytes(capacity)
+    sizes = [buf.nbytes]
+    first_rows = 16 * (POOL_ROW + TRANSITION + ENTRY) + POOL_ROW + 4 * ACT_DIM  # initial rows and the two padding rows
+    assert sizes[0] == first_rows
+
+    def after_add(buf, truth):
+        need = stored_bytes(truth)
+        assert need <= buf.nbytes <= 2 * need + first_rows  # every ring at most doubles past what it holds
+        sizes.append(buf.nbytes)
+
+    truth = fill(buf, CALLS, after_add=after_add)
+    assert sizes == sorted(sizes) and sizes[-1] > 4 * sizes[0]  # grew monotonically with the data
+    assert buf.nbytes < buf.capacity_nbytes / 1000
+    check_rows(unique_rows(sample_many(buf, 2000)), truth, buf)
+    # with the default first allocation a small run still takes about a megabyte, not gigabytes
+    monkeypatch.undo()
+    small_run = JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=0)
+    fill(small_run, CALLS)
+    assert small_run.nbytes < 2**21 and small_run.capacity_nbytes > 2 * 10**9
+
+    # a small buffer grows to its full size once its rings wrap, and stops there
+    monkeypatch.setattr(buffer_module, "INITIAL_ROWS", 16)
+    small = JointStepReplayBuffer(40, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=0)
+    sizes = [small.nbytes]
+    fill(small, CALLS, after_add=lambda buf, truth: sizes.append(buf.nbytes))
+    assert small.capacity_nbytes == full_bytes(40)
+    assert sizes == sorted(sizes) and sizes[0] < sizes[-1] == small.capacity_nbytes
+    assert sizes.index(sizes[-1]) < len(sizes) // 2  # reached early (the stream wraps every ring several times), then flat
+
+
+@pytest.mark.parametrize("initial_rows", [1, 5])
+def test_rings_growing_from_a_few_rows_store_sample_evict_and_checkpoint_exactly(monkeypatch, initial_rows):
+    monkeypatch.setattr(buffer_module, "INITIAL_ROWS", initial_rows)
+    test_scripted_stream_every_column_matches_the_record()
+    test_seeded_sampling_and_state_round_trip()
+    for capacity, obs_capacity, step_capacity in [(40, None, None), (60, 55, 500), (100, 1000, 20), (45, 60, 22)]:
+        test_eviction_never_yields_overwritten_data(capacity, obs_capacity, step_capacity)
+
+
+def test_checkpoint_of_a_small_run_is_small_and_resumes_identically():
+    capacity = 10_000_000
+    truth, envs = make_stream()
+    stream = [episodes_to_transitions(chunks) for chunks in run_fake_runner(envs, CALLS, truth)]
+    x = JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=4)
+    for batch in stream[:12]:
+        truth.batches.append([(_q_of(truth, int(e)), int(a), int(t)) for e, a, t in zip(batch.episode, batch.agent, batch.env_step)])
+        x.add(batch)
+    blob = pickle.dumps(x.get_state())
+    need = stored_bytes(truth)
+    assert need <= len(blob) <= need + 2**15  # the rows written (and the small index maps), not the capacity
+    assert len(blob) < x.capacity_nbytes / 10_000
+    y = JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=99)
+    y.set_state(pickle.loads(blob))
+    assert y.nbytes == x.nbytes and y.num_added == x.num_added and y.num_obs_added == x.num_obs_added
+    assert_same_samples(x, y)
+    for batch in stream[12:]:  # both keep growing in lockstep
+        x.add(batch)
+        y.add(batch)
+        assert_same_samples(x, y, draws=1, batch_size=16)
+    assert y.nbytes == x.nbytes
+
+
+def v1_state(state: dict, capacity: int, obs_capacity: int, step_capacity: int) -> dict:
+    """A version-1 state (every array at full size, as coin_app saved it before) with the content of a version-2 ``state``."""
+    P, C, K = obs_capacity, capacity, step_capacity
+    rows_fill = {  # array -> (rows in version 1, value of unwritten rows)
+        **{name: (P + 1, 0) for name in ("_pool_obs", "_pool_state")},
+        **{name: (P + 1, -1) for name in ("_pool_owner", "_pool_tr_obs", "_pool_tr_next")},
+        "_tr_action": (C + 1, 0),
+        **{
+            name: (C, 0)
+            for name in (
+                "_tr_obs", "_tr_next", "_tr_entry_t", "_tr_entry_t1", "_tr_reward", "_tr_greward",
+                "_tr_term", "_tr_trunc", "_tr_step", "_tr_episode", "_tr_agent", "_ok",
+            )
+        },
+        "_step_rows": (K, P),
+        **{name: (K, 0) for name in ("_step_count", "_step_episode", "_step_t")},
+    }  # fmt: skip
+    out = dict(state, version=1)
+    for name, (rows, fill) in rows_fill.items():
+        arr = np.asarray(state[name])
+        full = np.full((rows, *arr.shape[1:]), fill, arr.dtype)
+        full[: arr.shape[0]] = arr
+        out[name] = full
+    return out
+
+
+@pytest.mark.parametrize("capacity", [10_000, 40])  # 40: every ring has wrapped
+def test_version_1_state_still_loads(capacity):
+    truth, envs = make_stream()
+    stream = [episodes_to_transitions(chunks) for chunks in run_fake_runner(envs, CALLS, truth)]
+    x = JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=2)
+    for batch in stream[:14]:
+        x.add(batch)
+    old = v1_state(x.get_state(), capacity, capacity + capacity // 4 + 64, capacity // 2 + 64)
+    old = pickle.loads(pickle.dumps(old))
+    y = JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=7)
+    y.set_state(old)
+    assert y.nbytes == x.nbytes  # restored at the size its rows need, not at full size
+    assert_same_samples(x, y)
+    saved_again = y.get_state()
+    assert saved_again["version"] == 2
+    for k, v in x.get_state().items():
+        if isinstance(v, np.ndarray):
+            np.testing.assert_array_equal(saved_again[k], v)
+    for batch in stream[14:]:
+        x.add(batch)
+        y.add(batch)
+        assert_same_samples(x, y, draws=1, batch_size=8)
+    # states that fit neither version are refused and leave the buffer as it was
+    z = JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=7)
+    with pytest.raises(ValueError, match="version 3"):
+        z.set_state(dict(x.get_state(), version=3))
+    bad = dict(old)
+    bad["_tr_reward"] = bad["_tr_reward"][:-1]  # version 1 wants the full size
+    with pytest.raises(ValueError, match="_tr_reward has shape"):
+        z.set_state(bad)
+    cut = x.get_state()
+    cut["_pool_obs"] = cut["_pool_obs"][:-1]  # version 2 wants every written row
+    with pytest.raises(ValueError, match="_pool_obs has shape"):
+        z.set_state(cut)
+    assert len(z) == 0 and z.num_added == 0 and z.nbytes == JointStepReplayBuffer(capacity, OBS_DIM, STATE_DIM, ACT_DIM, MAX_OTHERS).nbytes
 
 
 # ----------------------------------------------------------------------------- the real RLlib path

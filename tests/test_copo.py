@@ -40,7 +40,14 @@ from coin_app.training import build_config
 
 NO_BRAKES = {"brake_linear": 0.0, "brake_sat_intercept": 0.0, "brake_sat_slope": 0.0, "coast_decel": 0.0, "throttle_accel": 8.0}
 RESPAWNING = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
-TINY = {**RESPAWNING, "train_batch_size_per_learner": 100, "minibatch_size": 50, "num_epochs": 2, "hidden": 16}
+TINY = {
+    **RESPAWNING,
+    "train_batch_size_per_learner": 100,
+    "rollout_fragment_length": 50,
+    "minibatch_size": 50,
+    "num_epochs": 2,
+    "hidden": 16,
+}
 
 
 # ---------------------------------------------------------------- LCFs in the env
@@ -202,8 +209,9 @@ def gae(rewards, values, bootstrap, gamma, lam):
     return np.array(adv[::-1])
 
 
-def test_three_advantages_match_a_reference_implementation(ray_session):
-    algo = build_config("copo", "intersection", TINY, 0).build_algo()
+@pytest.mark.parametrize("timeout_bootstrap", [False, True])
+def test_three_advantages_match_a_reference_implementation(ray_session, timeout_bootstrap):
+    algo = build_config("copo", "intersection", {**TINY, "timeout_bootstrap": timeout_bootstrap}, 0).build_algo()
     try:
         learner = algo.learner_group._learner
         pieces = [type(p).__name__ for p in learner._learner_connector.connectors]
@@ -236,7 +244,9 @@ def test_three_advantages_match_a_reference_implementation(ray_session):
             near = [r for aid, p, r in rows if aid != sa.agent_id and np.linalg.norm(p - me) < 40.0]
             nei_r.append(np.mean(near) if near else 0.0)
             glob_r.append(np.mean([r for _, _, r in rows]))
-        boot = [0.0 if sa.is_terminated else x[n] for x in v]
+        # Ray 1.x (default): every done, time-outs included, ends with 0; RLlib (option): a time-out bootstraps with V(o_T)
+        ended = sa.is_terminated if timeout_bootstrap else sa.is_done
+        boot = [0.0 if ended else x[n] for x in v]
         want["ego"] += list(gae(sa.get_rewards(), v[0][:n], boot[0], gamma, lam))
         want["nei"] += list(gae(nei_r, v[1][:n], boot[1], gamma, lam))
         want["glob"] += list(gae(glob_r, v[2][:n], boot[2], 1.0, lam))
@@ -313,7 +323,8 @@ def test_bad_copo_settings_are_refused():
 
 def test_copo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
     out = tmp_path / "run"
-    sets = ["horizon=40", "max_agent_steps=40", "train_batch_size_per_learner=100", "minibatch_size=50", "hidden=16"]
+    sets = ["horizon=40", "max_agent_steps=40", "train_batch_size_per_learner=100", "rollout_fragment_length=50", "minibatch_size=50"]
+    sets += ["hidden=16"]
     assert (
         main(
             [
@@ -338,7 +349,7 @@ def test_copo_cli_train_export_evaluate(ray_session, tmp_path, capsys):
     assert main(["export", str(out / "checkpoint"), "--out", str(tmp_path / "copo.npz")]) == 0
     assert "parity: max |action - RLModule.forward_inference|" in capsys.readouterr().out
     results = []
-    for source in (out / "checkpoint", tmp_path / "copo.npz"):  # 91-dim observations: the learned LCF is folded in
+    for source in (out / "checkpoint", tmp_path / "copo.npz"):  # each vehicle's own LCF, the same draws from both
         assert main(["evaluate", str(source), "--seeds", "3", "--out", str(tmp_path / "e.json")]) == 0
         results.append(json.loads((tmp_path / "e.json").read_text())["episodes"])
     assert results[0][0]["num_vehicles"] >= 3

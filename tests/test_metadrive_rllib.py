@@ -99,7 +99,8 @@ def test_cli_trains_on_metadrive_exports_and_evaluates_on_both_backends(tmp_path
 
 @pytest.mark.parametrize("algorithm", ["ippo", "cppo", "mfpo", "copo"])
 def test_ppo_family_iteration_on_metadrive(algorithm):
-    settings = {**SMALL, "train_batch_size_per_learner": 100, "minibatch_size": 50, "num_epochs": 1, "hidden": 16}
+    settings = {**SMALL, "train_batch_size_per_learner": 100, "rollout_fragment_length": 50, "minibatch_size": 50, "num_epochs": 1}
+    settings |= {"hidden": 16}
     algo = build_config(algorithm, "bottleneck", settings, 0).build_algo()
     try:
         result = algo.train()

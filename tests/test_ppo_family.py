@@ -92,7 +92,9 @@ def test_ippo_trains_with_the_paper_hyperparameters(ray_session):
     try:
         learner = algo.learner_group._learner
         pieces = [type(p).__name__ for p in learner._learner_connector.connectors]
-        assert pieces[-2:] == ["GeneralAdvantageEstimation", "OldValuePredictions"]  # old values after GAE
+        # old values after GAE, then the advantages standardized over the real rows; time-outs terminal before the extra row
+        assert pieces[-3:] == ["GeneralAdvantageEstimation", "OldValuePredictions", "RealRowAdvantages"]
+        assert pieces.index("TimeoutsAsTerminal") + 1 == pieces.index("AddOneTsToEpisodesAndTruncate")
         for _ in range(2):
             result = algo.train()
             stats = result["learners"]["shared"]
@@ -153,7 +155,7 @@ def test_centralized_variants_train(ray_session, variant):
     try:
         learner = algo.learner_group._learner
         pieces = [type(p).__name__ for p in learner._learner_connector.connectors]
-        assert pieces[-3:] == ["CriticInputs", "GeneralAdvantageEstimation", "OldValuePredictions"]
+        assert pieces[-4:] == ["CriticInputs", "GeneralAdvantageEstimation", "OldValuePredictions", "RealRowAdvantages"]
         module = learner.module["shared"].unwrapped()
         dim = 91 + 4 * 93 if variant == "cppo" else 2 * 91 + 2
         assert module.central_vf[0].in_features == dim

@@ -1,5 +1,7 @@
 """Tests of the RLlib MultiAgentEnv adapter (coin_app.adapters.rllib_env)."""
 
+import math
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -187,11 +189,26 @@ def test_outcome_counts_match_the_episode_metrics():
     driver = HeuristicDriver(env.driving_env)
     recorder = EpisodeRecorder()
     recorder.reset(infos)
+    steps, speeds = 0, 0.0
     while True:
+        acting = list(env.agents)
         obs, rew, term, trunc, infos = env.step(driver.actions())
         recorder.step(infos, {a: v for a, v in term.items() if a != "__all__"}, {a: v for a, v in trunc.items() if a != "__all__"}, rew)
+        steps += len(acting)
+        speeds += sum(math.hypot(*infos[a]["state"][2:4]) * env.config.max_speed for a in acting)
         if term["__all__"]:
             break
     m = recorder.metrics()
-    assert env.outcomes == {"finished": m["num_vehicles"], "succeeded": m["num_arrived"], "collided": m["num_crashed"]}
+    counts = {"finished": m["num_vehicles"], "succeeded": m["num_arrived"], "collided": m["num_crashed"], "agent_steps": steps}
+    assert {k: env.outcomes[k] for k in counts} == counts
+    assert env.outcomes["speed_sum"] == pytest.approx(speeds, rel=1e-6)  # float32 states
+    assert 1.0 < speeds / steps < env.config.max_speed  # vehicles that drive, below the speed cap
     assert m["num_arrived"] > 0 and m["num_crashed"] > 0  # the heuristic both arrives and crashes in dense traffic
+
+
+def test_outcome_speeds_are_zero_when_every_vehicle_brakes():
+    env = CoinMultiAgentEnv({"scenario": "intersection", "num_agents": 6, "horizon": 50})
+    env.reset(seed=1)
+    for _ in range(30):
+        env.step(dict.fromkeys(env.agents, np.array([0.0, -1.0])))
+    assert env.outcomes["agent_steps"] == 6 * 30 and env.outcomes["speed_sum"] == 0.0

@@ -24,6 +24,12 @@ SCALES = ("paper", "smoke")
 # trial is a few iterations of a few seconds each (tests and CI).
 SMOKE_TD3 = {"warmup_steps": 200, "updates_per_env_step": 0.1}
 SMOKE_PPO = {"train_batch_size_per_learner": 256, "minibatch_size": 128, "num_epochs": 1}
+SMOKE_CHUNK = {"rollout_fragment_length": 128}  # the PPO family's chunk at smoke scale (its default 200 needs a batch of 200 k)
+# Paper scale of the PPO family: the CoPO paper runs' sampling, 4 workers x 200-step chunks (the
+# batch of 1600 env steps and the chunk are the algorithms' own defaults, so this adds the workers;
+# each trial then asks Tune for 1 + 4 CPUs).
+PAPER_PPO = {"num_env_runners": 4}
+PPO_FAMILY = ("ippo", "cppo", "mfpo", "copo")
 
 
 @dataclass(frozen=True)
@@ -114,9 +120,15 @@ def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
-    """The registry overrides of one trial: smoke settings (smoke scale), then the variant's, then the user's ``--set``."""
+    """The registry overrides of one trial: the scale's settings, then the variant's, then the user's ``--set``.
+
+    Smoke scale: the quick scenario and small batches; paper scale: the PPO family's 4 env runners.
+    """
     algo = config["algo"]
-    smoke: dict[str, Any] = {}
+    scale: dict[str, Any] = {}
     if config["scale"] == "smoke":
-        smoke = registry.quick_settings(algo) | (SMOKE_TD3 if algo in ("cig_td3", "itd3") else SMOKE_PPO)
-    return smoke | config["variant_overrides"][config["variant"]] | config["overrides"]
+        scale = registry.quick_settings(algo) | (SMOKE_TD3 if algo in ("cig_td3", "itd3") else SMOKE_PPO)
+        scale |= SMOKE_CHUNK if algo in PPO_FAMILY else {}
+    elif algo in PPO_FAMILY:
+        scale = dict(PAPER_PPO)
+    return scale | config["variant_overrides"][config["variant"]] | config["overrides"]

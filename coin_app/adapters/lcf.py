@@ -5,14 +5,25 @@ Each agent gets one LCF ``lcf ~ N(mean, std)`` clipped to [-1, 1] when its id fi
 feature ``(lcf + 1) / 2`` in [0, 1]. The draws come from this object's own generator, seeded
 at ``reset(seed)`` (CoPO drew them from ``os.urandom``: not reproducible). The trainer moves
 the distribution with ``set_distribution``; agents alive at that moment keep their value.
+
+At evaluation CoPO drew every vehicle's LCF from the learned distribution the same way
+(``SampledLCFPolicy``): one draw per vehicle, N(mean, std) clipped to [-1, 1], appended to its
+observation as ``(lcf + 1) / 2`` for the actor. The draw is a function of (policy seed, episode
+seed, agent id) alone (``vehicle_lcf``), so an evaluation is reproducible and a vehicle's LCF
+does not depend on which other episodes run in the same batch or on the backend.
 """
 
 from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 _STREAM = 0x4C4346  # separates the LCF draws from the simulator's draws of the same seed
+_EVAL_STREAM = 0x4C434645  # separates the evaluation draws from the training env's
 
 
 def check_distribution(mean: float, std: float) -> tuple[float, float]:
@@ -67,3 +78,50 @@ class LocalCoordination:
         out = {aid: np.append(o, encode(self.values[aid])).astype(np.float32) for aid, o in obs.items()}
         infos = {aid: {**info, "lcf": self.values[aid]} if aid in self.values else info for aid, info in infos.items()}
         return out, infos
+
+
+def vehicle_lcf(mean: float, std: float, seed: int, episode_seed: int, agent_id: str) -> float:
+    """The evaluation LCF of vehicle ``agent_id`` of the episode seeded ``episode_seed``: N(mean, std) clipped to [-1, 1]."""
+    rng = np.random.default_rng([int(seed), int(episode_seed), zlib.crc32(agent_id.encode()), _EVAL_STREAM])
+    return float(np.clip(rng.normal(mean, std), -1.0, 1.0))
+
+
+class SampledLCFPolicy:
+    """CoPO at evaluation: each vehicle gets its own LCF from N(mean, std), and the actor acts on ``[obs | (lcf + 1) / 2]``.
+
+    ``actor`` maps ``(N, obs_dim + 1)`` to actions ``(N, 2)``. The policy needs to know which
+    vehicle each row is, so it is an agent-aware policy of :mod:`coin_app.sim.rollout`:
+    ``act(obs, agents)`` with ``agents[i] = (episode seed, agent id)`` of row ``i``.
+    """
+
+    def __init__(
+        self, actor: Callable[[np.ndarray], np.ndarray], mean: float, std: float, seed: int = 0, meta: dict[str, Any] | None = None
+    ):
+        self.actor = actor
+        self.mean, self.std = check_distribution(mean, std)
+        self.seed = int(seed)
+        self.meta = dict(meta or {})
+        self._values: dict[tuple[int, str], float] = {}  # (episode seed, agent id) -> LCF, a cache of vehicle_lcf
+
+    def lcf(self, agents: Sequence[tuple[int, str]]) -> np.ndarray:
+        """The LCF (N,) of each ``(episode seed, agent id)``: the same value for a vehicle every time it is asked."""
+        for key in agents:
+            if key not in self._values:
+                self._values[key] = vehicle_lcf(self.mean, self.std, self.seed, *key)
+        return np.array([self._values[key] for key in agents], np.float32)
+
+    def act(self, obs: np.ndarray, agents: Sequence[tuple[int, str]]) -> np.ndarray:
+        """Actions (N, 2) of the actor on each row's observation with its vehicle's LCF feature appended."""
+        obs = np.asarray(obs, np.float32)
+        if obs.ndim != 2 or len(agents) != len(obs):
+            raise ValueError(f"need one (episode seed, agent id) per observation row: {obs.shape} observations, {len(agents)} agents")
+        return np.asarray(self.actor(np.concatenate([obs, encode(self.lcf(agents))[:, None]], axis=1)))
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Refused: a sampled-LCF policy needs each row's vehicle (``act``; ``coin_app.sim.rollout`` passes it)."""
+        raise ValueError(
+            "this CoPO policy draws one LCF per vehicle and needs each row's vehicle: call act(obs, agents) (as the rollout does)"
+        )
+
+    def __repr__(self) -> str:
+        return f"SampledLCFPolicy(mean={self.mean:.4f}, std={self.std:.4f}, seed={self.seed})"

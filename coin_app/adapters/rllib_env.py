@@ -27,8 +27,11 @@ Contract of :class:`CoinMultiAgentEnv` (``docs/decisions.md`` §6.1-6.3):
   factor at spawn, appended to its observation (``coin_app.adapters.lcf``);
   ``set_lcf_distribution`` moves the distribution for agents spawned later.
 * ``outcomes`` counts the agents that ended since it was last cleared (``finished``) and how
-  many of them succeeded (``arrive_dest`` / arena ``success``) or had collided; the
-  :class:`AgentOutcomes` callback moves these counts into the env runner metrics.
+  many of them succeeded (``arrive_dest`` / arena ``success``) or had collided, and, on the
+  driving scenarios, the agent steps taken (``agent_steps``) and the sum of the acting vehicles'
+  speeds after each step (``speed_sum``, m/s: training's stand-still detector reads their ratio);
+  the ``AgentOutcomes`` callback (``coin_app.algorithms.common``) moves them into the env runner
+  metrics.
 * RLlib's env checker (``disable_env_checking=False``) steps once after ``reset(seed=42)``
   and requires every returned id to still be in ``agents``; it fails if an agent is done
   on that very first step (not the case for the shipped scenarios).
@@ -51,7 +54,7 @@ from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenarios import config_from_dict, scenario_name
 
-OUTCOMES = ("finished", "succeeded", "collided")  # agent outcome counts of CoinMultiAgentEnv.outcomes
+OUTCOMES = ("finished", "succeeded", "collided", "agent_steps", "speed_sum")  # CoinMultiAgentEnv.outcomes (module doc)
 SCENARIO_CONFIG_KEY = "scenario_config"  # env_config key of an already parsed (typed) scenario config
 ADAPTER_KEYS = ("scenario", "lcf", SCENARIO_CONFIG_KEY)  # env_config keys of the adapter itself, not of the scenario
 ENV_IDS: dict[str, str] = {
@@ -113,6 +116,7 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         obs, rewards, terms, truncs, infos = self.driving_env.step(action_dict)
         ended = [a for a in acting if terms[a] or truncs[a]]
         self._count_outcomes([infos[a] for a in ended])
+        self._count_speeds([infos[a] for a in acting])
         over = self.driving_env.episode_over or len(ended) == len(acting)
         if over:
             for aid in [a for a in obs if a not in rewards]:  # spawned in this step
@@ -132,6 +136,14 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         self.outcomes["finished"] += len(final_infos)
         self.outcomes["succeeded"] += sum(bool(i.get(schema.ARRIVE_DEST, i.get(schema.SUCCESS, False))) for i in final_infos)
         self.outcomes["collided"] += sum(bool(i.get(schema.CRASH_VEHICLE, i.get(schema.COLLIDED, False))) for i in final_infos)
+
+    def _count_speeds(self, infos: list[dict[str, Any]]) -> None:
+        """Add the acting vehicles' steps and speeds after the step (m/s, from their local state) to ``outcomes``."""
+        if not infos or not isinstance(self.config, ScenarioConfig):
+            return
+        velocity = np.stack([i[schema.STATE][2:4] for i in infos])  # v / max_speed (sim/sensors.py local_state)
+        self.outcomes["agent_steps"] += len(infos)
+        self.outcomes["speed_sum"] += float(np.hypot(velocity[:, 0], velocity[:, 1]).sum()) * self.config.max_speed
 
     def set_lcf_distribution(self, mean: float, std: float) -> None:
         """Draw the LCFs of agents spawned from now on from N(mean, std) (an env with LCFs only)."""

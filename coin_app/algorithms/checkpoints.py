@@ -3,7 +3,11 @@
 A checkpoint is RLlib's directory layout plus ``coin_app.json``: the algorithm, scenario,
 scenario overrides and seed, so a checkpoint is self-describing. The policy of a checkpoint is
 its shared RLModule's deterministic actor (the :class:`~coin_app.algorithms.spec.ActorModule`
-contract every algorithm's module implements).
+contract every algorithm's module implements). A CoPO module
+(:class:`~coin_app.algorithms.spec.CoordinatedActorModule`) is evaluated as its ``eval_lcf``
+says: by default every vehicle draws its own LCF from the learned distribution
+(:class:`~coin_app.adapters.lcf.SampledLCFPolicy`, as CoPO's evaluation did), or every vehicle
+gets the learned mean (the deterministic actor, the mean folded in).
 """
 
 from __future__ import annotations
@@ -18,11 +22,13 @@ import torch
 from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 from ray.rllib.core.rl_module.rl_module import RLModule
 
+from coin_app.adapters.lcf import SampledLCFPolicy
 from coin_app.algorithms.common import SHARED_MODULE_ID
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
-from coin_app.algorithms.spec import ActorModule
+from coin_app.algorithms.spec import LCF_MODES, ActorModule, CoordinatedActorModule
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.rollout import AgentPolicy, Policy
 from coin_app.sim.scenarios import config_from_dict
 
 META_FILE = "coin_app.json"
@@ -66,9 +72,48 @@ def load_module(checkpoint: Path) -> ActorModule:
     return actor_module(RLModule.from_checkpoint(str(Path(checkpoint).resolve().joinpath(*MODULE_PATH))))
 
 
-def actor_policy(module: Any) -> Callable[[np.ndarray], np.ndarray]:
-    """A module's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
-    return network_policy(actor_module(module).deterministic_actor())
+def lcf_mode(module: Any, lcf: str | None = None) -> str | None:
+    """How a module's evaluation gives vehicles their LCF: ``lcf`` or the module's ``evaluation_lcf``; None without LCFs."""
+    if not isinstance(module, CoordinatedActorModule):
+        return None
+    mode = module.evaluation_lcf() if lcf is None else lcf
+    if mode not in LCF_MODES:
+        raise ValueError(f"bad LCF mode {mode!r}; allowed: {', '.join(LCF_MODES)}")
+    return mode
+
+
+def actor_policy(module: Any, lcf: str | None = None, lcf_seed: int = 0) -> Policy | AgentPolicy:
+    """A module's evaluation policy: its deterministic actor as a numpy function (N, obs_dim) -> (N, 2).
+
+    CoPO: ``lcf`` (default: the module's ``evaluation_lcf``) ``"sampled"`` gives a
+    :class:`~coin_app.adapters.lcf.SampledLCFPolicy` (one LCF per vehicle, drawn with ``lcf_seed``),
+    ``"mean"`` the mean-LCF actor. Other modules ignore ``lcf``.
+    """
+    module = actor_module(module)
+    if lcf_mode(module, lcf) == "sampled":
+        mean, std = module.lcf_distribution()
+        return SampledLCFPolicy(network_policy(module.lcf_actor()), mean, std, lcf_seed)
+    return network_policy(module.deterministic_actor())
+
+
+def export_actor(module: Any) -> tuple[torch.nn.Module, Callable[[np.ndarray], np.ndarray], dict[str, Any]]:
+    """What ``export`` writes of a module: the network, the module's own actions on that network's inputs, and extra metadata.
+
+    The actions are the export's parity reference. A CoPO module evaluated with sampled LCFs
+    exports its actor on ``[obs | LCF feature]`` with ``{"lcf": {"mean", "std", "seed"}}``, from
+    which evaluation draws each vehicle's LCF again (the same draws as the checkpoint's); any other
+    module exports its deterministic actor on the plain observation and no extra metadata.
+    """
+    module = actor_module(module)
+    if lcf_mode(module) == "sampled":
+        mean, std = module.lcf_distribution()
+
+        def reference(obs: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                return module.lcf_inference_actions(torch.as_tensor(np.asarray(obs, dtype=np.float32))).numpy()
+
+        return module.lcf_actor(), reference, {"lcf": {"mean": mean, "std": std, "seed": 0}}
+    return module.deterministic_actor(), lambda obs: inference_actions(module, obs), {}
 
 
 def network_policy(network: torch.nn.Module) -> Callable[[np.ndarray], np.ndarray]:
@@ -88,6 +133,6 @@ def inference_actions(module: Any, obs: np.ndarray) -> np.ndarray:
         return actor_module(module).inference_actions(torch.as_tensor(np.asarray(obs, dtype=np.float32))).numpy()
 
 
-def load_checkpoint_policy(checkpoint: Path) -> Callable[[np.ndarray], np.ndarray]:
-    """The checkpoint's deterministic actor as a numpy function (N, obs_dim) -> (N, 2)."""
-    return actor_policy(load_module(checkpoint))
+def load_checkpoint_policy(checkpoint: Path, lcf: str | None = None) -> Policy | AgentPolicy:
+    """The checkpoint's evaluation policy (``actor_policy``): its deterministic actor, CoPO's with each vehicle's LCF."""
+    return actor_policy(load_module(checkpoint), lcf)

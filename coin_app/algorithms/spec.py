@@ -76,3 +76,31 @@ class ActorModule(Protocol):
     def inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
         """The env actions (N, 2) of the module's own ``forward_inference`` on ``obs`` (the export parity reference)."""
         ...
+
+
+LCF_MODES = ("sampled", "mean")  # how evaluation gives each vehicle its LCF (CoordinatedActorModule.evaluation_lcf)
+
+
+@runtime_checkable
+class CoordinatedActorModule(ActorModule, Protocol):
+    """An ``ActorModule`` whose policy also reads a per-vehicle local coordination factor (CoPO's LCF).
+
+    Its ``deterministic_actor`` acts with the learned mean LCF; evaluation and export use the
+    network on ``[obs | LCF feature]`` and give each vehicle its LCF as ``evaluation_lcf`` says.
+    """
+
+    def lcf_actor(self) -> nn.Module:
+        """A plain torch network mapping ``[obs | (lcf + 1) / 2]`` (N, obs_dim + 1) to env actions (N, 2)."""
+        ...
+
+    def lcf_inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
+        """The module's own ``forward_inference`` actions on ``[obs | LCF feature]`` (the parity reference of ``lcf_actor``)."""
+        ...
+
+    def lcf_distribution(self) -> tuple[float, float]:
+        """The learned LCF (mean, std)."""
+        ...
+
+    def evaluation_lcf(self) -> str:
+        """``"sampled"`` (one draw per vehicle from the learned distribution) or ``"mean"`` (the learned mean for all)."""
+        ...

@@ -1,7 +1,11 @@
 """One policy interface for evaluation: an RLlib checkpoint, an exported policy file, a switching pair, or a callable.
 
-:func:`as_policy` turns any of the three into a callable ``(N, obs_dim) -> (N, 2)`` that
-:func:`~coin_app.evaluation.evaluate.evaluate_policy` runs on either backend.
+:func:`as_policy` turns any of them into a policy that
+:func:`~coin_app.evaluation.evaluate.evaluate_policy` runs on either backend: a callable
+``(N, obs_dim) -> (N, 2)``, or, for CoPO with per-vehicle LCFs, an agent-aware policy
+(:class:`~coin_app.sim.rollout.AgentPolicy`). An exported CoPO actor whose metadata holds the
+learned LCF distribution (``"lcf"``) takes ``[obs | LCF feature]``; it is wrapped back into the
+same per-vehicle draws as its checkpoint (:class:`~coin_app.adapters.lcf.SampledLCFPolicy`).
 """
 
 from __future__ import annotations
@@ -9,13 +13,22 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from coin_app.adapters.lcf import SampledLCFPolicy
 from coin_app.algorithms.checkpoints import load_checkpoint_policy
 from coin_app.inference import load_policy as load_exported_policy
 from coin_app.inference.switching import load_pair
-from coin_app.sim.rollout import Policy
+from coin_app.sim.rollout import AgentPolicy, Policy
 
 
-def as_policy(source: Any) -> Policy:
+def with_lcf(policy: Any) -> Any:
+    """An exported policy as evaluation runs it: wrapped in per-vehicle LCF draws if its metadata holds CoPO's ``lcf``."""
+    lcf = getattr(policy, "meta", {}).get("lcf")
+    if lcf is None:
+        return policy
+    return SampledLCFPolicy(policy, lcf["mean"], lcf["std"], lcf.get("seed", 0), meta=policy.meta)
+
+
+def as_policy(source: Any) -> Policy | AgentPolicy:
     """A batch policy from a callable, a checkpoint directory, an exported ``.npz`` or a switching pair ``.json``."""
     if callable(source):
         return source
@@ -29,10 +42,10 @@ def as_policy(source: Any) -> Policy:
     if path.is_file() and path.suffix == ".json":
         return load_pair(path, as_policy)
     if path.is_file():
-        return load_exported_policy(path)
+        return with_lcf(load_exported_policy(path))
     raise ValueError(
         f"policy source {path} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx, .json)"
     )
 
 
-__all__ = ["Policy", "as_policy"]
+__all__ = ["AgentPolicy", "Policy", "as_policy", "with_lcf"]

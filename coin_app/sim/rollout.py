@@ -8,21 +8,34 @@ makes one policy call for the acting agents of all envs together and yields, per
 episode is still running, the PettingZoo-parallel dicts the env's step returns. An env's
 episode is over for good once it reports ``episode_over``; the rollout ends when every
 episode is over or after ``max_steps`` env steps.
+
+A policy is a callable on the observations alone, or an :class:`AgentPolicy` that also needs to
+know which vehicle each row is (CoPO's per-vehicle LCF): the rollout then calls
+``policy.act(obs, agents)`` with ``agents[i] = (seed of the row's episode, agent id)``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
 from coin_app.sim import schema
 from coin_app.sim.driving_env import result_dicts
-from coin_app.sim.simulator import ACTIVE, DrivingSimulator
+from coin_app.sim.simulator import ACTIVE, DrivingSimulator, agent_name
 
 Policy = Callable[[np.ndarray], np.ndarray]  # observations (N, obs_dim) of the acting agents -> actions (N, 2)
+AgentKey = tuple[int, str]  # (seed of the episode, agent id): one vehicle of one episode
+
+
+@runtime_checkable
+class AgentPolicy(Protocol):
+    """A batch policy that also needs to know which vehicle each row is (e.g. CoPO's per-vehicle LCF)."""
+
+    def act(self, obs: np.ndarray, agents: Sequence[AgentKey]) -> np.ndarray:
+        """Actions (N, 2) for observations (N, obs_dim), row ``i`` of vehicle ``agents[i]``."""
 
 
 class EnvStep(NamedTuple):
@@ -54,6 +67,9 @@ class VecEnv(Protocol):
 
     def observe(self) -> np.ndarray:
         """Observations (N, obs_dim) of the N agents that act next, over all running envs."""
+
+    def acting_agents(self) -> list[tuple[int, str]]:
+        """(env index, agent id) of each row of the last :meth:`observe`."""
 
     def step(self, actions: np.ndarray) -> dict[int, EnvStep]:
         """Apply actions (N, 2), one row per row of the last :meth:`observe`; the dicts of the envs that were running."""
@@ -89,6 +105,11 @@ class BatchedEnvs:
         """Observations (N, obs_dim) of the N active vehicles of the simulator, in slot order."""
         self.acting = np.nonzero(self.sim.status == ACTIVE)[0]
         return self.obs[self.acting]
+
+    def acting_agents(self) -> list[tuple[int, str]]:
+        """(env index, agent id) of each row of the last :meth:`observe` (its slot's env and vehicle)."""
+        envs = self.acting // self.sim.slots_per_env
+        return [(int(e), agent_name(int(n))) for e, n in zip(envs, self.sim.agent_num[self.acting])]
 
     def step(self, actions: np.ndarray) -> dict[int, EnvStep]:
         """Step the simulator with one action row per slot of ``acting``; the dicts of the envs that were running."""
@@ -132,6 +153,10 @@ class DictEnvs:
         rows = [self._obs[e][a] for e, agents in enumerate(self._agents) for a in agents]
         return np.stack(rows) if rows else np.zeros((0, 0), np.float32)
 
+    def acting_agents(self) -> list[tuple[int, str]]:
+        """(env index, agent id) of each row of the last :meth:`observe`."""
+        return [(e, a) for e, agents in enumerate(self._agents) for a in agents]
+
     def step(self, actions: np.ndarray) -> dict[int, EnvStep]:
         """Step every running env with its rows of ``actions``; the dicts of those envs."""
         out, start = {}, 0
@@ -145,12 +170,12 @@ class DictEnvs:
         return out
 
 
-def rollout(envs: VecEnv, policy: Policy, seeds: Sequence[int], max_steps: int) -> Iterator[RolloutStep]:
+def rollout(envs: VecEnv, policy: Policy | AgentPolicy, seeds: Sequence[int], max_steps: int) -> Iterator[RolloutStep]:
     """Run ``policy`` for one episode per env (env ``e`` seeded ``seeds[e]``); yield the reset, then every env step.
 
     Each step calls ``policy`` once on the observations of all acting agents (not at all when
-    none acts); it must return actions of shape (N, 2). Ends when every episode is over or
-    after ``max_steps`` steps.
+    none acts; ``policy.act(obs, agents)`` for an :class:`AgentPolicy`); it must return actions
+    of shape (N, 2). Ends when every episode is over or after ``max_steps`` steps.
     """
     if len(seeds) != envs.num_envs:
         raise ValueError(f"need one seed per env: {envs.num_envs} envs, {len(seeds)} seeds")
@@ -160,11 +185,14 @@ def rollout(envs: VecEnv, policy: Policy, seeds: Sequence[int], max_steps: int) 
         t += 1
         obs = envs.observe()
         actions = np.zeros((len(obs), schema.ACT_DIM))
-        if len(obs):
+        if len(obs) and isinstance(policy, AgentPolicy):
+            agents = [(int(seeds[e]), aid) for e, aid in envs.acting_agents()]
+            actions = np.asarray(policy.act(obs, agents), dtype=float)
+        elif len(obs):
             actions = np.asarray(policy(obs), dtype=float)
-            if actions.shape != (len(obs), schema.ACT_DIM):
-                raise ValueError(f"policy returned actions of shape {actions.shape}; expected ({len(obs)}, {schema.ACT_DIM})")
+        if len(obs) and actions.shape != (len(obs), schema.ACT_DIM):
+            raise ValueError(f"policy returned actions of shape {actions.shape}; expected ({len(obs)}, {schema.ACT_DIM})")
         yield RolloutStep(t, envs.step(actions))
 
 
-__all__ = ["BatchedEnvs", "DictEnvs", "EnvStep", "Policy", "RolloutStep", "VecEnv", "rollout"]
+__all__ = ["AgentKey", "AgentPolicy", "BatchedEnvs", "DictEnvs", "EnvStep", "Policy", "RolloutStep", "VecEnv", "rollout"]

@@ -35,12 +35,33 @@ Storage (three FIFO rings, each with a watermark: write indices below it are evi
   step): ``max_others + 1`` pool rows (int32) per (episode, env step). Pass
   ``step_capacity=capacity`` for scenarios with a single agent per step.
 
-Memory per transition (float32 obs/state, ``O`` = obs_dim, ``S`` = state_dim, ``A`` = act_dim,
-``M`` = max_others + 1), allocated up front with the default sizes: pool ``1.25 x (4 (O + S) + 24)``
-bytes, transition ``4 A + 75`` bytes, step entries ``0.5 x (4 M + 20)`` bytes. With O=91, S=10, A=2,
-M=48: 535 + 83 + 106 = ~725 bytes, ~140 MiB for 200k transitions (:attr:`JointStepReplayBuffer.nbytes`).
-In use with 30 agents per step: ~520 bytes (one pool row, one transition, 1/29 of an entry).
+Memory (float32 obs/state, ``O`` = obs_dim, ``S`` = state_dim, ``A`` = act_dim, ``M`` = max_others + 1):
+a pool row takes ``4 (O + S) + 24`` bytes, a transition ``4 A + 67``, a step entry ``4 M + 20``. Full
+rings with the default sizes hold 1.25 pool rows and 0.5 entries per transition: with O=91, S=10,
+A=2, M=48, 535 + 75 + 106 = ~716 bytes per transition, 6.7 GiB at the official code's capacity of
+10,000,000 transitions (``docs/decisions.md`` §2.1; :attr:`JointStepReplayBuffer.capacity_nbytes`).
+In use with 30 agents per step a transition needs ~510 bytes (one pool row, one transition, 1/29 of
+an entry).
 Env-side augmentation would need ``2 x N x (O + S + A)`` floats, ~40 KB per agent step at N=47.
+
+The rings are allocated on demand, so a small run does not pay for the capacity: each ring starts
+with :data:`INITIAL_ROWS` rows (at most its capacity) and, before an add writes past its allocated
+rows, doubles (capped at its capacity) until every physical index the add writes fits. Ring
+semantics do not change (physical index = write index % capacity; a ring that has wrapped has its
+full capacity). Unwritten rows hold the fill values (0; -1 for the pool's owner and transition
+links; ``P`` for empty entry columns). The padding rows (pool id ``P`` = ``obs_capacity``, action id
+``C`` = ``capacity``) are kept as the last row of the allocated arrays and are read with
+``np.take(..., mode="clip")``, which maps a padding id past the allocated rows onto them.
+:attr:`JointStepReplayBuffer.nbytes` (what is allocated) thus stays within about twice what the
+stored rows need, plus the initial rows: measured with the stream of ``benchmarks/replay_sampling.py``
+(30 agents per step) at capacity 10M, 8.7 MiB holding 10k transitions and 516 MiB (541 bytes per
+transition) holding 1M, against 6.7 GiB allocated up front before. Growing copies a ring's arrays,
+one at a time, into new ones (amortized O(1) per row); while one is copied, its old and new copies
+coexist (at capacity 10M the pool observations' last doubling, 8.4M -> 12.5M rows, briefly takes
+2.8 GiB extra).
+Checkpoints (:meth:`JointStepReplayBuffer.get_state`, version 2) hold only the rows written so far
+(a ring's capacity once it has wrapped), so a small run's checkpoint is small; version-1 states
+(every array at full size) are still read.
 
 Adding a batch: plan, evict, write
 ----------------------------------
@@ -79,7 +100,25 @@ from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.transitions import TransitionBatch
 from coin_app.sim import schema
 
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: arrays hold the rows written so far; 1: every array at full capacity (still read)
+INITIAL_ROWS = 4096  # rows each ring allocates first (capped at its capacity); it doubles from there on demand
+
+# ring -> (attribute holding its capacity, attribute counting its writes)
+_RINGS: dict[str, tuple[str, str]] = {
+    "pool": ("obs_capacity", "_pool_written"),
+    "transitions": ("capacity", "_tr_written"),
+    "steps": ("step_capacity", "_step_written"),
+}
+
+
+class _ArraySpec(NamedTuple):
+    """One storage array: its ring, the shape of a row, dtype, the value of unwritten rows, and whether a padding row ends it."""
+
+    ring: str
+    row_shape: tuple[int, ...]
+    dtype: type
+    fill: int
+    padded: bool
 
 
 @dataclass
@@ -150,30 +189,6 @@ class JointStepReplayBuffer:
     the sampleable transitions, driven by ``np.random.default_rng(seed)``.
     """
 
-    _ARRAYS = (
-        "_pool_obs",
-        "_pool_state",
-        "_pool_owner",
-        "_pool_tr_obs",
-        "_pool_tr_next",
-        "_tr_obs",
-        "_tr_next",
-        "_tr_entry_t",
-        "_tr_entry_t1",
-        "_tr_action",
-        "_tr_reward",
-        "_tr_greward",
-        "_tr_term",
-        "_tr_trunc",
-        "_tr_step",
-        "_tr_episode",
-        "_tr_agent",
-        "_ok",
-        "_step_rows",
-        "_step_count",
-        "_step_episode",
-        "_step_t",
-    )
     _COUNTERS = ("_pool_written", "_pool_wm", "_tr_written", "_tr_wm", "_step_written", "_step_wm", "_num_ok")
 
     def __init__(
@@ -203,36 +218,14 @@ class JointStepReplayBuffer:
         if P < 2 or K < 2:
             raise ValueError(f"obs_capacity and step_capacity must be >= 2, got {P} and {K}")
         self.obs_dim, self.state_dim, self.act_dim = int(obs_dim), int(state_dim), int(act_dim)
-        self.max_others = N = int(max_others)
+        self.max_others = int(max_others)
         self.seed = seed
-        M = N + 1
-        O, S, A = self.obs_dim, self.state_dim, self.act_dim
         self._rng = np.random.default_rng(seed)
-        # observation pool; row P is an all-zero padding row that masked gathers read
-        self._pool_obs = np.zeros((P + 1, O), np.float32)
-        self._pool_state = np.zeros((P + 1, S), np.float32)
-        self._pool_owner = np.full(P + 1, -1, np.int64)  # entry write index * (max_others + 1) + column of the row
-        self._pool_tr_obs = np.full(P + 1, -1, np.int64)  # transition acting from this row (its o_t)
-        self._pool_tr_next = np.full(P + 1, -1, np.int64)  # transition whose o_{t+1} is this row
-        # transitions; action row C is an all-zero padding row
-        self._tr_obs = np.zeros(C, np.int64)  # pool write index of o_t
-        self._tr_next = np.zeros(C, np.int64)  # pool write index of o_{t+1}
-        self._tr_entry_t = np.zeros(C, np.int64)  # step-entry write index of (episode, t)
-        self._tr_entry_t1 = np.zeros(C, np.int64)  # step-entry write index of (episode, t+1)
-        self._tr_action = np.zeros((C + 1, A), np.float32)
-        self._tr_reward = np.zeros(C, np.float32)
-        self._tr_greward = np.zeros(C, np.float32)
-        self._tr_term = np.zeros(C, bool)
-        self._tr_trunc = np.zeros(C, bool)
-        self._tr_step = np.zeros(C, np.int64)
-        self._tr_episode = np.zeros(C, np.int64)
-        self._tr_agent = np.zeros(C, np.int64)
-        self._ok = np.zeros(C, bool)  # slot holds a valid, complete (sampleable) transition
-        # step entries: pool rows (physical) present at (episode, env step); P = empty column
-        self._step_rows = np.full((K, M), P, np.int32)
-        self._step_count = np.zeros(K, np.int32)
-        self._step_episode = np.zeros(K, np.int64)
-        self._step_t = np.zeros(K, np.int64)
+        # storage: one array per column of the three rings (see _array_specs), allocated on demand
+        self._spec = self._array_specs()
+        self._rows = {ring: self._ring_rows(ring, 0) for ring in _RINGS}  # real rows allocated per ring
+        for name, spec in self._spec.items():
+            setattr(self, name, _new_array(spec, self._rows[spec.ring]))
         # write counters and eviction watermarks (write indices < watermark are evicted)
         self._pool_written = self._pool_wm = 0
         self._tr_written = self._tr_wm = 0
@@ -266,8 +259,18 @@ class JointStepReplayBuffer:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the buffer's arrays."""
-        return int(sum(getattr(self, name).nbytes for name in self._ARRAYS))
+        """Bytes allocated by the buffer's arrays now (they grow with what is stored, see the module doc)."""
+        return int(sum(getattr(self, name).nbytes for name in self._spec))
+
+    @property
+    def capacity_nbytes(self) -> int:
+        """Bytes the buffer's arrays take once every ring is full (what :attr:`nbytes` grows to)."""
+        return int(
+            sum(
+                (self._ring_capacity(spec.ring) + spec.padded) * int(np.prod(spec.row_shape)) * np.dtype(spec.dtype).itemsize
+                for spec in self._spec.values()
+            )
+        )
 
     def add(self, batch: TransitionBatch) -> None:
         """Store a batch of whole chunks (see module doc); raises ``ValueError`` on inconsistent input, storing nothing."""
@@ -277,6 +280,13 @@ class JointStepReplayBuffer:
             raise ValueError(f"batch of {n} transitions exceeds the buffer capacity {self.capacity}; add it in parts of whole chunks")
         if n:
             plan = self._plan(batch)
+            self._reserve(
+                {
+                    "pool": self._pool_written + plan.row_w.shape[0],
+                    "transitions": self._tr_written + n,
+                    "steps": self._step_written + int(plan.is_new.sum()),
+                }
+            )
             self._evict(plan)
             self._write(batch, plan)
         for key in np.asarray(batch.ended_episodes, dtype=np.int64).tolist():
@@ -296,10 +306,10 @@ class JointStepReplayBuffer:
         return self._gather(slots)
 
     def get_state(self) -> dict[str, Any]:
-        """Full state (copies of all arrays, index maps, counters, RNG state) for checkpointing."""
+        """State for checkpointing: copies of the rows written so far (not the capacity), index maps, counters, RNG state."""
         state: dict[str, Any] = {"version": STATE_VERSION, "config": self._config()}
-        for name in self._ARRAYS:
-            state[name] = getattr(self, name).copy()
+        for name, spec in self._spec.items():
+            state[name] = getattr(self, name)[: self._ring_held(spec.ring)].copy()
         for name in self._COUNTERS:
             state[name] = int(getattr(self, name))
         state["_pending"] = self._pending.copy()
@@ -311,19 +321,34 @@ class JointStepReplayBuffer:
         return state
 
     def set_state(self, state: Mapping[str, Any]) -> None:
-        """Restore a state from :meth:`get_state` (the buffer's configuration must match)."""
-        if state.get("version") != STATE_VERSION:
-            raise ValueError(f"replay state version {state.get('version')!r} != {STATE_VERSION}")
+        """Restore a state from :meth:`get_state` (the buffer's configuration must match); also reads version-1 states.
+
+        Version 1 saved every array at full capacity (the padding rows included); version 2 saves the
+        rows written so far. Either way each ring is allocated at the size the doubling rule gives for
+        the rows it holds (module doc). Every check runs before anything is replaced, so a refused
+        state leaves the buffer as it was.
+        """
+        version = state.get("version")
+        if version not in (1, STATE_VERSION):
+            raise ValueError(f"replay state version {version!r} is not 1 or {STATE_VERSION}")
         if dict(state["config"]) != self._config():
             raise ValueError(f"replay state was saved with config {dict(state['config'])}, this buffer has {self._config()}")
-        for name in self._ARRAYS:
+        counters = {name: int(state[name]) for name in self._COUNTERS}
+        held = {ring: min(counters[_RINGS[ring][1]], self._ring_capacity(ring)) for ring in _RINGS}
+        rows = {ring: self._ring_rows(ring, held[ring]) for ring in _RINGS}
+        arrays = {}
+        for name, spec in self._spec.items():
             arr = np.asarray(state[name])
-            cur = getattr(self, name)
-            if arr.shape != cur.shape:
-                raise ValueError(f"replay state array {name} has shape {arr.shape}, expected {cur.shape}")
-            cur[...] = arr
-        for name in self._COUNTERS:
-            setattr(self, name, int(state[name]))
+            n = self._ring_capacity(spec.ring) + spec.padded if version == 1 else held[spec.ring]
+            if arr.shape != (n, *spec.row_shape):
+                raise ValueError(f"replay state array {name} has shape {arr.shape}, expected {(n, *spec.row_shape)}")
+            # rows past those written hold the fill values in both versions (writes go to physical rows < held)
+            arrays[name] = _new_array(spec, rows[spec.ring], arr[: held[spec.ring]])
+        for name, arr in arrays.items():
+            setattr(self, name, arr)
+        self._rows = rows
+        for name, v in counters.items():
+            setattr(self, name, v)
         self._pending = np.asarray(state["_pending"], np.int64).copy()
         self._entry_of = {(int(e), int(t)): int(w) for e, t, w in np.asarray(state["_entry_of"]).reshape(-1, 3)}
         self._last_obs = {(int(e), int(a)): (int(t), int(w)) for e, a, t, w in np.asarray(state["_last_obs"]).reshape(-1, 4)}
@@ -331,6 +356,66 @@ class JointStepReplayBuffer:
         self._last_obs_prune_at = int(state["_last_obs_prune_at"])
         self._rng = np.random.default_rng()
         self._rng.bit_generator.state = state["rng"]
+
+    # ------------------------------------------------------------------ storage: arrays that grow on demand
+    def _array_specs(self) -> dict[str, _ArraySpec]:
+        """Every storage array: its ring, the shape of a row, dtype, the value of unwritten rows, and whether it has a padding row."""
+        O, S, A, M, P = self.obs_dim, self.state_dim, self.act_dim, self.max_others + 1, self.obs_capacity
+        f32, i32, i64 = np.float32, np.int32, np.int64
+        return {
+            # observation pool; its padding row (id P, kept as the last row) is all zero / -1 and is read by masked gathers
+            "_pool_obs": _ArraySpec("pool", (O,), f32, 0, True),
+            "_pool_state": _ArraySpec("pool", (S,), f32, 0, True),
+            "_pool_owner": _ArraySpec("pool", (), i64, -1, True),  # entry write index * (max_others + 1) + column of the row
+            "_pool_tr_obs": _ArraySpec("pool", (), i64, -1, True),  # transition acting from this row (its o_t)
+            "_pool_tr_next": _ArraySpec("pool", (), i64, -1, True),  # transition whose o_{t+1} is this row
+            # transitions; the action padding row (id C, kept as the last row) is all zero
+            "_tr_obs": _ArraySpec("transitions", (), i64, 0, False),  # pool write index of o_t
+            "_tr_next": _ArraySpec("transitions", (), i64, 0, False),  # pool write index of o_{t+1}
+            "_tr_entry_t": _ArraySpec("transitions", (), i64, 0, False),  # step-entry write index of (episode, t)
+            "_tr_entry_t1": _ArraySpec("transitions", (), i64, 0, False),  # step-entry write index of (episode, t+1)
+            "_tr_action": _ArraySpec("transitions", (A,), f32, 0, True),
+            "_tr_reward": _ArraySpec("transitions", (), f32, 0, False),
+            "_tr_greward": _ArraySpec("transitions", (), f32, 0, False),
+            "_tr_term": _ArraySpec("transitions", (), bool, 0, False),
+            "_tr_trunc": _ArraySpec("transitions", (), bool, 0, False),
+            "_tr_step": _ArraySpec("transitions", (), i64, 0, False),
+            "_tr_episode": _ArraySpec("transitions", (), i64, 0, False),
+            "_tr_agent": _ArraySpec("transitions", (), i64, 0, False),
+            "_ok": _ArraySpec("transitions", (), bool, 0, False),  # slot holds a valid, complete (sampleable) transition
+            # step entries: pool rows (physical) present at (episode, env step); P = empty column
+            "_step_rows": _ArraySpec("steps", (M,), i32, P, False),
+            "_step_count": _ArraySpec("steps", (), i32, 0, False),
+            "_step_episode": _ArraySpec("steps", (), i64, 0, False),
+            "_step_t": _ArraySpec("steps", (), i64, 0, False),
+        }
+
+    def _ring_capacity(self, ring: str) -> int:
+        """Slots of a ring ("pool", "transitions" or "steps")."""
+        return int(getattr(self, _RINGS[ring][0]))
+
+    def _ring_held(self, ring: str) -> int:
+        """Physical rows of a ring written so far (all of them once it has wrapped)."""
+        return min(int(getattr(self, _RINGS[ring][1])), self._ring_capacity(ring))
+
+    def _ring_rows(self, ring: str, need: int) -> int:
+        """Rows to allocate for ``need`` physical rows: ``INITIAL_ROWS`` doubled until they fit, capped at the ring's capacity."""
+        cap = self._ring_capacity(ring)
+        rows = min(cap, max(1, INITIAL_ROWS))
+        while rows < min(need, cap):
+            rows = min(cap, 2 * rows)
+        return rows
+
+    def _reserve(self, written: Mapping[str, int]) -> None:
+        """Grow every ring (by doubling) so that its write count after an add, ``written[ring]``, fits its physical rows."""
+        for ring, w in written.items():
+            old, rows = self._rows[ring], self._ring_rows(ring, w)
+            if rows <= old:
+                continue
+            for name, spec in self._spec.items():
+                if spec.ring == ring:
+                    setattr(self, name, _new_array(spec, rows, getattr(self, name)[:old]))
+            self._rows[ring] = rows
 
     # ------------------------------------------------------------------ adding: checks
     def _config(self) -> dict[str, int]:
@@ -450,7 +535,8 @@ class JointStepReplayBuffer:
                 is_new |= more
             if int(is_new.sum()) > K:
                 raise ValueError(f"batch needs {int(is_new.sum())} new step entries > step_capacity {K}; add it in smaller parts")
-            bad = (reuse_w >= 0) & ((reuse_w < pool_wm) | (self._pool_owner[reuse_w % P] // M < step_wm))
+            owner = np.take(self._pool_owner, reuse_w % P, mode="clip")  # -1 % P may lie past the allocated rows
+            bad = (reuse_w >= 0) & ((reuse_w < pool_wm) | (owner // M < step_wm))
             if not bad.any():
                 return _Allocation(reuse_w, new_t_idx, new_n_idx, pairs, inv, existing, is_new, pool_wm, step_wm)
             reuse_w[bad] = -1
@@ -492,7 +578,7 @@ class JointStepReplayBuffer:
             ev_w = np.arange(self._step_wm, plan.step_wm, dtype=np.int64)
             ev_s = ev_w % K
             rows = self._step_rows[ev_s]
-            live = self._pool_owner[rows] == ev_w[:, None] * M + np.arange(M)[None, :]
+            live = np.take(self._pool_owner, rows, mode="clip") == ev_w[:, None] * M + np.arange(M)[None, :]
             rows = rows[live]
             self._invalidate(np.concatenate([self._pool_tr_obs[rows], self._pool_tr_next[rows]]))
             for e, s in zip(self._step_episode[ev_s].tolist(), self._step_t[ev_s].tolist()):  # keep _entry_of to stored entries
@@ -660,25 +746,35 @@ class JointStepReplayBuffer:
         # others acting at t: rows of entry (episode, t) without the ego's column
         cols0 = shift + (shift >= (self._pool_owner[r0] % M)[:, None])
         rows0 = np.take_along_axis(self._step_rows[e0 % K], cols0, axis=1)
-        ok0 = self._pool_owner[rows0] == e0[:, None] * M + cols0
-        tr0 = self._pool_tr_obs[rows0]
+        ok0 = np.take(self._pool_owner, rows0, mode="clip") == e0[:, None] * M + cols0
+        tr0 = np.take(self._pool_tr_obs, rows0, mode="clip")
         ok0 &= tr0 >= self._tr_wm
         ok0 &= tr0 >= 0
-        out[col.OTHERS_STATE] = self._pool_state[np.where(ok0, rows0, P)]
-        out[col.OTHERS_ACTIONS] = self._tr_action[np.where(ok0, tr0 % C, C)]
+        out[col.OTHERS_STATE] = np.take(self._pool_state, np.where(ok0, rows0, P), axis=0, mode="clip")
+        out[col.OTHERS_ACTIONS] = np.take(self._tr_action, np.where(ok0, tr0 % C, C), axis=0, mode="clip")
         out[col.OTHERS_MASK] = ok0
         # every other agent with an observation at t+1
         cols1 = shift + (shift >= (self._pool_owner[r1] % M)[:, None])
         rows1 = np.take_along_axis(self._step_rows[e1 % K], cols1, axis=1)
-        ok1 = self._pool_owner[rows1] == e1[:, None] * M + cols1
+        ok1 = np.take(self._pool_owner, rows1, mode="clip") == e1[:, None] * M + cols1
         rows1 = np.where(ok1, rows1, P)
-        out[col.NEXT_OTHERS_STATE] = self._pool_state[rows1]
-        out[col.NEXT_OTHERS_OBS] = self._pool_obs[rows1]
+        out[col.NEXT_OTHERS_STATE] = np.take(self._pool_state, rows1, axis=0, mode="clip")
+        out[col.NEXT_OTHERS_OBS] = np.take(self._pool_obs, rows1, axis=0, mode="clip")
         out[col.NEXT_OTHERS_MASK] = ok1
         out[col.ENV_STEP] = self._tr_step[slots].copy()
         out[col.EPISODE] = self._tr_episode[slots].copy()
         out[col.AGENT] = self._tr_agent[slots].copy()
         return out
+
+
+def _new_array(spec: _ArraySpec, rows: int, head: np.ndarray | None = None) -> np.ndarray:
+    """An array of ``rows`` rows (plus the padding row if ``spec.padded``) that starts with ``head`` and holds ``spec.fill`` after it."""
+    arr = np.empty((rows + spec.padded, *spec.row_shape), spec.dtype)
+    k = 0 if head is None else head.shape[0]
+    if k:
+        arr[:k] = head
+    arr[k:] = spec.fill
+    return arr
 
 
 def _layout(b: TransitionBatch) -> _Layout:

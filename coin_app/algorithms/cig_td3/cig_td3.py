@@ -20,6 +20,7 @@ state, so a resumed run continues exactly.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -43,7 +44,7 @@ from ray.rllib.utils.metrics import (
 
 from coin_app.adapters.rllib_env import ENV_IDS, env_config_of, register_envs
 from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
-from coin_app.algorithms.cig_td3.graph import GLOBAL_MODULES
+from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES
 from coin_app.algorithms.cig_td3.learner import CigTd3TorchLearner
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
 from coin_app.algorithms.cig_td3.rl_module import CigTd3TorchRLModule
@@ -56,6 +57,8 @@ from coin_app.sim.road_map import load_map
 from coin_app.sim.scenarios import scenario_name
 from coin_app.sim.simulator import MAX_RESPAWN_PER_STEP
 
+UPDATE_ORDERS = ("critic_first", "joint")
+
 # name -> (default, meaning); the single source of the documentation and of training() kwargs
 HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "actor_lr": (2e-4, "Adam learning rate of the actor (paper; official code 1e-4)"),
@@ -67,7 +70,7 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "target_noise": (0.1, "std of the target-policy smoothing noise (Eq. 8)"),
     "target_noise_clip": (0.5, "clip of the target-policy smoothing noise"),
     "warmup_steps": (30_000, "env steps with uniform random actions before the policy acts (official code)"),
-    "replay_capacity": (1_000_000, "agent transitions kept in the joint-step replay buffer"),
+    "replay_capacity": (10_000_000, "agent transitions kept in the joint-step replay buffer (official code; memory grows with use)"),
     "updates_per_env_step": (1.0, "gradient updates per sampled env step (official: one per env step)"),
     "global_critic": (True, "use the centralized critic (False = ITD3)"),
     "counterfactual_baseline": (True, "subtract the counterfactual baseline V in the actor loss (Eq. 12)"),
@@ -78,8 +81,25 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "vae_weight": (1.0, "weight of the CVAE loss in the centralized-critic loss (official 0.01)"),
     "kl_beta": (1.0, "weight of the KL term inside the CVAE loss"),
     "hidden": (256, "width of actor, local-critic and CVAE layers"),
+    "actor_layers": (3, "hidden layers of the actor (paper: a three-layer MLP; official code 3 x 256; 2 before coin_app 0.2)"),
     "latent_dim": (20, "CVAE latent size"),
     "node_width": (128, "GAT node feature width"),
+    "gat_heads": (2, "heads of the first GAT layer, concatenated (official code 2; the paper is silent; 1 before coin_app 0.2)"),
+    "gat_init": ("xavier", "GAT weight initialization: xavier (gain 1.414, official code) | default (torch Linear, before 0.2)"),
+    "update_order": (
+        "critic_first",
+        "critic_first: the critics step, then the actor loss on the updated critics (TD3, official code) | "
+        "joint: every loss from the critics before the update (before coin_app 0.2)",
+    ),
+    # guards against the saturated full-brake freeze of TD3-family actors (README "TD3 freeze"); all off = the paper
+    "actor_preact_penalty": (0.0, "weight w of w * mean(max(|u| - actor_preact_threshold, 0)^2) over the actor's pre-tanh outputs u"),
+    "actor_preact_threshold": (0.0, "pre-tanh magnitude the penalty starts at (0 = the plain penalty w * mean(u^2))"),
+    "actor_start_steps": (0, "env steps after the warm-up before the actor's first update (the critics learn the warm-up data first)"),
+    "exploration_noise_initial": (
+        None,
+        "exploration std right after the warm-up, decaying linearly to exploration_noise (None = constant)",
+    ),
+    "exploration_noise_decay_steps": (0, "env steps of that decay after the warm-up"),
     "learner_threads": (2, "torch threads for updates in the algorithm process (use 1 when env runners share its cores)"),
     "eval_every": (25, "training iterations between deterministic evaluations on validation seeds (0 = off)"),
     "eval_episodes": (5, "validation episodes (seeds) per periodic evaluation"),
@@ -138,18 +158,48 @@ class CigTd3Config(AlgorithmConfig):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:
                 errors.append(f"{name}={v!r}; allowed: a number > 0")
-        for name in ("exploration_noise", "target_noise", "target_noise_clip", "global_weight", "vae_weight", "kl_beta"):
+        for name in (
+            "exploration_noise",
+            "target_noise",
+            "target_noise_clip",
+            "global_weight",
+            "vae_weight",
+            "kl_beta",
+            "actor_preact_penalty",
+            "actor_preact_threshold",
+        ):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
                 errors.append(f"{name}={v!r}; allowed: a number >= 0")
-        for name in ("policy_delay", "hidden", "latent_dim", "node_width", "replay_capacity", "eval_episodes", "learner_threads"):
+        for name in (
+            "policy_delay",
+            "hidden",
+            "actor_layers",
+            "latent_dim",
+            "node_width",
+            "gat_heads",
+            "replay_capacity",
+            "eval_episodes",
+            "learner_threads",
+        ):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 errors.append(f"{name}={v!r}; allowed: an integer >= 1")
         if not isinstance(self.eval_every, int) or self.eval_every < 0:
             errors.append(f"eval_every={self.eval_every!r}; allowed: an integer >= 0 (0 = off)")
-        if not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
-            errors.append(f"warmup_steps={self.warmup_steps!r}; allowed: an integer >= 0")
+        for name in ("warmup_steps", "actor_start_steps", "exploration_noise_decay_steps"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                errors.append(f"{name}={v!r}; allowed: an integer >= 0")
+        noise0 = self.exploration_noise_initial
+        if noise0 is not None and (
+            not isinstance(noise0, (int, float)) or isinstance(noise0, bool) or not math.isfinite(noise0) or noise0 < 0
+        ):
+            errors.append(f"exploration_noise_initial={noise0!r}; allowed: None or a finite number >= 0")
+        if self.gat_init not in GAT_INITS:
+            errors.append(f"gat_init={self.gat_init!r}; allowed: {' | '.join(GAT_INITS)}")
+        if self.update_order not in UPDATE_ORDERS:
+            errors.append(f"update_order={self.update_order!r}; allowed: {' | '.join(UPDATE_ORDERS)}")
         if not self.tau <= 1:
             errors.append(f"tau={self.tau!r}; allowed: 0 < tau <= 1")
         # ablation combinations
@@ -191,8 +241,11 @@ class CigTd3Config(AlgorithmConfig):
         scenario = self.scenario_config() if isinstance(self.env, str) and self.env in ENV_IDS else None
         return super()._model_config_auto_includes | {
             "hidden": self.hidden,
+            "actor_layers": self.actor_layers,
             "latent_dim": self.latent_dim,
             "node_width": self.node_width,
+            "gat_heads": self.gat_heads,
+            "gat_init": self.gat_init,
             "global_critic": self.global_critic,
             "counterfactual_baseline": self.counterfactual_baseline,
             "local_module": self.local_module,
@@ -200,6 +253,8 @@ class CigTd3Config(AlgorithmConfig):
             "graph_radius": None if self.graph == "full" else float(self.graph),
             "position_scale": load_map(scenario.scenario).scale if scenario else 1.0,
             "exploration_noise": self.exploration_noise,
+            "exploration_noise_initial": self.exploration_noise_initial,
+            "exploration_noise_decay_steps": self.exploration_noise_decay_steps,
             "warmup_steps": self.warmup_steps,
         }
 
@@ -238,6 +293,7 @@ class CigTd3(Algorithm):
     def training_step(self) -> None:
         """One sample -> replay -> update(s) -> sync cycle."""
         cfg = self.config
+        self._sync_env_steps()
         with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
             episodes, runner_results = synchronous_parallel_sample(
                 worker_set=self.env_runner_group,
@@ -278,6 +334,18 @@ class CigTd3(Algorithm):
                 self.env_runner_group.sync_weights(
                     from_worker_or_learner_group=self.learner_group, policies=[SHARED_MODULE_ID], inference_only=True
                 )
+
+    def _sync_env_steps(self) -> None:
+        """Give the env runners the exact lifetime env-step count before they sample (an exact warm-up boundary).
+
+        RLlib syncs the runners' count only at the end of an iteration, so exploration's ``t``
+        would otherwise lag by up to an iteration (the whole first one uniform random).
+        """
+        lifetime = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
+        if self.env_runner_group.num_remote_env_runners() == 0:
+            self.env_runner.num_env_steps_sampled_lifetime = lifetime
+        else:
+            self.env_runner_group.sync_env_runner_states(config=self.config, env_steps_sampled=lifetime)
 
     # ------------------------------------------------------------------ checkpoints
     def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:

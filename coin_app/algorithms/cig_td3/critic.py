@@ -29,9 +29,10 @@ each), ``N`` padded slots for the other agents, ``M = N + 1`` graph nodes (node 
 * **Twin Q**: Q1 and Q2 have their own node MLP, graph module, observation branch and head and share
   the local module; V has its own as well.
 
-Cost: with every slot valid, one forward + backward of twin Q + V + ELBO is about 1.1 M
-multiply-adds per node (about 2/3 in the CVAE's three 256x256 layers), i.e. about 28 GFLOP for
-B=256, N=47; use :meth:`CentralCritic.forward` to run the encoder once for all terms.
+Cost: with every slot valid, one forward + backward of twin Q + V + ELBO is about 1.3 M
+multiply-adds per node (over half in the CVAE's three 256x256 layers; the 2-head first GAT layer
+adds about 0.2 M over a single head), i.e. about 33 GFLOP for B=256, N=47 (28 with
+``gat_heads=1``); use :meth:`CentralCritic.forward` to run the encoder once for all terms.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from coin_app.algorithms.cig_td3.graph import GLOBAL_MODULES, Graph, GraphModule, build_graph
+from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, Graph, GraphModule, build_graph
 from coin_app.algorithms.cig_td3.individual import mlp
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES, PairAttention, PairCVAE
 from coin_app.sim import schema
@@ -75,7 +76,12 @@ class CentralCriticConfig:
     normalisation); ``leaky_slope`` of the node-MLP LeakyReLU and the GAT scores; ``detach_latent``
     stop Q gradients into the CVAE encoder (official code) instead of training it jointly;
     ``cvae_encoder_layers`` / ``cvae_decoder_layers`` hidden layers of width ``hidden`` in the
-    encoder (3) and decoder (2), as in the official code.
+    encoder (3) and decoder (2), as in the official code; ``gat_heads`` heads of width
+    ``node_width`` concatenated in the first GAT layer (2; the second is one head
+    ``gat_heads * node_width -> node_width``) and ``gat_init`` "xavier" (gain 1.414) | "default"
+    (``nn.Linear``'s) GAT initialization, both as the official code where the paper is silent
+    (``docs/decisions.md`` §2; ``gat_heads=1, gat_init="default"`` is the single-head GAT used before
+    issue #27); both are validated for every ``global_module`` and used by "gat" only.
     """
 
     obs_dim: int
@@ -92,10 +98,23 @@ class CentralCriticConfig:
     detach_latent: bool = False
     cvae_encoder_layers: int = 3
     cvae_decoder_layers: int = 2
+    gat_heads: int = 2
+    gat_init: str = "xavier"
 
     def __post_init__(self) -> None:
         """Validate every field; raise ValueError naming the bad value and what is allowed."""
-        for name in ("obs_dim", "state_dim", "act_dim", "latent_dim", "hidden", "node_width", "cvae_encoder_layers", "cvae_decoder_layers"):
+        names = (
+            "obs_dim",
+            "state_dim",
+            "act_dim",
+            "latent_dim",
+            "hidden",
+            "node_width",
+            "cvae_encoder_layers",
+            "cvae_decoder_layers",
+            "gat_heads",
+        )
+        for name in names:
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise ValueError(f"{name}={v!r} is invalid: must be a positive int")
@@ -103,6 +122,8 @@ class CentralCriticConfig:
             raise ValueError(f"local_module={self.local_module!r} is invalid: allowed {LOCAL_MODULES}")
         if self.global_module not in GLOBAL_MODULES:
             raise ValueError(f"global_module={self.global_module!r} is invalid: allowed {GLOBAL_MODULES}")
+        if self.gat_init not in GAT_INITS:
+            raise ValueError(f"gat_init={self.gat_init!r} is invalid: allowed {GAT_INITS}")
         if self.graph_radius is not None:
             if not _is_real(self.graph_radius) or self.graph_radius <= 0:
                 raise ValueError(f"graph_radius={self.graph_radius!r} is invalid: must be None (full graph) or a finite float > 0 (metres)")
@@ -123,7 +144,7 @@ class CriticBranch(nn.Module):
         super().__init__()
         act = partial(nn.LeakyReLU, cfg.leaky_slope)
         self.node_mlp = mlp([node_in, cfg.node_width, cfg.node_width], act, act)
-        self.graph = GraphModule(cfg.global_module, cfg.node_width, cfg.leaky_slope)
+        self.graph = GraphModule(cfg.global_module, cfg.node_width, cfg.leaky_slope, cfg.gat_heads, cfg.gat_init)
         self.obs_mlp = mlp([obs_in, cfg.hidden, cfg.hidden], nn.ReLU, nn.ReLU)
         self.head = nn.Linear(cfg.node_width + cfg.hidden, 1)
 

@@ -7,20 +7,26 @@ ego), ``P`` valid (b, j) slots, ``F`` node feature width (128).
   that distance (metres, from the first two state entries times ``position_scale``, ``<=``) of the
   receiving node (COIN App. B.2). Padded slots are zeroed on input, receive only from themselves
   and have zero output rows, so their contents cannot change any output (bit-identical).
-* **"gat"**: 2 single-head GAT layers (COIN Eqs. 4-6): ``e_ij = LeakyReLU(a1.Wh_i + a2.Wh_j)``
-  by broadcasting, masked softmax over j, ``h'_i = ReLU(sum_j alpha_ij W h_j)``. **"gcn"**:
+* **"gat"**: 2 GAT layers (COIN Eqs. 4-6); per head k
+  ``e^k_ij = LeakyReLU(a^k_1.W_k h_i + a^k_2.W_k h_j)`` by broadcasting, masked softmax over j,
+  ``ReLU(sum_j alpha^k_ij W_k h_j)``. Layer 1 has ``heads`` heads of width F concatenated
+  (``heads * F``), layer 2 one head ``heads * F -> F``; W_k and a_k are Xavier-uniform with gain
+  1.414 (``init="xavier"``, as pyGAT) or W uses ``nn.Linear``'s default (``init="default"``; with
+  ``heads=1`` exactly the single-head layer used before issue #27). Heads, initialization and the
+  official code's GAT bugs we do not copy (softmax over receivers, ELU + log-softmax head):
+  ``docs/decisions.md`` §2 (rows "GAT", "GAT heads, initialisation"). **"gcn"**:
   ``ReLU(W mean_{j in N(i)} h_j)``; **"graphsage"**: ``ReLU(W [h_i || mean_{j in N(i), j != i} h_j])``
   (zero mean when i has no other neighbour); **"none"**: ReLU(Linear(mean of h_j over the ego's
   neighbourhood)) (COIN Table B.1 "w/o GAT"). Only the ego's final feature is read out, so the
   second layer is computed for the ego row only, as ``W (sum_j alpha_0j h_j)`` (exactly what a
   full second layer gives at node 0, without W on every node). The scores use
-  ``a . (W h) = (a^T W) h``.
+  ``a . (W h) = (a^T W) h`` (one thin GEMM with 2 columns per head).
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -29,8 +35,10 @@ from torch import Tensor, nn
 from coin_app.algorithms.cig_td3.pairwise import PairPacker
 
 GLOBAL_MODULES = ("gat", "gcn", "graphsage", "none")
+GAT_INITS = ("xavier", "default")
+XAVIER_GAIN = 1.414  # pyGAT's gain for W and a (the official COIN code's GAT, docs/decisions.md §2)
 
-__all__ = ["GLOBAL_MODULES", "GATLayer", "Graph", "GraphModule", "MeanAggLayer", "build_graph", "radius_adjacency"]
+__all__ = ["GAT_INITS", "GLOBAL_MODULES", "GATLayer", "Graph", "GraphModule", "MeanAggLayer", "build_graph", "radius_adjacency"]
 
 
 def radius_adjacency(state_all: Tensor, valid: Tensor, radius: float | None = None, position_scale: float = 1.0) -> Tensor:
@@ -48,6 +56,14 @@ def radius_adjacency(state_all: Tensor, valid: Tensor, radius: float | None = No
             adj = adj & (d2 <= radius * radius)
         eye = torch.eye(valid.shape[1], dtype=torch.bool, device=valid.device)
         return adj | eye
+
+
+def _check_gat_args(heads: object, init: object) -> None:
+    """Raise ValueError unless ``heads`` is a positive int and ``init`` one of :data:`GAT_INITS`."""
+    if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
+        raise ValueError(f"gat_heads={heads!r} is invalid: must be a positive int")
+    if init not in GAT_INITS:
+        raise ValueError(f"gat_init={init!r} is invalid: allowed {GAT_INITS}")
 
 
 class Graph(NamedTuple):
@@ -80,38 +96,75 @@ def build_graph(
 
 
 class GATLayer(nn.Module):
-    """Single-head GAT layer (paper Eqs. 4-6): masked softmax over neighbours j of LeakyReLU(a^T [W h_i || W h_j])."""
+    """Multi-head GAT layer (COIN Eqs. 4-6): per head, masked softmax over j of LeakyReLU(a^T [W h_i || W h_j]); heads concatenated.
 
-    def __init__(self, in_dim: int, out_dim: int, leaky_slope: float = 0.2) -> None:
+    Parameters: ``W`` one ``nn.Linear(in_dim, heads * out_dim)`` whose rows ``k*F:(k+1)*F`` are
+    head k's W_k (F_in -> F); ``a_recv``, ``a_nbr`` (heads, F), head k's ``a_k = [a_recv[k] ; a_nbr[k]]``.
+    ``init="xavier"``: every W_k and every (2F, 1) vector a_k Xavier-uniform with gain 1.414, as
+    pyGAT / the official code (``docs/decisions.md`` §2); ``init="default"``: ``nn.Linear``'s
+    default for W, a_k as Xavier (the draws of the single-head layer before issue #27, in the same
+    RNG order, so ``heads=1, init="default"`` is bit-identical to it for a given torch seed).
+    """
+
+    def __init__(self, in_dim: int, out_dim: int, leaky_slope: float = 0.2, heads: int = 1, init: str = "xavier") -> None:
         super().__init__()
-        self.W = nn.Linear(in_dim, out_dim, bias=False)
-        # a_gat = [a_recv ; a_nbr]; Glorot init of the (2F, 1) vector as in pyGAT.
-        bound = 1.414 * math.sqrt(6.0 / (2 * out_dim + 1))
-        self.a_recv = nn.Parameter(torch.empty(out_dim).uniform_(-bound, bound))
-        self.a_nbr = nn.Parameter(torch.empty(out_dim).uniform_(-bound, bound))
-        self.leaky_slope = leaky_slope
+        _check_gat_args(heads, init)
+        self.heads, self.out_dim, self.leaky_slope = heads, out_dim, leaky_slope
+        self.W = nn.Linear(in_dim, heads * out_dim, bias=False)
+        # a_k = [a_recv[k] ; a_nbr[k]], a (2F, 1) vector: Glorot bound gain * sqrt(6 / (2F + 1)) as in pyGAT.
+        bound = XAVIER_GAIN * math.sqrt(6.0 / (2 * out_dim + 1))
+        self.a_recv = nn.Parameter(torch.empty(heads, out_dim).uniform_(-bound, bound))
+        self.a_nbr = nn.Parameter(torch.empty(heads, out_dim).uniform_(-bound, bound))
+        if init == "xavier":
+            with torch.no_grad():
+                for w_k in self.W.weight.split(out_dim):  # per head: fan_in + fan_out = F_in + F
+                    nn.init.xavier_uniform_(w_k, gain=XAVIER_GAIN)
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: Any, **kwargs: Any) -> None:
+        """Accept the single-head layer's (F,) attention vectors of checkpoints saved before the multi-head layer."""
+        for name in ("a_recv", "a_nbr"):
+            key = prefix + name
+            if key in state_dict and state_dict[key].dim() == 1 and self.a_recv.shape[0] == 1:
+                state_dict[key] = state_dict[key].unsqueeze(0)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def _score_vectors(self) -> tuple[Tensor, Tensor]:
+        """(u_recv, u_nbr), each (H, F_in): ``u[k] = a[k]^T W_k``, so that ``a[k] . (W_k h) = u[k] . h``."""
+        if self.heads == 1:  # vector-matrix products, as the single-head layer (bit-identical gradients)
+            return (self.a_recv[0] @ self.W.weight).unsqueeze(0), (self.a_nbr[0] @ self.W.weight).unsqueeze(0)
+        w = self.W.weight.view(self.heads, self.out_dim, -1)  # (H, F, F_in)
+        return (self.a_recv.unsqueeze(1) @ w).squeeze(1), (self.a_nbr.unsqueeze(1) @ w).squeeze(1)
 
     def _alpha(self, s_recv: Tensor, s_nbr: Tensor, adj: Tensor) -> Tensor:
-        e = F.leaky_relu(s_recv.unsqueeze(-1) + s_nbr.unsqueeze(1), self.leaky_slope)
-        return torch.softmax(e.masked_fill(~adj, float("-inf")), dim=-1)
+        """Scores s_recv (B, H, R), s_nbr (B, H, M), adj (B, R, M) -> alpha (B, H, R, M), softmax over j."""
+        e = F.leaky_relu(s_recv.unsqueeze(-1) + s_nbr.unsqueeze(-2), self.leaky_slope)
+        return torch.softmax(e.masked_fill(~adj.unsqueeze(1), float("-inf")), dim=-1)
 
     def forward(self, h: Tensor, graph: Graph) -> tuple[Tensor, Tensor]:
-        """Packed h (P, F_in) -> (out (B, M, F), alpha (B, M, M)); padded receivers' rows are zero."""
-        # a . (W h) = (a^T W) h: both scores by one thin GEMM on h instead of per-node dot products on W h.
-        u = torch.stack([self.a_recv @ self.W.weight, self.a_nbr @ self.W.weight])  # (2, F_in)
-        wh = graph.packer.unpack(self.W(h))  # (B, M, F)
-        s = graph.packer.unpack(F.linear(h, u))  # (B, M, 2)
-        s_recv, s_nbr = s[..., 0], s[..., 1]
-        alpha = self._alpha(s_recv, s_nbr, graph.adj).masked_fill(~graph.valid.unsqueeze(-1), 0.0)
-        return F.relu(alpha @ wh), alpha
+        """Packed h (P, F_in) -> (out (B, M, H*F), alpha (B, H, M, M)); padded receivers' rows are zero."""
+        hh = self.heads
+        # All scores by one thin GEMM, then head-major (B, 2H, M) so that e and alpha are contiguous (B, H, M, M).
+        s = graph.packer.unpack(F.linear(h, torch.cat(self._score_vectors()))).transpose(1, 2).contiguous()
+        alpha = self._alpha(s[:, :hh], s[:, hh:], graph.adj).masked_fill(~graph.valid[:, None, :, None], 0.0)
+        wh = graph.packer.unpack(self.W(h))  # (B, M, H*F)
+        if hh == 1:
+            return F.relu(alpha.squeeze(1) @ wh), alpha
+        # Head k: alpha_k (B, M, M) @ W_k h (B, M, F), a strided column block of wh (no copy); concatenated.
+        out = torch.cat([a_k @ wh_k for a_k, wh_k in zip(alpha.unbind(1), wh.split(self.out_dim, -1), strict=True)], -1)
+        return F.relu(out), alpha
 
     def forward_ego(self, h: Tensor, graph: Graph) -> tuple[Tensor, Tensor]:
-        """Dense h (B, M, F_in) -> (ego output (B, F), alpha (B, 1, M)), computing receiver node 0 only."""
-        # sum_j alpha_0j W h_j = W (sum_j alpha_0j h_j): W is applied once per row, not per node.
-        u_recv = self.a_recv @ self.W.weight
-        u_nbr = self.a_nbr @ self.W.weight
-        alpha = self._alpha((h[:, :1] @ u_recv), h @ u_nbr, graph.adj[:, :1])
-        return F.relu(self.W((alpha @ h).squeeze(1))), alpha
+        """Dense h (B, M, F_in) -> (ego output (B, H*F), alpha (B, H, 1, M)), computing receiver node 0 only."""
+        # sum_j alpha_0j W_k h_j = W_k (sum_j alpha_0j h_j): W is applied once per row and head, not per node.
+        hh = self.heads
+        u_recv, u_nbr = self._score_vectors()
+        alpha = self._alpha((h[:, :1] @ u_recv.T).transpose(1, 2), (h @ u_nbr.T).transpose(1, 2), graph.adj[:, :1])
+        agg = alpha.squeeze(2) @ h  # (B, H, F_in): sum_j alpha^k_0j h_j
+        if hh == 1:
+            return F.relu(self.W(agg.squeeze(1))), alpha
+        w = self.W.weight.view(hh, self.out_dim, -1)  # (H, F, F_in)
+        out = torch.bmm(agg.transpose(0, 1), w.transpose(1, 2))  # (H, B, F), batched over heads
+        return F.relu(out.transpose(0, 1).reshape(-1, hh * self.out_dim)), alpha
 
 
 class MeanAggLayer(nn.Module):
@@ -140,16 +193,24 @@ class MeanAggLayer(nn.Module):
 
 
 class GraphModule(nn.Module):
-    """Global interaction-aware module: 2 message-passing layers (or a masked mean-pool); returns the ego feature (B, F)."""
+    """Global interaction-aware module: 2 message-passing layers (or a masked mean-pool); returns the ego feature (B, F).
 
-    def __init__(self, kind: str, width: int, leaky_slope: float = 0.2) -> None:
+    ``heads`` (first GAT layer's head count) and ``init`` (:data:`GAT_INITS`) apply to "gat" only
+    and are validated for every kind.
+    """
+
+    def __init__(self, kind: str, width: int, leaky_slope: float = 0.2, heads: int = 2, init: str = "xavier") -> None:
         super().__init__()
         if kind not in GLOBAL_MODULES:
             raise ValueError(f"global_module={kind!r} is invalid: allowed {GLOBAL_MODULES}")
+        _check_gat_args(heads, init)
         self.kind = kind
         self.last_attention: list[Tensor] = []
         if kind == "gat":
-            self.layers = nn.ModuleList([GATLayer(width, width, leaky_slope), GATLayer(width, width, leaky_slope)])
+            # Layer 1: `heads` heads of width F concatenated; layer 2: one head heads*F -> F (official code, docs/decisions.md §2).
+            self.layers = nn.ModuleList(
+                [GATLayer(width, width, leaky_slope, heads, init), GATLayer(heads * width, width, leaky_slope, 1, init)]
+            )
         elif kind in ("gcn", "graphsage"):
             self.layers = nn.ModuleList([MeanAggLayer(width, kind == "graphsage"), MeanAggLayer(width, kind == "graphsage")])
         else:
@@ -158,8 +219,8 @@ class GraphModule(nn.Module):
     def forward(self, h: Tensor, graph: Graph) -> Tensor:
         """Packed node features h (P, F) -> the ego node's final feature (B, F).
 
-        "gat" stores the detached attention of this pass in ``last_attention``: layer 1 (B, M, M)
-        and layer 2's ego row (B, 1, M).
+        "gat" stores the detached attention of this pass in ``last_attention``: layer 1
+        (B, heads, M, M) and layer 2's ego row (B, 1, 1, M) (one head); ``alpha[b, k, i, j]``.
         """
         if self.kind == "none":
             w = graph.adj[:, :1].to(h.dtype)  # the ego's neighbourhood (valid, within the radius, itself)

@@ -45,6 +45,10 @@ class Actor(nn.Module):
         """Action (B, act_dim) in [-1, 1] for observations (B, obs_dim)."""
         return self.net(obs)
 
+    def preactivation(self, obs: Tensor) -> Tensor:
+        """The output before the final tanh, (B, act_dim): ``forward(obs) == tanh(preactivation(obs))``."""
+        return self.net[:-1](obs)
+
 
 class TwinQ(nn.Module):
     """Local (individual) twin critic Q^l_1, Q^l_2 on [o, a] (paper Eqs. 7-8)."""

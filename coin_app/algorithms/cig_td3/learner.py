@@ -4,20 +4,25 @@ One ``update`` = one gradient step on one sampled batch:
     1. targets y^l, y^G with the target networks (no grad);
     2. local critic loss -> grads of ``local_q`` only;
     3. centralized-critic loss (twin Q^g + V + CVAE) -> grads of ``central`` only;
-    4. every ``policy_delay``-th update: actor loss -> grads of ``actor`` only (taken with
-       ``torch.autograd.grad`` on the actor's parameters, so nothing leaks into critics),
-       then soft updates of all target networks with ``tau``.
+    4. every ``policy_delay``-th update (once ``actor_start_steps`` env steps past the warm-up):
+       actor loss -> grads of ``actor`` only (taken with ``torch.autograd.grad`` on the actor's
+       parameters, so nothing leaks into critics), then soft updates of all target networks with
+       ``tau``. With ``update_order="critic_first"`` (default: TD3 and the official COIN code) the
+       critics step before the actor loss is computed, so it is taken on the updated critics;
+       ``"joint"`` computes it from the critics before the update and applies all steps together.
 On other updates the actor's parameters get no gradient, so Adam leaves them untouched.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.learner.utils import update_target_network
 from ray.rllib.core.rl_module.apis import TargetNetworkAPI
+from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from coin_app.algorithms.cig_td3.losses import LossConfig, actor_loss, central_critic_loss, local_critic_loss, td_targets
 
@@ -33,6 +38,8 @@ def loss_config(config: Any) -> LossConfig:
         global_weight=config.global_weight,
         vae_weight=config.vae_weight,
         kl_beta=config.kl_beta,
+        preact_penalty=config.actor_preact_penalty,
+        preact_threshold=config.actor_preact_threshold,
     )
 
 
@@ -44,7 +51,9 @@ class CigTd3TorchLearner(TorchLearner):
         super().build()
         self.module.foreach_module(lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None)
         self.num_updates = 0
+        self.env_steps = 0  # the lifetime env-step count of the current update (before_gradient_based_update)
         self._grads: dict[str, Any] = {}
+        self._actor_losses: dict[str, Callable[[], tuple[torch.Tensor, dict[str, Any]]]] = {}
 
     def configure_optimizers_for_module(self, module_id: str, config: Any = None) -> None:
         """One Adam optimizer each for actor, local critics and centralized critic."""
@@ -62,6 +71,15 @@ class CigTd3TorchLearner(TorchLearner):
         """Whether the current update also updates the actor and the targets."""
         return (self.num_updates + 1) % config.policy_delay == 0
 
+    def actor_learns(self, config: Any) -> bool:
+        """Whether the actor is updated in this update: a policy step, ``actor_start_steps`` env steps after the warm-up."""
+        return self.is_policy_step(config) and self.env_steps >= config.warmup_steps + config.actor_start_steps
+
+    def before_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
+        """Remember the lifetime env-step count (the actor's start after the warm-up depends on it)."""
+        super().before_gradient_based_update(timesteps=timesteps)
+        self.env_steps = int(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0))
+
     def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any], fwd_out: dict[str, Any]) -> torch.Tensor:
         """All CIG-TD3 losses; the per-network gradients are taken here, one loss each."""
         module = self.module[module_id].unwrapped()
@@ -78,27 +96,60 @@ class CigTd3TorchLearner(TorchLearner):
             total = total + loss_g.detach()
             stats.update(g_stats)
             self.metrics.log_value((module_id, "central_critic_loss"), loss_g.detach(), window=1)
-        if self.is_policy_step(config):
-            loss_pi, pi_stats = actor_loss(module.actor, module.local_q, module.central, batch, cfg)
-            grads["actor"] = (loss_pi, list(module.actor.parameters()))
-            stats.update(pi_stats)
-            self.metrics.log_value((module_id, "actor_loss"), loss_pi.detach(), window=1)
+        if self.actor_learns(config):
+
+            def actor_objective() -> tuple[torch.Tensor, dict[str, Any]]:
+                return actor_loss(module.actor, module.local_q, module.central, batch, cfg)
+
+            if config.update_order == "joint":  # every loss from the critics before this update
+                loss_pi, pi_stats = actor_objective()
+                grads["actor"] = (loss_pi, list(module.actor.parameters()))
+                self._log_actor(module_id, loss_pi, pi_stats)
+            else:  # critic_first: computed in compute_gradients, after the critics have stepped
+                self._actor_losses[module_id] = actor_objective
         for key, value in stats.items():
             self.metrics.log_value((module_id, key), value, window=1)
         self._grads[module_id] = grads
         return total
 
+    def _log_actor(self, module_id: str, loss: torch.Tensor, stats: dict[str, Any]) -> None:
+        """Log the actor loss and its stats."""
+        self.metrics.log_value((module_id, "actor_loss"), loss.detach(), window=1)
+        for key, value in stats.items():
+            self.metrics.log_value((module_id, key), value, window=1)
+
+    def _gradients(self, grads: dict[str, tuple[torch.Tensor, list[torch.nn.Parameter]]]) -> dict[Any, torch.Tensor]:
+        """Gradients of each loss w.r.t. its own network's parameters only, by parameter reference."""
+        out: dict[Any, torch.Tensor] = {}
+        for loss, params in grads.values():
+            for p, g in zip(params, torch.autograd.grad(loss, params, allow_unused=True)):
+                if g is not None:
+                    out[self.get_param_ref(p)] = g
+        return out
+
     def compute_gradients(self, loss_per_module: dict[str, torch.Tensor], **kwargs: Any) -> dict[Any, torch.Tensor]:
-        """Gradients of each loss w.r.t. its own network's parameters only."""
+        """Gradients of each loss w.r.t. its own network's parameters only.
+
+        With ``update_order="critic_first"`` (TD3, official COIN code) the critics step here first;
+        the actor loss is then computed on the updated critics and only the actor's gradients are
+        returned for RLlib's optimizer step.
+        """
         for optim in self._optimizer_parameters:
             optim.zero_grad(set_to_none=True)
         out: dict[Any, torch.Tensor] = {}
         for grads in self._grads.values():
-            for loss, params in grads.values():
-                for p, g in zip(params, torch.autograd.grad(loss, params, allow_unused=True)):
-                    if g is not None:
-                        out[self.get_param_ref(p)] = g
+            out.update(self._gradients(grads))
         self._grads = {}
+        if self._actor_losses:
+            self.apply_gradients(out)  # the critic step (the actor has no gradient yet, so its optimizer skips it)
+            for optim in self._optimizer_parameters:
+                optim.zero_grad(set_to_none=True)
+            out = {}
+            for module_id, objective in self._actor_losses.items():
+                loss_pi, pi_stats = objective()
+                self._log_actor(module_id, loss_pi, pi_stats)
+                out.update(self._gradients({"actor": (loss_pi, list(self.module[module_id].unwrapped().actor.parameters()))}))
+            self._actor_losses = {}
         return out
 
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:

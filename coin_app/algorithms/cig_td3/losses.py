@@ -16,6 +16,8 @@ Notation (one row per sampled agent transition i at env step t):
     L_V   = mean (V(o, s, S, A, M) - y^G)^2                                           (Eq. 10)
     L_vae = recon([o', s', r]) + kl_beta * KL                                          (Eq. 3)
     L_pi  = -mean[ Q^l_1(o, mu(o)) + w (Q^g_1(o, mu(o), s, S, A, M) - V(o, s, S, A, M)) ]  (Eq. 12)
+            + p mean[ max(|u(o)| - u0, 0)^2 ]     u = the actor's pre-tanh output, mu = tanh(u)
+                                                  (optional guard against saturation; p = 0 in the paper)
 
 V does not depend on the ego action, so with a deterministic policy it leaves the actor's
 gradient unchanged (``docs/decisions.md`` §2.2); it is still trained and logged, as Eq. 12 is written.
@@ -23,6 +25,7 @@ gradient unchanged (``docs/decisions.md`` §2.2); it is still trained and logged
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -43,6 +46,11 @@ class LossConfig:
     global_weight: float = 1.0
     vae_weight: float = 1.0
     kl_beta: float = 1.0
+    preact_penalty: float = 0.0  # p: weight of the actor's pre-tanh penalty (0 = off, the paper)
+    preact_threshold: float = 0.0  # u0: the pre-tanh magnitude the penalty starts at
+
+
+SATURATED_PREACT = math.atanh(0.99)  # |u| above this: |tanh(u)| > 0.99, tanh's gradient < 0.02
 
 
 def smoothed_target_action(actor_target: nn.Module, obs: torch.Tensor, noise_std: float, noise_clip: float) -> torch.Tensor:
@@ -119,8 +127,14 @@ def actor_loss(
     batch: dict[str, torch.Tensor],
     cfg: LossConfig,
 ) -> tuple[torch.Tensor, dict]:
-    """Eq. 12 (ITD3: the individual term only). Gradients reach critic parameters too: take only the actor's."""
-    a = actor(batch[col.OBS])
+    """Eq. 12 (ITD3: the individual term only), plus the optional pre-tanh penalty.
+
+    Gradients reach critic parameters too: take only the actor's. ``actor`` exposes
+    ``preactivation(obs)`` (its output before the tanh); the stats include the share of saturated
+    outputs (``actor_saturation``: |tanh(u)| > 0.99) and the mean |u|.
+    """
+    pre = actor.preactivation(batch[col.OBS])
+    a = torch.tanh(pre)
     q_local = local_q.q1_only(batch[col.OBS], a)
     objective = q_local
     stats = {"actor_q_local": q_local.mean().detach()}
@@ -137,4 +151,15 @@ def actor_loss(
         objective = objective + cfg.global_weight * advantage
         stats["actor_q_global"] = q_global.mean().detach()
     loss = -objective.mean()
+    u = pre.detach().abs()
+    stats.update(actor_saturation=(u > SATURATED_PREACT).float().mean(), actor_preact_abs=u.mean())
+    if cfg.preact_penalty > 0:
+        penalty = preact_penalty(pre, cfg.preact_penalty, cfg.preact_threshold)
+        loss = loss + penalty
+        stats["actor_preact_penalty"] = penalty.detach()
     return loss, stats
+
+
+def preact_penalty(pre: torch.Tensor, weight: float, threshold: float = 0.0) -> torch.Tensor:
+    """``weight * mean(max(|u| - threshold, 0)^2)`` over pre-tanh outputs u (threshold 0: the plain ``weight * mean(u^2)``)."""
+    return weight * torch.relu(pre.abs() - threshold).square().mean()

@@ -5,10 +5,12 @@
   centralized critic ``central`` (twin global Q, counterfactual baseline V, CVAE);
   ``make_target_networks`` adds ``actor_target``, ``local_q_target``, ``central_target``.
 
-``_forward_inference`` is deterministic; ``_forward_exploration`` adds N(0, 0.05) noise, and
-during the first ``warmup_steps`` env steps (``t`` is the runner's lifetime env-step count)
-returns uniform random actions instead, drawn from the torch generator RLlib seeds, so the
-warm-up is reproducible.
+``_forward_inference`` is deterministic; ``_forward_exploration`` adds N(0, sigma) noise (sigma
+0.05, or decaying from ``exploration_noise_initial``), and during the first ``warmup_steps`` env
+steps returns uniform random actions instead, drawn from the torch generator RLlib seeds, so the
+warm-up is reproducible. ``t`` is the global env-step count: ``CigTd3`` hands the env runner the
+exact count before every sample, so the warm-up ends exactly at ``warmup_steps`` env steps
+whatever the iteration length.
 """
 
 from __future__ import annotations
@@ -35,8 +37,11 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
         obs_dim = int(self.observation_space.shape[0])
         act_dim = int(self.action_space.shape[0])
         hidden = int(mc.get("hidden", 256))
-        self.actor = Actor(obs_dim, act_dim, (hidden, hidden))
+        self.actor = Actor(obs_dim, act_dim, (hidden,) * int(mc.get("actor_layers", 3)))
         self.exploration_noise = float(mc.get("exploration_noise", 0.05))
+        noise0 = mc.get("exploration_noise_initial")
+        self.exploration_noise_initial = self.exploration_noise if noise0 is None else float(noise0)
+        self.exploration_noise_decay_steps = int(mc.get("exploration_noise_decay_steps", 0))
         self.warmup_steps = int(mc.get("warmup_steps", 0))
         self.central = None
         if self.inference_only:
@@ -54,6 +59,8 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
                     local_module=mc.get("local_module", "cvae"),
                     global_module=mc.get("global_module", "gat"),
                     graph_radius=mc.get("graph_radius"),
+                    gat_heads=int(mc.get("gat_heads", 2)),
+                    gat_init=str(mc.get("gat_init", "xavier")),
                     position_scale=float(mc.get("position_scale", 1.0)),
                 )
             )
@@ -75,12 +82,19 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
             if t is not None and t < self.warmup_steps:
                 actions = torch.rand(mu.shape) * 2.0 - 1.0
             else:
-                actions = (mu + torch.randn(mu.shape) * self.exploration_noise).clamp(-1.0, 1.0)
+                actions = (mu + torch.randn(mu.shape) * self.noise_std(t)).clamp(-1.0, 1.0)
             return {Columns.ACTIONS: unsort(actions, order)}
 
     def _forward_train(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
         """Nothing: the learner calls the networks itself, loss by loss."""
         return {}
+
+    def noise_std(self, t: int | None) -> float:
+        """Exploration std at env step ``t``: ``exploration_noise_initial`` after the warm-up, linearly to ``exploration_noise``."""
+        if t is None or self.exploration_noise_decay_steps <= 0:
+            return self.exploration_noise
+        frac = min(1.0, max(0.0, (t - self.warmup_steps) / self.exploration_noise_decay_steps))
+        return self.exploration_noise_initial + frac * (self.exploration_noise - self.exploration_noise_initial)
 
     # ------------------------------------------------------------------ the algorithm contract (ActorModule)
     def deterministic_actor(self) -> torch.nn.Module:

@@ -10,11 +10,14 @@ hyper-parameters are IPPO's plus ``COPO_KEYS``.
 The learner's meta-gradient step moves the distribution after each update; before sampling and
 right after each update the algorithm sets it on every env (local and remote runners, all
 vectorized sub-envs), so agents spawned from then on draw their LCF from the new distribution.
+
+At evaluation (``eval_lcf``, stored in the module's config and so in every checkpoint) each
+vehicle draws its own LCF from the learned distribution, as CoPO's evaluation did, or every
+vehicle gets the learned mean (``rl_module.py``; ``docs/decisions.md`` §7.5).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
@@ -26,14 +29,16 @@ from coin_app.algorithms.copo.learner import CoPOLearner
 from coin_app.algorithms.copo.rl_module import CoPOModule
 from coin_app.algorithms.ppo_family.config import (
     HYPERPARAMETERS,
+    check_choice,
     check_number,
     checked,
     driving_scenario,
+    learner_options,
     policy_model,
     ppo_base_config,
     ppo_settings,
 )
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+from coin_app.algorithms.spec import LCF_MODES, AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map
 
@@ -45,6 +50,11 @@ COPO_KEYS: dict[str, tuple[Any, str]] = {
     "lcf_lr": (1e-4, "Adam learning rate of the LCF distribution parameters (meta-gradient)"),
     "lcf_num_iters": (5, "meta-gradient passes over each train batch (0 = fixed LCF distribution)"),
     "lcf_minibatch_size": (None, "meta-gradient minibatch (agent transitions); None = minibatch_size"),
+    "eval_lcf": (
+        "sampled",
+        "LCF of each vehicle in evaluate / export / the protocol: 'sampled' = one draw per vehicle from the learned distribution "
+        "(CoPO's evaluation), 'mean' = the learned mean for every vehicle",
+    ),
 }
 
 
@@ -88,15 +98,17 @@ def build_copo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: 
     check_number("lcf_num_iters", opts["lcf_num_iters"], lambda v: v >= 0, "an integer >= 0", integer=True)
     if opts["lcf_minibatch_size"] is not None:
         check_number("lcf_minibatch_size", opts["lcf_minibatch_size"], lambda v: v >= 1, "None or an integer >= 1", integer=True)
+    check_choice("eval_lcf", opts["eval_lcf"], LCF_MODES)
     scenario = driving_scenario("CoPO", scenario)
     learner_config = {
+        **learner_options(hp),
         "lcf_lr": opts["lcf_lr"],
         "lcf_num_iters": opts["lcf_num_iters"],
         "lcf_minibatch_size": opts["lcf_minibatch_size"],
         "neighbour_radius": float(radius),
         "position_scale": load_map(scenario.scenario).scale,
     }
-    model = {**dataclasses.asdict(policy_model(hp["hidden"])), "initial_lcf": [float(mean), float(std)]}
+    model = {**policy_model(hp["hidden"], hp["weight_init"]), "initial_lcf": [float(mean), float(std)], "eval_lcf": opts["eval_lcf"]}
     env_config = env_config_of(scenario, lcf={"mean": float(mean), "std": float(std)})
     config = (
         ppo_base_config(scenario, hp, seed, env_config, algo_class=CoPO)

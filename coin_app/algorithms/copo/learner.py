@@ -1,6 +1,8 @@
 """CoPO's learner: the clipped-value PPO learner with three value losses and the LCF meta-gradient step.
 
-* Connector: RLlib's GAE piece and the old-value piece are replaced by ``CoPOAdvantages``.
+* Connector: RLlib's GAE piece, the old-value piece and the real-row standardization piece
+  are replaced by ``CoPOAdvantages`` (which standardizes over the real rows itself); the
+  family's time-out piece stays, so all three GAEs end a timed-out vehicle with 0 by default.
 * Loss: PPO clipped surrogate on the standardized coordinated advantage; the PPO2-clipped
   value losses of the ego, neighbour and global heads added with ``vf_loss_coeff`` each; the
   adaptive KL penalty; no entropy bonus by default.
@@ -35,7 +37,7 @@ from coin_app.algorithms.copo.advantages import (
     CoPOAdvantages,
 )
 from coin_app.algorithms.copo.coordination import gradient_dot, lcf_distribution, lcf_objective
-from coin_app.algorithms.ppo_family.learner import OLD_VALUES, ClippedValuePPOLearner, OldValuePredictions
+from coin_app.algorithms.ppo_family.learner import OLD_VALUES, ClippedValuePPOLearner, OldValuePredictions, RealRowAdvantages
 from coin_app.algorithms.ppo_family.losses import clipped_value_loss, surrogate_loss
 
 POLICY_PREFIXES = ("encoder.actor_encoder.", "pi.")
@@ -68,6 +70,7 @@ class CoPOLearner(ClippedValuePPOLearner):
         self._learner_connector.insert_before(GeneralAdvantageEstimation, piece)
         self._learner_connector.remove(GeneralAdvantageEstimation)
         self._learner_connector.remove(OldValuePredictions)
+        self._learner_connector.remove(RealRowAdvantages)
         self._lcf_params: dict[str, torch.nn.Parameter] = {}
         self._lcf_optimizers: dict[str, torch.optim.Optimizer] = {}
         for mid in self.module.keys():
@@ -99,7 +102,7 @@ class CoPOLearner(ClippedValuePPOLearner):
         return self._copo_batch
 
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
-        """RLlib's KL-coefficient update, then the LCF meta-gradient step on this update's batch."""
+        """The family's KL-coefficient update, then the LCF meta-gradient step on this update's batch."""
         super().after_gradient_based_update(timesteps=timesteps)
         batch, self._copo_batch = self._copo_batch, None
         if batch is None:

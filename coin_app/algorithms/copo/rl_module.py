@@ -5,10 +5,14 @@ with its LCF feature): CoPO's paper configuration has decentralized critics. The
 distribution parameters ``(atanh mean, log std)`` are a buffer, so checkpoints and the weights
 sent to env runners carry them; the learner's meta-gradient step writes them.
 
-The policy reads the agent's LCF as its last observation feature. The deterministic actor and
-the inference actions act with the learned mean LCF instead: the actor takes the plain
-observation (the LCF feature a constant folded into its first layer's bias), so it runs in any
-evaluation env.
+The policy reads the agent's LCF as its last observation feature. Evaluation gives every vehicle
+an LCF (``evaluation_lcf()``, the ``eval_lcf`` key of ``copo.py``): ``"sampled"`` (the default,
+as CoPO's evaluation did) draws one per vehicle from the learned distribution and runs
+``lcf_actor()`` on ``[obs | LCF feature]`` (``coin_app.adapters.lcf.SampledLCFPolicy``, through
+``coin_app.algorithms.checkpoints.actor_policy``); ``"mean"`` gives every vehicle the learned
+mean. ``deterministic_actor()``, the ``ActorModule`` contract's network on the plain
+observation, is the mean-LCF actor: the mean's feature is a constant folded into its first
+layer's bias, so it runs in any evaluation env.
 """
 
 from __future__ import annotations
@@ -38,9 +42,8 @@ def fold_lcf(first: nn.Module, lcf: float) -> nn.Linear:
 class CoPOModule(PPOActorModule):
     """PPO policy with ego, neighbour and global value functions and the LCF distribution parameters."""
 
-    def setup(self) -> None:
-        """Build the default module, the LCF buffer and (learner copies) the two extra value heads."""
-        super().setup()
+    def setup_heads(self) -> None:
+        """The LCF buffer and (learner copies) the neighbour and global value heads."""
         self.register_buffer("lcf_params", lcf_parameters(*self.model_config["initial_lcf"]))
         if not self.inference_only:
             obs_dim = int(self.observation_space.shape[0])
@@ -60,6 +63,18 @@ class CoPOModule(PPOActorModule):
         """The current LCF (mean, std)."""
         mean, std = lcf_distribution(self.lcf_params)
         return float(mean), float(std)
+
+    def evaluation_lcf(self) -> str:
+        """How evaluation gives vehicles their LCF: ``"sampled"`` (one draw per vehicle) or ``"mean"`` (the learned mean)."""
+        return str(self.model_config.get("eval_lcf", "sampled"))
+
+    def lcf_actor(self) -> nn.Sequential:
+        """The family's clipped Gaussian-mean actor on ``[obs | LCF feature]`` (N, obs_dim + 1): the policy as trained."""
+        return super().deterministic_actor()
+
+    def lcf_inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
+        """The family's inference actions on ``[obs | LCF feature]`` (the export parity reference of ``lcf_actor``)."""
+        return super().inference_actions(obs)
 
     def deterministic_actor(self) -> nn.Sequential:
         """The family's clipped Gaussian-mean actor on the plain observation, with the learned mean LCF folded in."""

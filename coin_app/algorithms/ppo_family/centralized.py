@@ -70,9 +70,8 @@ class CriticInputs(ConnectorV2):
 class CentralizedCriticPPOModule(PPOActorModule):
     """The family's PPO module with the value function on the centralized critic input."""
 
-    def setup(self) -> None:
-        """Build the default module, plus the centralized value MLP on learner copies."""
-        super().setup()
+    def setup_heads(self) -> None:
+        """The centralized value MLP (learner copies only)."""
         if not self.inference_only:
             self.central_vf = value_mlp(int(self.model_config["critic_input_dim"]), self.model_config["fcnet_hiddens"])
 

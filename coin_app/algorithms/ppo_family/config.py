@@ -2,13 +2,23 @@
 
 Values are those of the PPO baselines of the COIN paper, which ran CoPO's code (Peng et al.,
 "Learning to Simulate Self-Driven Particles System with Coordinated Policy Optimization",
-NeurIPS 2021) on Ray 1.2's PPO, as the MetaDrive benchmark did (README, "PPO baselines").
-``train_batch_size`` counts env steps (each gives one transition per present agent). Ray 1.x
-gathered 200-step chunks until the batch of 1024 was full; RLlib 2.60 needs the batch to equal
-runners x chunk, so the chunk is ``"auto"`` (the batch split over the env runners) unless set.
+NeurIPS 2021) on Ray 1.2's PPO, as the MetaDrive benchmark did (README, "PPO baselines";
+``docs/decisions.md`` §7). ``train_batch_size`` counts env steps (each gives one transition per
+present agent). Ray 1.x sampled 200-step chunks on 4 workers until at least 1024 env steps
+were in: 2 rounds, 1600 env steps per update. The defaults are that batch in 200-step chunks
+(``rollout_fragment_length``); sampling runs in the training process (``num_env_runners`` 0,
+one env), and ``num_env_runners=4`` (set at the sweeps' ``paper`` scale) adds the reference's
+four sampling workers. RLlib 2.60 accepts any batch that is a whole number of
+runners x chunk (``"auto"`` = the batch split over the runners).
 
-The helpers (``ppo_settings``, ``policy_model``, ``ppo_base_config``, ``checked``) are shared
-with CoPO (``coin_app.algorithms.copo.copo``).
+The other reference behaviours are defaults too, each with RLlib's behaviour as an option:
+``kl_signal`` (the adaptive-KL step reads the mean KL of the last SGD epoch, Ray 1.x, or the
+last minibatch's, RLlib), ``timeout_bootstrap`` (a vehicle's own step limit is terminal, Ray
+1.x, or bootstraps V(o_T), RLlib) and ``weight_init`` (Ray 1.x's normc, or PyTorch's
+default). See ``learner.py`` and ``rl_module.py``.
+
+The helpers (``ppo_settings``, ``policy_model``, ``ppo_base_config``, ``learner_options``,
+``checked``) are shared with CoPO (``coin_app.algorithms.copo.copo``).
 """
 
 from __future__ import annotations
@@ -42,16 +52,34 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "vf_loss_coeff": (1.0, "weight of the value loss"),
     "kl_coeff": (0.2, "initial adaptive KL penalty"),
     "kl_target": (0.01, "target KL of the adaptive penalty"),
+    "kl_signal": (
+        "epoch_mean",
+        "KL the penalty adapts to (x1.5 above 2 target, x0.5 below target / 2): 'epoch_mean' = mean over the last "
+        "SGD epoch's minibatches (Ray 1.x), 'last_minibatch' = the last minibatch's (RLlib 2.60)",
+    ),
     "entropy_coeff": (0.0, "entropy bonus (none in the paper runs)"),
-    "train_batch_size_per_learner": (1024, "env steps per training batch"),
+    "train_batch_size_per_learner": (1600, "env steps per training batch (paper runs: 2 rounds of 4 workers x 200 steps)"),
     "minibatch_size": (512, "SGD minibatch (agent transitions)"),
     "num_epochs": (5, "SGD passes over each batch"),
-    "rollout_fragment_length": ("auto", "env steps per sampling chunk; 'auto' = batch / runners (paper: 200-step chunks)"),
-    "num_env_runners": (0, "remote env runners (0 = sample in the training process)"),
+    "rollout_fragment_length": (200, "env steps per sampling chunk (paper: 200); 'auto' = batch / runners"),
+    "num_env_runners": (0, "remote env runners (0 = sample in the training process, one env; paper: 4, the sweeps' paper scale)"),
+    "timeout_bootstrap": (
+        False,
+        "False: a vehicle's own step limit and the force stop end its GAE like any done, zero bootstrap (Ray 1.x); "
+        "True: they bootstrap with V(o_T) (RLlib's truncation)",
+    ),
     "hidden": (256, "width of the two tanh layers of the separate policy and value networks"),
+    "weight_init": (
+        "normc",
+        "'normc' = Ray 1.x's initialization (each unit's weights of norm 1, output layers 0.01, biases 0); 'torch' = PyTorch's default",
+    ),
 }
+# the HYPERPARAMETERS that are not PPOConfig.training arguments (sampling, learner and model options)
+OWN_KEYS = ("hidden", "num_env_runners", "rollout_fragment_length", "kl_signal", "timeout_bootstrap", "weight_init")
 # the HYPERPARAMETERS that go to PPOConfig.training as they are
-TRAINING_KEYS = tuple(k for k in HYPERPARAMETERS if k not in ("hidden", "num_env_runners", "rollout_fragment_length"))
+TRAINING_KEYS = tuple(k for k in HYPERPARAMETERS if k not in OWN_KEYS)
+KL_SIGNALS = ("epoch_mean", "last_minibatch")
+WEIGHT_INITS = ("normc", "torch")
 
 # the extra --set keys of CPPO and MFPO (neighbour_radius None = the algorithm's own radius)
 CENTRAL_KEYS: dict[str, tuple[Any, str]] = {
@@ -78,12 +106,28 @@ def ppo_settings(algo_cfg: Mapping[str, Any], extra: Mapping[str, tuple[Any, str
     check_number("num_env_runners", hp["num_env_runners"], lambda v: v >= 0, "an integer >= 0", integer=True)
     if hp["rollout_fragment_length"] != "auto":
         check_number("rollout_fragment_length", hp["rollout_fragment_length"], lambda v: v >= 1, "'auto' or an integer >= 1", integer=True)
+    check_choice("kl_signal", hp["kl_signal"], KL_SIGNALS)
+    check_choice("weight_init", hp["weight_init"], WEIGHT_INITS)
+    check_choice("timeout_bootstrap", hp["timeout_bootstrap"], (False, True))
     return hp, opts
 
 
-def policy_model(hidden: int) -> DefaultModelConfig:
-    """Separate policy and value networks of two tanh layers of ``hidden`` units, linear heads."""
-    return DefaultModelConfig(fcnet_hiddens=[hidden] * 2, fcnet_activation="tanh", vf_share_layers=False, head_fcnet_hiddens=[])
+def check_choice(name: str, value: Any, allowed: tuple[Any, ...]) -> Any:
+    """``value`` if it is one of ``allowed`` (booleans only match booleans); else a ValueError naming it."""
+    if not any(value == a and type(value) is type(a) for a in allowed):
+        raise ValueError(f"bad value for {name!r}: {value!r}; allowed: {', '.join(map(repr, allowed))}")
+    return value
+
+
+def policy_model(hidden: int, weight_init: str) -> dict[str, Any]:
+    """Separate policy and value networks of two tanh layers of ``hidden`` units, linear heads, initialized by ``weight_init``."""
+    model = DefaultModelConfig(fcnet_hiddens=[hidden] * 2, fcnet_activation="tanh", vf_share_layers=False, head_fcnet_hiddens=[])
+    return {**dataclasses.asdict(model), "weight_init": weight_init}
+
+
+def learner_options(hp: Mapping[str, Any]) -> dict[str, Any]:
+    """The learner options of the PPO family's ``learner_config_dict`` (``learner.py``): the KL signal and the time-out bootstrap."""
+    return {"kl_signal": hp["kl_signal"], "timeout_bootstrap": hp["timeout_bootstrap"]}
 
 
 def ppo_base_config(
@@ -120,8 +164,8 @@ def build_ippo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: 
     hp, _ = ppo_settings(algo_cfg, {})
     config = (
         ppo_base_config(driving_scenario("IPPO", scenario), hp, seed, env_config_of(scenario))
-        .learners(learner_class=ClippedValuePPOLearner, learner_config_dict={})
-        .rl_module(model_config=policy_model(hp["hidden"]), rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
+        .learners(learner_class=ClippedValuePPOLearner, learner_config_dict=learner_options(hp))
+        .rl_module(model_config=policy_model(hp["hidden"], hp["weight_init"]), rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
     )
     return checked("IPPO", shared_policy_config(config))
 
@@ -134,12 +178,13 @@ def centralized_config(name: str, mode: str, radius: float, scenario: ScenarioCo
     k = check_number("num_neighbours", opts["num_neighbours"], lambda v: v >= 1, "an integer >= 1", integer=True)
     scenario = driving_scenario(name, scenario)
     learner_config = {
+        **learner_options(hp),
         "critic_mode": mode,
         "neighbour_radius": float(radius),
         "num_neighbours": k,
         "position_scale": load_map(scenario.scenario).scale,
     }
-    model = {**dataclasses.asdict(policy_model(hp["hidden"])), "critic_input_dim": critic_input_dim(mode, scenario.obs_dim, 2, k)}
+    model = {**policy_model(hp["hidden"], hp["weight_init"]), "critic_input_dim": critic_input_dim(mode, scenario.obs_dim, 2, k)}
     config = (
         ppo_base_config(scenario, hp, seed, env_config_of(scenario))
         .learners(learner_class=CentralizedCriticPPOLearner, learner_config_dict=learner_config)

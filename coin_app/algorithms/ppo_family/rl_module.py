@@ -6,6 +6,13 @@ actions; ``deterministic_actor`` gives it as a plain torch network (actor encode
 ``pi`` head cut to the mean outputs, then ``Hardtanh``) for evaluation and export, and
 ``inference_actions`` gives the same actions from RLlib's own ``forward_inference``, the
 reference the export's parity check compares against.
+
+Initialization (``model_config["weight_init"]``): ``"normc"`` is Ray 1.x's, the one the CoPO
+paper's PPO baselines started from (``docs/decisions.md`` §7.2): every linear layer's bias is 0
+and each output unit's incoming weights are a Gaussian vector scaled to norm 1 in hidden layers
+and to norm 0.01 in output layers (the policy's (mean, log std) head and every value head), so
+the initial Gaussian means are within ``0.01 ||h||`` of 0 and the log stds near 0. A missing key
+or ``"torch"`` keeps PyTorch's default (nav_ppo, modules saved before the key).
 """
 
 from __future__ import annotations
@@ -14,6 +21,28 @@ import torch
 from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 from ray.rllib.core.columns import Columns
 from torch import nn
+
+NORMC_OUTPUT_STD = 0.01  # norm of an output unit's weights under normc (Ray 1.x's fcnet: logits and value_out)
+
+
+def normc_(layer: nn.Linear, std: float) -> None:
+    """Ray 1.x's normc initialization in place: each output unit's weights N(0, 1) scaled to norm ``std``; bias 0."""
+    with torch.no_grad():
+        weight = torch.randn_like(layer.weight)
+        layer.weight.copy_(weight * (std / weight.norm(dim=1, keepdim=True)))
+        layer.bias.zero_()
+
+
+def normc_init(module: nn.Module) -> None:
+    """normc on every linear layer of ``module``'s MLPs: norm 1 if an activation follows it in its ``nn.Sequential``, else 0.01."""
+    for seq in module.modules():
+        if not isinstance(seq, nn.Sequential):
+            continue
+        layers = list(seq)
+        for i, layer in enumerate(layers):
+            if isinstance(layer, nn.Linear):
+                hidden = i + 1 < len(layers) and not isinstance(layers[i + 1], nn.Linear)
+                normc_(layer, 1.0 if hidden else NORMC_OUTPUT_STD)
 
 
 def gaussian_mean(head: nn.Linear) -> nn.Linear:
@@ -28,6 +57,16 @@ def gaussian_mean(head: nn.Linear) -> nn.Linear:
 
 class PPOActorModule(DefaultPPOTorchRLModule):
     """RLlib's default PPO module whose deterministic policy is the Gaussian mean clipped to [-1, 1]."""
+
+    def setup(self) -> None:
+        """Build RLlib's networks and the subclass's extra heads, then initialize them all by ``weight_init``."""
+        super().setup()
+        self.setup_heads()
+        if self.model_config.get("weight_init", "torch") == "normc":
+            normc_init(self)
+
+    def setup_heads(self) -> None:
+        """Build a subclass's extra networks (before the initialization); none here."""
 
     def deterministic_actor(self) -> nn.Sequential:
         """The actor encoder and the ``pi`` head's mean outputs, then ``Hardtanh(-1, 1)``, as an ``nn.Sequential``."""

@@ -1,0 +1,31 @@
+"""Training helpers: the per-iteration figures, their log text and the stand-still (TD3 freeze) detector."""
+
+import math
+
+from coin_app.training import FreezeDetector, iteration_metrics, outcome_text
+
+
+def result(env_steps, speed_sum=0.0, agent_steps=0, finished=0, saturation=None):
+    """A minimal RLlib ``train()`` result with the env runner and learner keys coin_app reads."""
+    learner = {} if saturation is None else {"actor_saturation": saturation}
+    runners = {"agents_finished": finished, "agents_speed_sum": speed_sum, "agents_agent_steps": agent_steps}
+    return {"num_env_steps_sampled_lifetime": env_steps, "env_runners": runners, "learners": {"shared": learner}}
+
+
+def test_mean_speed_is_the_speed_sum_over_agent_steps():
+    m = iteration_metrics(result(100, speed_sum=30.0, agent_steps=12))
+    assert m["mean_speed"] == 2.5
+    assert math.isnan(iteration_metrics(result(100))["mean_speed"])  # no driving agent stepped (the arena)
+    assert "speed 2.5 m/s" in outcome_text(m) and "agents" not in outcome_text(m)
+
+
+def test_detector_warns_after_a_scripted_stand_still_and_not_before():
+    detector = FreezeDetector(warmup_steps=1000, patience=3, speed_threshold=0.5)
+    speeds = [0.0, 0.0, 6.0, 0.1, 0.2, 0.0, 0.0, 7.0]  # iterations 1-2 are in the warm-up
+    warnings = []
+    for k, speed in enumerate(speeds):
+        metrics = iteration_metrics(result(500 * (k + 1), speed_sum=speed * 10, agent_steps=10, saturation=0.97))
+        warnings.append(detector.update(metrics))
+    # warm-up iterations never count; stand-still runs 4-7 (speeds 0.1, 0.2, 0.0, 0.0) warn from the third on; moving resets
+    assert [w is not None for w in warnings] == [False, False, False, False, False, True, True, False]
+    assert "stood still" in warnings[5] and "97%" in warnings[5] and "for 3 iterations" in warnings[5]
