@@ -20,6 +20,7 @@ state, so a resumed run continues exactly.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -414,11 +415,10 @@ CIG_TD3 = AlgorithmSpec(
     capabilities=Capabilities(on_policy=False, centralized_critic=True, joint_replay=True, periodic_evaluation=True),
     quick=QUICK_TD3,
 )
-ITD3 = AlgorithmSpec(
+ITD3 = dataclasses.replace(  # the same algorithm without the centralized critic
+    CIG_TD3,
     name="itd3",
     description="ITD3: independent TD3 with parameter sharing",
-    hyperparameters={**HYPERPARAMETERS, **RLLIB_KEYS},
     build=_builder(itd3=True),
-    capabilities=Capabilities(on_policy=False, centralized_critic=False, joint_replay=True, periodic_evaluation=True),
-    quick=QUICK_TD3,
+    capabilities=dataclasses.replace(CIG_TD3.capabilities, centralized_critic=False),
 )
