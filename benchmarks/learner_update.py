@@ -1,14 +1,17 @@
-"""Time of one CIG-TD3 (and ITD3) learner update on this CPU, with a breakdown, and of a training loop.
+"""Time of one CIG-TD3 (and ITD3) learner update on this CPU, fp32 and bf16, with a breakdown, and of a training loop.
 
-Usage: python benchmarks/learner_update.py [--updates 10] [--threads 1] [--loop-steps 300]
+Usage: python benchmarks/learner_update.py [--updates 10] [--threads 1] [--precision both] [--loop-steps 300]
 
 The update runs on a synthetic batch shaped like the intersection's (30 agents: 38 padded
 "other" slots, about 29 of them present at t and 30 at t+1), B = 256, all modules on (CVAE,
 GAT, counterfactual baseline, twin critics, targets). One figure is the mean over a whole
 policy-delay cycle (4 critic-only updates + 1 update with the actor step and target
-updates). The breakdown times each loss's forward + backward separately. ``--loop-steps``
-also times a full ``algo.train()`` loop (sampling, replay, updates, weight sync) on the
-intersection and prints env-steps/s.
+updates). The breakdown times each loss's forward + backward separately. ``--precision``
+``both`` (default) times the fp32 and the bf16 learner (``precision="bf16"``: loss forward
+passes under bfloat16 autocast) side by side on the same batch and initial weights, one delay
+cycle of each in turn (so a change in the machine's load hits both alike), and prints the
+ratio bf16 / fp32. ``--loop-steps`` also times a full ``algo.train()`` loop (sampling, replay,
+updates, weight sync) on the intersection and prints env-steps/s.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
-from coin_app.algorithms.cig_td3.learner import loss_config
+from coin_app.algorithms.cig_td3.learner import PRECISIONS, autocast, loss_config
 from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, local_critic_loss, td_targets
 from coin_app.sim import schema
 
@@ -56,21 +59,34 @@ def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.G
     }
 
 
-def time_updates(cfg: CigTd3Config, updates: int) -> tuple[float, dict[str, float]]:
-    """(mean seconds per learner update over whole delay cycles, breakdown in seconds)."""
+def time_updates(cfgs: dict[str, CigTd3Config], updates: int) -> dict[str, tuple[float, dict[str, float]]]:
+    """Per precision: (mean seconds per learner update over whole delay cycles, breakdown in seconds).
+
+    The learners of ``cfgs`` (same seed, so the same initial weights) run one delay cycle each in
+    turn on the same batch.
+    """
     env = CoinMultiAgentEnv({"scenario": "intersection"})
-    learner = cfg.build_learner(env=env)
-    rng = np.random.default_rng(0)
-    batch_np = synthetic_batch(cfg.train_batch_size_per_learner, cfg.max_others, env.config.obs_dim, 29, rng)
-    batch = MultiAgentBatch({"shared": SampleBatch(batch_np)}, env_steps=cfg.train_batch_size_per_learner)
+    first = next(iter(cfgs.values()))
+    batch_np = synthetic_batch(first.train_batch_size_per_learner, first.max_others, env.config.obs_dim, 29, np.random.default_rng(0))
+    batch = MultiAgentBatch({"shared": SampleBatch(batch_np)}, env_steps=first.train_batch_size_per_learner)
     ts = {"num_env_steps_sampled_lifetime": 0}
-    learner.update(batch=batch, timesteps=ts)  # warm-up
-    n = max(cfg.policy_delay, updates - updates % cfg.policy_delay)
-    t0 = time.perf_counter()
-    for _ in range(n):
-        learner.update(batch=batch, timesteps=ts)
-    per_update = (time.perf_counter() - t0) / n
-    # breakdown: forward + backward of each loss on the same batch
+    learners = {name: cfg.build_learner(env=env) for name, cfg in cfgs.items()}
+    for learner in learners.values():
+        learner.update(batch=batch, timesteps=ts)  # warm-up
+    cycles = max(1, updates // first.policy_delay)
+    spent = dict.fromkeys(cfgs, 0.0)
+    for _ in range(cycles):
+        for name, learner in learners.items():
+            t0 = time.perf_counter()
+            for _ in range(first.policy_delay):
+                learner.update(batch=batch, timesteps=ts)
+            spent[name] += time.perf_counter() - t0
+    n_updates = cycles * first.policy_delay
+    return {name: (spent[name] / n_updates, breakdown(learners[name], cfg, batch_np)) for name, cfg in cfgs.items()}
+
+
+def breakdown(learner: object, cfg: CigTd3Config, batch_np: dict[str, np.ndarray]) -> dict[str, float]:
+    """Seconds of each loss's forward (under the learner's autocast) + backward on ``batch_np``."""
     m = learner.module["shared"].unwrapped()
     tb = {k: torch.as_tensor(v) for k, v in batch_np.items()}
     lc = loss_config(cfg)
@@ -82,13 +98,17 @@ def time_updates(cfg: CigTd3Config, updates: int) -> tuple[float, dict[str, floa
             fn()
         parts[name] = (time.perf_counter() - t) / 3
 
-    clock("targets (no grad)", lambda: td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc))
-    y_l, y_g = td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc)
-    clock("local critic fwd+bwd", lambda: local_critic_loss(m.local_q, tb, y_l)[0].backward())
+    def fwd(fn: object) -> object:
+        with autocast(m, cfg.precision):
+            return fn()
+
+    clock("targets (no grad)", lambda: fwd(lambda: td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc)))
+    y_l, y_g = fwd(lambda: td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc))
+    clock("local critic fwd+bwd", lambda: fwd(lambda: local_critic_loss(m.local_q, tb, y_l)[0]).backward())
     if m.central is not None:
-        clock("central critic fwd+bwd", lambda: central_critic_loss(m.central, tb, y_g, lc)[0].backward())
-    clock("actor fwd+bwd (1 in policy_delay)", lambda: actor_loss(m.actor, m.local_q, m.central, tb, lc)[0].backward())
-    return per_update, parts
+        clock("central critic fwd+bwd", lambda: fwd(lambda: central_critic_loss(m.central, tb, y_g, lc)[0]).backward())
+    clock("actor fwd+bwd (1 in policy_delay)", lambda: fwd(lambda: actor_loss(m.actor, m.local_q, m.central, tb, lc)[0]).backward())
+    return parts
 
 
 def time_loop(cfg: CigTd3Config, steps: int) -> float:
@@ -106,24 +126,33 @@ def time_loop(cfg: CigTd3Config, steps: int) -> float:
 
 
 def main() -> None:
-    """Print the update times, their breakdown and the loop throughput."""
+    """Print the update times per precision, their ratio, the breakdown and the loop throughput."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--updates", type=int, default=10)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--precision", choices=(*PRECISIONS, "both"), default="both", help="learner precision(s) to time")
     ap.add_argument("--loop-steps", type=int, default=0, help="also time a training loop of this many env steps (0 = skip)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     register_envs()
-    base = CigTd3Config().environment("coin-intersection-v0").debugging(seed=0)
+    precisions = PRECISIONS if args.precision == "both" else (args.precision,)
+    base = CigTd3Config().environment("coin-intersection-v0").debugging(seed=0).training(learner_threads=args.threads)
     print(f"B=256, intersection (30 agents, {base.max_others} other slots, 29 present), torch threads {args.threads}")
-    for name, cfg in (("CIG-TD3 (all modules)", base), ("ITD3", base.copy(copy_frozen=False).itd3())):
-        cfg.validate()
-        per, parts = time_updates(cfg, args.updates)
-        print(f"\n{name}: {per * 1000:.0f} ms per update (mean over delay cycles)")
-        for k, v in parts.items():
-            print(f"  {k:<36}{v * 1000:8.1f} ms")
+    for name, algo_cfg in (("CIG-TD3 (all modules)", base), ("ITD3", base.copy(copy_frozen=False).itd3())):
+        cfgs = {p: algo_cfg.copy(copy_frozen=False).training(precision=p) for p in precisions}
+        for cfg in cfgs.values():
+            cfg.validate()
+        timed = time_updates(cfgs, args.updates)
+        print(f"\n{name}:")
+        for precision, (per, parts) in timed.items():
+            print(f"  {precision}: {per * 1000:.0f} ms per update (mean over delay cycles)")
+            for k, v in parts.items():
+                print(f"    {k:<36}{v * 1000:8.1f} ms")
+        if len(timed) == 2:
+            print(f"  bf16 / fp32 update time: {timed['bf16'][0] / timed['fp32'][0]:.2f}")
         if args.loop_steps:
-            print(f"  training loop: {time_loop(cfg, args.loop_steps):.1f} env steps/s (1 update per env step)")
+            for precision, cfg in cfgs.items():
+                print(f"  training loop, {precision}: {time_loop(cfg, args.loop_steps):.1f} env steps/s (1 update per env step)")
 
 
 if __name__ == "__main__":

@@ -109,7 +109,17 @@ def cmd_train(args: argparse.Namespace) -> int:
     resume = Path(args.resume) if args.resume else None
     print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
     summary = train(
-        args.algo, args.scenario, args.steps, args.seed, overrides, out, args.checkpoint_every, resume, max_minutes=args.max_minutes
+        args.algo,
+        args.scenario,
+        args.steps,
+        args.seed,
+        overrides,
+        out,
+        args.checkpoint_every,
+        resume,
+        max_minutes=args.max_minutes,
+        threads=args.threads,
+        address=args.address,
     )
     print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations, {summary['wall_s']:.0f} s")
     print(f"  checkpoint: {summary['checkpoint']}")
@@ -397,6 +407,13 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--checkpoint-every", type=int, default=10, help="checkpoint every K training iterations")
     tr.add_argument("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this much wall time")
     tr.add_argument("--resume", default=None, help="checkpoint directory to continue from")
+    tr.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads of the training process (1; more only if benchmarks/learner_update.py shows it helps)",
+    )
+    tr.add_argument("--address", default=None, help="a running Ray cluster (default: a local session over all of this machine's cores)")
     tr.set_defaults(func=cmd_train)
 
     ev = sub.add_parser("evaluate", help="evaluate a checkpoint or exported policy on test seeds (deterministic actions)")

@@ -19,17 +19,21 @@ from typing import Any
 
 import numpy as np
 import ray
+import torch
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.callbacks.callbacks import RLlibCallback
 from ray.rllib.core.rl_module.rl_module import RLModule
 
+from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import make_env, register_envs
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoints import actor_policy, write_metadata
 from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes, scenario_config_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import aggregate
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenarios import config_from_dict
 from coin_app.sim.seeds import check_training_seed, validation_seeds
 
@@ -43,13 +47,38 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
     if scenario not in spec.scenarios:
         raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(spec.scenarios)}")
     env_cfg, algo_cfg = registry.split_overrides(name, overrides, scenario)
+    run = registry.split_run_settings(algo_cfg)
     scenario_config = config_from_dict(scenario, {**spec.scenario_defaults(algo_cfg), **env_cfg})  # refuses bad values before any work
     callbacks: list[type[RLlibCallback]] = [AgentOutcomes]
     if spec.capabilities.periodic_evaluation:
         callbacks.append(PeriodicEvaluation)
     cfg = spec.build_config(scenario_config, algo_cfg, seed).callbacks(callbacks)
+    cfg = with_env_runner(cfg, run.env_runner, run.num_envs_per_env_runner, spec.capabilities.on_policy, scenario_config)
+    if run.num_learners or run.num_gpus_per_learner:
+        cfg = cfg.learners(num_learners=run.num_learners, num_gpus_per_learner=run.num_gpus_per_learner)
     cfg.validate()
     register_envs()  # the coin-<scenario>-v0 names the config refers to
+    return cfg
+
+
+def with_env_runner(
+    cfg: AlgorithmConfig, runner: str, num_envs: int | str, on_policy: bool, scenario: ScenarioConfig | ArenaConfig
+) -> AlgorithmConfig:
+    """``cfg`` sampling with ``runner`` and ``num_envs`` envs per env runner (the ``env_runner`` keys of ``registry.RUNNER_KEYS``)."""
+    backend = scenario.backend if isinstance(scenario, ScenarioConfig) else "native"
+    if runner == "auto":
+        runner = "batched" if backend == "native" else "multi_agent"
+    if runner == "batched" and backend != "native":
+        raise ValueError(f"env_runner='batched' steps the native simulator, not backend {backend!r}; allowed: env_runner='multi_agent'")
+    if num_envs == "auto":
+        num_envs = 1
+        fragment = cfg.rollout_fragment_length
+        if on_policy and runner == "batched":  # the whole train batch in one sampling round
+            per_round = (fragment if isinstance(fragment, int) else 200) * max(1, cfg.num_env_runners)
+            num_envs = max(1, cfg.total_train_batch_size // per_round)
+    cfg = cfg.env_runners(num_envs_per_env_runner=num_envs)
+    if runner == "batched":
+        cfg = cfg.env_runners(env_runner_cls=BatchedEnvRunner)
     return cfg
 
 
@@ -161,7 +190,10 @@ def outcome_text(metrics: dict[str, float]) -> str:
 def checkpoint_meta(name: str, scenario: str, seed: int, overrides: dict[str, Any], **extra: Any) -> dict[str, Any]:
     """The coin_app metadata stored with every checkpoint (what evaluation and export read back)."""
     env_cfg, _ = registry.split_overrides(name, overrides, scenario)
-    return {"algo": name, "scenario": scenario, "seed": seed, "overrides": overrides, "env_config": env_cfg, **extra}
+    learners = {k: v for k, v in overrides.items() if k in registry.LEARNER_KEYS}  # how it trained, not what a CPU machine rebuilds
+    rebuilt = {k: v for k, v in overrides.items() if k not in learners}
+    meta = {"algo": name, "scenario": scenario, "seed": seed, "overrides": rebuilt, "env_config": env_cfg}
+    return meta | ({"learners": learners} if learners else {}) | extra
 
 
 def save(algo: Algorithm, checkpoint: Path, meta: dict[str, Any]) -> None:
@@ -187,21 +219,37 @@ def train(
     resume: Path | None = None,
     log: Callable[[str], None] = print,
     max_minutes: float | None = None,
+    threads: int = 1,
+    address: str | None = None,
 ) -> dict[str, Any]:
-    """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end."""
+    """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end.
+
+    ``threads``: torch threads of this process (its learner and local env runner; one by default,
+    as every Ray worker gets). ``address``: a running Ray cluster to use instead of a local session
+    over all of this machine's cores.
+    """
     if steps < 1:
         raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
     if max_minutes is not None and not max_minutes > 0:
         raise ValueError(f"bad max_minutes {max_minutes}; allowed: a number > 0 or None")
     if checkpoint_every < 1:
         raise ValueError(f"bad checkpoint_every {checkpoint_every}; allowed: an integer >= 1")
+    if not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"bad threads {threads!r}; allowed: an integer >= 1")
     cfg = build_config(name, scenario, overrides, seed)
     if resume is not None and not (resume / "rllib_checkpoint.json").exists():
         raise ValueError(f"--resume {resume} is not a checkpoint directory (no rllib_checkpoint.json)")
     out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(threads)
     if not ray.is_initialized():
-        ray.init(address="local", include_dashboard=False, log_to_driver=False, configure_logging=False)
-        log(f"ray: a local session with {int(ray.cluster_resources().get('CPU', 0))} CPUs (all of this machine's)")
+        ray.init(address=address or "local", include_dashboard=False, log_to_driver=False, configure_logging=False)
+        where = f"the cluster at {address}" if address else "a local session (all of this machine's cores)"
+        log(f"ray: {where} with {int(ray.cluster_resources().get('CPU', 0))} CPUs, {int(ray.cluster_resources().get('GPU', 0))} GPUs")
+    runner = "batched" if cfg.env_runner_cls is BatchedEnvRunner else "RLlib's multi_agent"
+    log(
+        f"sampling: {runner} env runner, {max(1, cfg.num_env_runners)} runner(s) x {cfg.num_envs_per_env_runner} env(s); "
+        f"learner: {'remote' if cfg.num_learners else 'in this process'}, {torch.get_num_threads()} torch thread(s) here"
+    )
     algo = cfg.build_algo()
     if resume is not None:
         algo.restore_from_path(str(resume.resolve()))

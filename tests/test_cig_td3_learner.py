@@ -201,9 +201,9 @@ def test_unregistered_env_is_refused():
         CigTd3Config().environment("CartPole-v1").validate()
 
 
-def test_remote_learners_are_refused():
-    with pytest.raises(ValueError, match="num_learners=1"):
-        make_config().learners(num_learners=1).validate()
+def test_more_than_one_learner_is_refused():
+    with pytest.raises(ValueError, match="num_learners=2"):
+        make_config().learners(num_learners=2).validate()
 
 
 def test_actor_has_three_hidden_layers_of_hidden_units():

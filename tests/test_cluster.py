@@ -30,9 +30,70 @@ def test_cluster_launcher_config_passes_rays_schema():
     validate_config(prepare_config(config))  # and with Ray's defaults filled in, as `ray up` does
     types = config["available_node_types"]
     assert types["cpu_worker"]["min_workers"] == 0 and types["cpu_worker"]["max_workers"] >= 1  # autoscaling CPU workers
-    assert types["gpu_learner"]["min_workers"] == 0  # optional GPU node
     assert config["head_node_type"] == "head" and types["head"]["resources"] == {"CPU": 0}
     assert any("requirements.txt" in c for c in config["setup_commands"])
+    assert config["max_workers"] >= sum(t.get("max_workers", 0) for t in types.values())  # every group can reach its max
+
+
+def test_cluster_launcher_has_an_autoscaling_gpu_learner_node_with_cuda_torch():
+    config = yaml.safe_load((REPO / "cluster" / "cluster.yaml").read_text())
+    gpu = config["available_node_types"]["gpu_learner"]
+    assert gpu["min_workers"] == 0 and gpu["max_workers"] >= 1  # started only for trials that ask for a GPU
+    assert gpu["resources"]["GPU"] == 1 and gpu["resources"]["CPU"] >= 1  # what the autoscaler matches GPU bundles against
+    assert gpu["node_config"]["InstanceType"].startswith(("g", "p"))  # an AWS GPU instance family
+    # after the common setup (CPU torch), the GPU node swaps in the CUDA build of the pinned torch
+    (swap,) = gpu["worker_setup_commands"]
+    assert "download.pytorch.org/whl/cu" in swap and "torch==2.13.0" in swap and "torch.version.cuda" in swap
+    assert "torch==2.13.0" in (REPO / "requirements.txt").read_text()
+    cpu = config["available_node_types"]["cpu_worker"]
+    assert "GPU" not in cpu["resources"] and "worker_setup_commands" not in cpu  # CPU workers unchanged
+
+
+def _worker_groups(spec: dict) -> dict:
+    return {g["groupName"]: g for g in spec["rayClusterSpec"]["workerGroupSpecs"]}
+
+
+def test_rayjob_has_cpu_and_gpu_worker_groups_and_one_torch_thread():
+    manifest = yaml.safe_load((REPO / "cluster" / "rayjob.yaml").read_text())
+    spec = manifest["spec"]
+    assert yaml.safe_load(spec["runtimeEnvYAML"])["env_vars"]["OMP_NUM_THREADS"] == "1"
+    groups = _worker_groups(spec)
+    assert set(groups) == {"cpu-workers", "gpu-workers"}
+    cpu, gpu = (groups[n]["template"]["spec"]["containers"][0] for n in ("cpu-workers", "gpu-workers"))
+    assert groups["cpu-workers"]["minReplicas"] == 0 and groups["cpu-workers"]["maxReplicas"] >= 1
+    assert "nvidia.com/gpu" not in cpu["resources"]["limits"]
+    g = groups["gpu-workers"]
+    assert g["minReplicas"] == 0 and g["replicas"] == 0 and g["maxReplicas"] >= 1  # scales up only for GPU trials
+    limits, requests = gpu["resources"]["limits"], gpu["resources"]["requests"]
+    assert str(limits["nvidia.com/gpu"]) == "1" and requests == limits  # KubeRay advertises the limit to Ray as 1 GPU
+    assert gpu["image"] != cpu["image"] and "cuda" in gpu["image"]  # the CUDA-torch build of cluster/Dockerfile
+    assert {m["mountPath"] for m in gpu["volumeMounts"]} == {"/results"}
+    tolerations = groups["gpu-workers"]["template"]["spec"]["tolerations"]
+    assert any(t["key"] == "nvidia.com/gpu" for t in tolerations)
+    dockerfile = (REPO / "cluster" / "Dockerfile").read_text()
+    assert "ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu" in dockerfile and "${TORCH_INDEX}" in dockerfile
+
+
+def test_documented_gpu_sweep_command_parses_and_reserves_one_gpu_per_trial():
+    from coin_app.algorithms.registry import parse_overrides
+    from tuning import get_experiment
+    from tuning.experiment import expand_grid
+    from tuning.trainable import trial_resources
+
+    text = (REPO / "cluster" / "rayjob.yaml").read_text()
+    (line,) = [ln for ln in text.splitlines() if ln.startswith("#   entrypoint:")]
+    words = line.split("entrypoint:", 1)[1].split()
+    assert words[:3] == ["python", "-m", "coin_app"]
+    args = build_parser().parse_args(words[3:])
+    assert args.command == "sweep" and args.storage.startswith("/results")
+    overrides = parse_overrides(args.set)  # as the sweep command reads them
+    assert overrides == {"num_learners": 1, "num_gpus_per_learner": 1}
+    doc = (REPO / "docs" / "cluster.md").read_text()
+    assert "--set num_learners=1 num_gpus_per_learner=1" in doc
+    space = get_experiment(args.experiment).param_space(args.scenario, overrides=overrides)
+    for trial in expand_grid(space):
+        bundles = trial_resources(trial).bundles
+        assert sum(b.get("GPU", 0) for b in bundles) == 1 and bundles[0].get("GPU", 0) == 0  # the learner's own bundle
 
 
 def test_rayjob_manifest_runs_a_real_coin_app_command_on_the_pinned_ray():

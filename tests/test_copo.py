@@ -9,6 +9,7 @@ import pytest
 import torch
 from ray.rllib.core.rl_module.rl_module import RLModule
 
+from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.lcf import LocalCoordination, decode, encode
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv
 from coin_app.algorithms.common import coin_envs
@@ -286,7 +287,12 @@ def test_copo_trains_moves_the_lcf_and_pushes_it_to_every_env_runner(ray_session
         mean, std = module.lcf_distribution()
         assert (mean, std) != pytest.approx((0.0, 0.3), abs=1e-3)  # the meta-gradient moved it
         assert (float(stats["lcf_mean"]), float(stats["lcf_std"])) == pytest.approx((mean, std))
-        remote = algo.env_runner_group.foreach_env_runner(lambda r: [(e.lcf.mean, e.lcf.std) for e in coin_envs(r)], local_env_runner=False)
+
+        def runner_lcfs(runner):  # each env's LCF distribution (the batched runner's vector env, or RLlib's sub-envs)
+            envs = [runner.vector_env] if isinstance(runner, BatchedEnvRunner) else coin_envs(runner)
+            return [(e.lcf.mean, e.lcf.std) for e in envs]
+
+        remote = algo.env_runner_group.foreach_env_runner(runner_lcfs, local_env_runner=False)
         assert remote == [[pytest.approx((mean, std))]]
         # the env runners' policy copies carry the same LCF parameters (weights sync after the update)
         runner_params = algo.env_runner_group.foreach_env_runner(lambda r: r.module["shared"].lcf_params.tolist(), local_env_runner=False)

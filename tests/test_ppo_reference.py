@@ -45,9 +45,13 @@ def trial(algo: str, scale: str) -> dict:
 def test_paper_scale_batch_is_1600_env_steps_of_4_runners_x_200_step_chunks(algo):
     cfg = build_trial_config(trial(algo, "paper"))
     assert (cfg.total_train_batch_size, cfg.num_env_runners, cfg.get_rollout_fragment_length()) == (1600, 4, 200)
-    assert cfg.num_envs_per_env_runner == 1 and cfg.count_steps_by == "env_steps"
-    # one sampling round is 4 runners x 200 env steps = 800; RLlib samples until the batch is full: 2 rounds, exactly 1600
-    assert 2 * 4 * 200 == cfg.total_train_batch_size
+    assert cfg.count_steps_by == "env_steps"
+    # the batched runner's automatic envs per runner: one sampling round of 4 runners x 2 envs x 200 env steps = 1600
+    assert cfg.num_envs_per_env_runner == 2 and 4 * 2 * 200 == cfg.total_train_batch_size
+    # RLlib's runner (one env each) samples until the batch is full: 2 rounds of 4 x 200, exactly 1600 as well
+    base = trial(algo, "paper")
+    reference = build_trial_config({**base, "overrides": {**base["overrides"], "env_runner": "multi_agent"}})
+    assert reference.num_envs_per_env_runner == 1 and reference.total_train_batch_size == 1600
     # the algorithm's own defaults are the reference batch and chunk, sampled in the training process
     default = build_config(algo, "intersection", {}, 0)
     assert (default.total_train_batch_size, default.get_rollout_fragment_length(), default.num_env_runners) == (1600, 200, 0)
@@ -64,7 +68,7 @@ def test_paper_scale_sampling_really_gives_4_chunks_of_200_and_an_update_on_1600
         result = algo.train()
         assert result["env_runners"]["num_env_steps_sampled"] == 1600
         chunks = algo.env_runner_group.foreach_env_runner(lambda r: sum(e.env_steps() for e in r.sample()), local_env_runner=False)
-        assert chunks == [200, 200, 200, 200]
+        assert chunks == [400, 400, 400, 400]  # 2 envs x 200-step chunks per runner
     finally:
         algo.stop()
 
@@ -132,7 +136,7 @@ def timeout_batches(ray_session):
     try:
         for env in coin_envs(algo.env_runner):  # one action space object serves every agent: seeded, the sample is reproducible
             env.action_spaces[env.possible_agents[0]].seed(0)
-        episodes = algo.env_runner.sample(num_timesteps=60, random_actions=True)
+        episodes = algo.env_runner.sample(num_timesteps=200, random_actions=True)  # 2 envs x 100 steps (seeded runner RNG)
         reference = algo.learner_group._learner
         bootstrap_cfg = build_config("ippo", "intersection", {**settings, "timeout_bootstrap": True}, 0)
         module = reference.module[SHARED_MODULE_ID].unwrapped()

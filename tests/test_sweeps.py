@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -15,10 +16,12 @@ from coin_app import training
 from coin_app.algorithms import registry
 from coin_app.cli import main
 from coin_app.evaluation.sweep_results import load_trials, trial_name
+from coin_app.training import checkpoint_meta
 from tuning import EXPERIMENTS, get_experiment
 from tuning.ablations import VARIANTS
 from tuning.experiment import expand_grid, trial_overrides
-from tuning.sweep import check_address, validate_trials
+from tuning.sweep import check_address, check_local_gpus, validate_trials
+from tuning.trainable import CoinTrial, build_trial_config, trial_gpus, trial_resources
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -65,6 +68,68 @@ def test_ablation_variants_change_exactly_the_named_modules():
     assert trial_name(t) == "cig_td3-wo_both-s0"
 
 
+def _seeds_trial(algo: str, overrides: dict, scale: str = "paper") -> dict:
+    return expand_grid(get_experiment("seeds").param_space("intersection", scale, (algo,), (0,), overrides=overrides))[0]
+
+
+def test_gpu_learner_settings_make_each_trial_reserve_a_gpu():
+    def bundles(algo, overrides):
+        return [{k: v for k, v in b.items() if v} for b in trial_resources(_seeds_trial(algo, overrides)).bundles]
+
+    # CPU learners (the default): the trial's process only; the PPO family adds its 4 CPU env runners
+    assert bundles("cig_td3", {}) == [{"CPU": 1}] and trial_gpus(_seeds_trial("cig_td3", {})) == 0
+    assert bundles("ippo", {}) == [{"CPU": 1}] * 5
+    # learner in the trial's process on a GPU: the trial's own bundle holds it
+    assert bundles("cig_td3", {"num_gpus_per_learner": 1}) == [{"CPU": 1, "GPU": 1}]
+    # one remote GPU learner: a bundle of its own; env runners stay CPU bundles
+    assert bundles("cig_td3", {"num_learners": 1, "num_gpus_per_learner": 1}) == [{"CPU": 1}, {"GPU": 1}]
+    assert bundles("ippo", {"num_learners": 1, "num_gpus_per_learner": 1}) == [{"CPU": 1}] * 5 + [{"GPU": 1}]
+    assert bundles("copo", {"num_learners": 1, "num_gpus_per_learner": 1}) == [{"CPU": 1}] * 5 + [{"GPU": 1}]
+    assert bundles("cig_td3", {"num_learners": 1}) == [{"CPU": 1}, {"CPU": 1}]  # a remote CPU learner
+    t = _seeds_trial("cig_td3", {"num_learners": 1, "num_gpus_per_learner": 1})
+    cfg = build_trial_config(t)
+    assert (cfg.num_learners, cfg.num_gpus_per_learner) == (1, 1) and trial_gpus(t) == 1
+    assert CoinTrial.default_resource_request(t).bundles == trial_resources(t).bundles  # what Tune asks the trainable
+    assert CoinTrial.default_resource_request({"seed": 0}) is None  # partial configs: Tune's default
+    # the learner keys stay out of a checkpoint's overrides (a CPU-only machine rebuilds the module from them)
+    meta = checkpoint_meta("ippo", "intersection", 0, {"hidden": 32, "num_learners": 1, "num_gpus_per_learner": 0.5})
+    assert meta["overrides"] == {"hidden": 32} and meta["learners"] == {"num_learners": 1, "num_gpus_per_learner": 0.5}
+    for algo, overrides, message in [
+        ("copo", {"num_learners": 2}, "bad value for 'num_learners': 2; allowed: 0 (the learner in the training process) or 1"),
+        ("cig_td3", {"num_learners": 2}, "bad value for 'num_learners': 2; allowed: 0 (the learner in the training process) or 1"),
+        ("ippo", {"num_learners": -1}, "bad value for 'num_learners': -1; allowed: 0 (the learner in the training process) or 1"),
+        ("ippo", {"num_gpus_per_learner": "one"}, "bad value for 'num_gpus_per_learner': 'one'; allowed: a number >= 0"),
+        ("ippo", {"num_gpus_per_learner": True}, "bad value for 'num_gpus_per_learner': True; allowed: a number >= 0"),
+    ]:
+        with pytest.raises(ValueError, match=re.escape(message)):
+            validate_trials(get_experiment("seeds").param_space("intersection", methods=(algo,), overrides=overrides))
+
+
+def test_gpu_sweep_on_a_local_ray_without_enough_gpus_is_refused(local_ray, tmp_path, capsys):
+    more = int(ray.cluster_resources().get("GPU", 0)) + 1  # more GPUs than this machine has, whatever it has
+    with pytest.raises(ValueError, match=f"each trial reserves {more} GPU"):
+        check_local_gpus(float(more), started_here=False)
+    storage = tmp_path / "sweeps"
+    argv = [
+        "sweep",
+        "seeds",
+        "--smoke",
+        "--seeds",
+        "0",
+        "--storage",
+        str(storage),
+        "--set",
+        "num_learners=1",
+        f"num_gpus_per_learner={more}",
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"each trial reserves {more} GPU(s) (num_gpus_per_learner), but the local Ray has {more - 1}" in err
+    assert "--address of a cluster with GPU workers" in err
+    assert not storage.exists() or not any(storage.iterdir())  # nothing was started
+    assert ray.is_initialized()  # a Ray the sweep did not start stays up
+
+
 def test_bad_sweeps_are_refused_before_any_work(tmp_path, capsys):
     storage = tmp_path / "sweeps"
     cases = [
@@ -73,6 +138,7 @@ def test_bad_sweeps_are_refused_before_any_work(tmp_path, capsys):
         (["sweep", "seeds", "--algos", "dqn"], "unknown algorithm 'dqn'"),
         (["sweep", "seeds", "--seeds", "1", "1"], "bad seeds [1, 1]"),
         (["sweep", "seeds", "--set", "hiden=3"], "hiden"),
+        (["sweep", "seeds", "--set", "num_learners=2"], "bad value for 'num_learners': 2"),
         (["sweep", "ablations", "--algos", "ippo"], "sweeps variants of cig_td3; got method 'ippo'"),
         (["sweep", "seeds", "--max-concurrent", "0"], "bad --max-concurrent 0"),
         (["sweep", "seeds", "--smoke", "--address", "127.0.0.1:1"], "cannot reach a Ray cluster at 127.0.0.1:1"),

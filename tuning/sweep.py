@@ -14,6 +14,10 @@
   set to 5 s here unless the environment sets it).
 * The generalization experiment then evaluates every final checkpoint at each agent count of
   its grid into ``generalization.csv``.
+* GPU learners: ``--set num_learners=1 num_gpus_per_learner=1`` (``coin_app.algorithms.registry.LEARNER_KEYS``)
+  makes every trial reserve one GPU for its learner (``trainable.trial_resources``); on a local
+  Ray without that many GPUs the sweep is refused before any trial starts (a cluster may still
+  start GPU nodes, so there Tune waits for them).
 """
 
 from __future__ import annotations
@@ -30,11 +34,12 @@ from urllib.parse import urlparse
 import ray
 from ray import tune
 
+from coin_app.algorithms import registry
 from coin_app.evaluation.generalization import evaluate_at_counts
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings, trial_name
 from tuning import get_experiment
 from tuning.experiment import expand_grid
-from tuning.trainable import CoinTrial, build_trial_config
+from tuning.trainable import CoinTrial, build_trial_config, trial_gpus
 
 EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
 
@@ -75,6 +80,18 @@ def validate_trials(space: dict[str, Any]) -> list[dict[str, Any]]:
     return trials
 
 
+def check_local_gpus(needed: float, started_here: bool) -> None:
+    """A ValueError when each trial needs more GPUs than the local Ray has (a local Ray cannot add any)."""
+    have = float(ray.cluster_resources().get("GPU", 0))
+    if needed > have:
+        if started_here:
+            ray.shutdown()
+        raise ValueError(
+            f"each trial reserves {needed:g} GPU(s) (num_gpus_per_learner), but the local Ray has {have:g}; allowed: "
+            f"num_gpus_per_learner <= {have:g} here, or --address of a cluster with GPU workers (docs/cluster.md)"
+        )
+
+
 def run_sweep(
     experiment: str,
     scenario: str = "intersection",
@@ -104,6 +121,7 @@ def run_sweep(
     name = name or f"{experiment}-{scenario}" + ("-smoke" if scale == "smoke" else "")
     path = experiment_path(root, name)
     local = "://" not in root
+    gpus = 0.0  # GPUs each trial reserves (fresh sweeps with learner settings)
     if resume:
         if local and not list(path.glob(EXPERIMENT_STATE_GLOB)):
             raise ValueError(f"nothing to resume at {path}: no Tune experiment state there (start it without --resume)")
@@ -116,6 +134,7 @@ def run_sweep(
             raise ValueError(f"experiment directory {path} already exists; continue it with --resume or pick another --name")
         space = exp.param_space(scenario, scale, methods, seeds, steps, overrides)
         trials = validate_trials(space)
+        gpus = max(map(trial_gpus, trials)) if any(k in (overrides or {}) for k in registry.LEARNER_KEYS) else 0.0
         settings = {
             "experiment": experiment,
             "scenario": scenario,
@@ -134,15 +153,21 @@ def run_sweep(
             "command": command,
         }
         log(f"sweep {experiment} on {scenario} ({scale} scale): {len(trials)} trials -> {path}")
+        if gpus:
+            log(f"each trial reserves {gpus:g} GPU(s) for its learner")
     check_address(address)
     os.environ.setdefault("TUNE_GLOBAL_CHECKPOINT_S", "5")
     # the frequent state saves above are deliberate (resume after kill -9); Tune's warning about them is noise
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")
-    if not ray.is_initialized():
-        if address == "local" or (address is None and not os.environ.get("RAY_ADDRESS")):
+    local_ray = address == "local" or (address is None and not os.environ.get("RAY_ADDRESS"))
+    started_here = not ray.is_initialized()
+    if started_here:
+        if local_ray:
             ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
         else:  # an explicit cluster, or the one a Ray job runs in (RAY_ADDRESS)
             ray.init(address=address)
+    if local_ray and gpus:
+        check_local_gpus(gpus, started_here)
     if resume:
         log(f"resuming {path}: finished trials stay, the others continue from their newest checkpoint")
         tuner = tune.Tuner.restore(str(path), trainable=CoinTrial, resume_unfinished=True, resume_errored=True)

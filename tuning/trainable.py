@@ -6,6 +6,14 @@ A class trainable, so Tune's own ``CheckpointConfig`` (frequency, keep-N, at end
 validation metrics); the trial is done once ``steps`` env steps are sampled. Checkpoints are
 coin_app checkpoints (RLlib's layout plus ``coin_app.json``), so ``python -m coin_app
 evaluate|export`` take any of them directly.
+
+Resources: a trial reserves what its RLlib config asks for (:func:`trial_resources`, RLlib's own
+``Algorithm.default_resource_request``): one bundle for the trial's process (with the learner's
+GPUs when ``num_learners=0``), one CPU bundle per remote env runner and one bundle per remote
+learner (``num_gpus_per_learner`` GPUs each). Tune starts the trial in the first bundle and RLlib's
+env runner and learner actors in the others (Tune's placement groups capture child actors).
+``--set num_learners=1 num_gpus_per_learner=1`` thus reserves one GPU per trial
+(``coin_app.algorithms.registry.LEARNER_KEYS``).
 """
 
 from __future__ import annotations
@@ -14,15 +22,27 @@ from pathlib import Path
 from typing import Any
 
 from ray import tune
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+from ray.tune import PlacementGroupFactory
 
 from coin_app.training import build_config, checkpoint_meta, iteration_metrics, save
 from tuning.experiment import trial_overrides
 
 
-def build_trial_config(config: dict[str, Any]) -> Any:
+def build_trial_config(config: dict[str, Any]) -> AlgorithmConfig:
     """The validated RLlib config of one trial (raises ValueError naming any bad value)."""
-
     return build_config(config["algo"], config["scenario"], trial_overrides(config), int(config["seed"]))
+
+
+def trial_resources(config: dict[str, Any]) -> PlacementGroupFactory:
+    """The placement group one trial reserves: its process, remote env runners and remote learners (see module doc)."""
+    cfg = build_trial_config(config)
+    return cfg.algo_class.default_resource_request(cfg)
+
+
+def trial_gpus(config: dict[str, Any]) -> float:
+    """GPUs one trial reserves, all bundles together."""
+    return float(sum(bundle.get("GPU", 0) for bundle in trial_resources(config).bundles))
 
 
 class CoinTrial(tune.Trainable):
@@ -33,8 +53,7 @@ class CoinTrial(tune.Trainable):
         """The placement group the algorithm needs (main process, env runners, learners)."""
         if not isinstance(config, dict) or "algo" not in config:  # Tune also asks with partial configs
             return None
-        rllib_config = build_trial_config(config)
-        return rllib_config.algo_class.default_resource_request(rllib_config)
+        return trial_resources(config)
 
     def setup(self, config: dict[str, Any]) -> None:
         """Build the algorithm; remember what every checkpoint's metadata says."""

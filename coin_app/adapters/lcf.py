@@ -35,6 +35,11 @@ def check_distribution(mean: float, std: float) -> tuple[float, float]:
     return float(mean), float(std)
 
 
+def lcf_stream(seed: int) -> np.random.Generator:
+    """The generator of the training LCF draws of an env reset with ``seed`` (apart from the simulator's draws)."""
+    return np.random.default_rng([int(seed), _STREAM])
+
+
 def encode(lcf: np.ndarray | float) -> np.ndarray:
     """The observation feature of an LCF: ``(lcf + 1) / 2``."""
     return (np.asarray(lcf, np.float32) + 1.0) / 2.0
@@ -51,7 +56,7 @@ class LocalCoordination:
     def __init__(self, mean: float = 0.0, std: float = 0.1):
         self.mean, self.std = check_distribution(mean, std)
         self.values: dict[str, float] = {}
-        self._rng = np.random.default_rng([0, _STREAM])
+        self._rng = lcf_stream(0)
 
     def set_distribution(self, mean: float, std: float) -> None:
         """Draw the LCFs of agents spawned from now on from N(mean, std)."""
@@ -66,7 +71,7 @@ class LocalCoordination:
     def reset(self, seed: int | None) -> None:
         """Forget all agents; reseed the draws when ``seed`` is given (else the stream continues)."""
         if seed is not None:
-            self._rng = np.random.default_rng([int(seed), _STREAM])
+            self._rng = lcf_stream(seed)
         self.values = {}
 
     def augment(self, obs: dict[str, np.ndarray], infos: dict[str, dict]) -> tuple[dict[str, np.ndarray], dict[str, dict]]:

@@ -79,12 +79,8 @@ class CoinMultiAgentEnv(MultiAgentEnv):
 
     def __init__(self, config: Mapping[str, Any] | None = None):
         super().__init__()
-        overrides = dict(config or {})
-        lcf = overrides.pop("lcf", None)
-        self.config = _scenario_config(overrides)
+        self.config, lcf = parse_env_config(config)
         self.driving_env = make_driving_env(self.config)
-        if lcf is not None and not (isinstance(lcf, Mapping) and set(lcf) <= {"mean", "std"}):
-            raise ValueError(f"bad env_config lcf {lcf!r}; allowed: None or a dict with keys 'mean' and 'std'")
         self.lcf = None if lcf is None else LocalCoordination(**lcf)
         self.metadata = {"render_modes": [], "render_fps": round(1.0 / self.config.dt)}
         self.possible_agents = list(self.driving_env.possible_agents)
@@ -170,6 +166,15 @@ def _scenario_config(env_config: dict[str, Any]) -> ScenarioConfig | ArenaConfig
             "allowed: scenario_config alone (set overrides on the config instead)"
         )
     return config
+
+
+def parse_env_config(env_config: Mapping[str, Any] | None) -> tuple[ScenarioConfig | ArenaConfig, dict[str, float] | None]:
+    """(scenario config, CoPO's LCF distribution or None) of an adapter ``env_config``; a ValueError names a bad key or value."""
+    overrides = dict(env_config or {})
+    lcf = overrides.pop("lcf", None)
+    if lcf is not None and not (isinstance(lcf, Mapping) and set(lcf) <= {"mean", "std"}):
+        raise ValueError(f"bad env_config lcf {lcf!r}; allowed: None or a dict with keys 'mean' and 'std'")
+    return _scenario_config(overrides), None if lcf is None else dict(lcf)
 
 
 def env_config_of(config: ScenarioConfig | ArenaConfig, lcf: Mapping[str, float] | None = None) -> dict[str, Any]:

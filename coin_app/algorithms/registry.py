@@ -9,7 +9,7 @@ refused with the allowed keys listed.
 from __future__ import annotations
 
 import ast
-from dataclasses import fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3, ITD3
@@ -28,11 +28,72 @@ QUICK_SCENARIO: dict[str, Any] = {"num_agents": 4, "horizon": 300, "max_agent_st
 QUICK_SETTINGS: dict[str, Any] = {**QUICK_SCENARIO, **CIG_TD3.quick}  # CIG-TD3 / ITD3 on the quick scenario
 
 
+# --set keys of every algorithm: how it samples (the algorithm's own keys say how much)
+RUNNER_KEYS: dict[str, tuple[Any, str]] = {
+    "env_runner": (
+        "auto",
+        "'batched' (coin_app's vectorized env runner: all vehicles of all envs in one forward pass per step), "
+        "'multi_agent' (RLlib's MultiAgentEnvRunner on the MultiAgentEnv adapter), 'auto' = batched on the native "
+        "simulator, multi_agent on MetaDrive",
+    ),
+    "num_envs_per_env_runner": (
+        "auto",
+        "envs each env runner steps in lock step; 'auto' = on-policy: the train batch in one sampling round "
+        "(batch / (rollout_fragment_length x runners)), off-policy: 1",
+    ),
+}
+ENV_RUNNERS = ("auto", "batched", "multi_agent")
+# --set keys of every algorithm: where its learner runs (RLlib's AlgorithmConfig.learners)
+LEARNER_KEYS: dict[str, tuple[Any, str]] = {
+    "num_learners": (
+        0,
+        "remote learner actors: 0 = the learner runs in the training process, 1 = one remote learner (e.g. on a GPU node; "
+        "the batches are sent to it); more are not supported (one replay buffer, one LCF distribution)",
+    ),
+    "num_gpus_per_learner": (0, "GPUs per learner (with num_learners=0: for the learner in the training process)"),
+}
+COMMON_KEYS: dict[str, tuple[Any, str]] = {**RUNNER_KEYS, **LEARNER_KEYS}
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """How a run samples and where its learner runs (the ``COMMON_KEYS`` values)."""
+
+    env_runner: str = "auto"
+    num_envs_per_env_runner: int | str = "auto"
+    num_learners: int = 0
+    num_gpus_per_learner: float = 0
+
+
 def get(name: str) -> AlgorithmSpec:
     """The spec of algorithm ``name``; unknown names raise a ValueError listing the choices."""
     if name not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {name!r}; allowed: {', '.join(sorted(ALGORITHMS))}")
     return ALGORITHMS[name]
+
+
+def keys(name: str) -> tuple[str, ...]:
+    """All ``--set`` keys of algorithm ``name`` besides the scenario's: its own, the sampling and the learner ones."""
+    return (*get(name).keys(), *COMMON_KEYS)
+
+
+def split_run_settings(algo_cfg: dict[str, Any]) -> RunSettings:
+    """Pop the ``COMMON_KEYS`` from an algorithm's ``--set`` values; a ValueError names a bad one."""
+    run = RunSettings(**{k: algo_cfg.pop(k) for k in COMMON_KEYS if k in algo_cfg})
+    if run.env_runner not in ENV_RUNNERS:
+        raise ValueError(f"bad value for 'env_runner': {run.env_runner!r}; allowed: {', '.join(map(repr, ENV_RUNNERS))}")
+    n_envs = run.num_envs_per_env_runner
+    if n_envs != "auto" and not (isinstance(n_envs, int) and not isinstance(n_envs, bool) and n_envs >= 1):
+        raise ValueError(f"bad value for 'num_envs_per_env_runner': {n_envs!r}; allowed: 'auto' or an integer >= 1")
+    if run.num_learners not in (0, 1) or isinstance(run.num_learners, bool):
+        raise ValueError(
+            f"bad value for 'num_learners': {run.num_learners!r}; "
+            "allowed: 0 (the learner in the training process) or 1 (one remote learner)"
+        )
+    gpus = run.num_gpus_per_learner
+    if isinstance(gpus, bool) or not isinstance(gpus, (int, float)) or not gpus >= 0:
+        raise ValueError(f"bad value for 'num_gpus_per_learner': {gpus!r}; allowed: a number >= 0 (1 = one GPU per learner)")
+    return run
 
 
 def quick_settings(name: str) -> dict[str, Any]:
@@ -50,7 +111,7 @@ def scenario_keys(scenario: str) -> set[str]:
 def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "intersection") -> tuple[dict[str, Any], dict[str, Any]]:
     """Route ``--set`` keys to (scenario config, algorithm config); unknown keys are refused."""
     env_keys = scenario_keys(scenario)
-    algo_keys = set(get(name).keys())
+    algo_keys = set(keys(name))
     env_cfg = {k: v for k, v in overrides.items() if k in env_keys}
     algo_cfg = {k: v for k, v in overrides.items() if k in algo_keys}
     unknown = sorted(set(overrides) - set(env_cfg) - set(algo_cfg))

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor, nn
 
 from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, Graph, GraphModule, build_graph
-from coin_app.algorithms.cig_td3.individual import mlp
+from coin_app.algorithms.cig_td3.individual import full_precision, mlp
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES, PairAttention, PairCVAE
 from coin_app.sim import schema
 
@@ -218,9 +218,9 @@ class CentralCritic(nn.Module):
         assert isinstance(self.local, PairCVAE)
         ego_x = torch.cat([obs, state, action], -1)
         pair_x = graph.packer.pack(torch.cat([graph.state_all, graph.action_all], -1))
-        mu, logvar = self.local.encode(ego_x, pair_x, graph.packer)
+        mu, logvar = map(full_precision, self.local.encode(ego_x, pair_x, graph.packer))  # the ELBO in fp32 under bf16 autocast
         eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
-        y_hat = self.local.decode(mu + eps * torch.exp(0.5 * logvar), ego_x, pair_x, graph.packer)
+        y_hat = full_precision(self.local.decode(mu + eps * torch.exp(0.5 * logvar), ego_x, pair_x, graph.packer))
         target = graph.packer.rows(target_y) if target_y.dim() == 2 else graph.packer.pack(target_y)
         recon = (y_hat - target).square().mean()
         kl = -0.5 * (1.0 + logvar - mu.square() - logvar.exp()).mean()

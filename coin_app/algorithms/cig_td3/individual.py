@@ -3,6 +3,7 @@
 * :class:`Actor`: the deterministic shared policy mu_theta(o_i), tanh output in [-1, 1] (Eq. 12).
 * :class:`TwinQ`: the local (individual) twin critic Q^l_1, Q^l_2 on ``[o_i, a_i]`` (Eqs. 7-8).
 * :func:`mlp`: the plain MLP every CIG-TD3 network is built from.
+* :func:`full_precision`: a network output widened to fp32 (under bf16 autocast the networks return bf16).
 
 Plain ``torch.nn``; nothing here imports Ray. Shapes: ``B`` batch rows, ``O`` observation,
 ``A`` action (``schema.ACT_DIM``).
@@ -17,7 +18,7 @@ from torch import Tensor, nn
 
 from coin_app.sim import schema
 
-__all__ = ["Actor", "TwinQ", "mlp"]
+__all__ = ["Actor", "TwinQ", "full_precision", "mlp"]
 
 
 def mlp(sizes: Sequence[int], activation: Callable[[], nn.Module], out_activation: Callable[[], nn.Module] | None = None) -> nn.Sequential:
@@ -32,6 +33,11 @@ def mlp(sizes: Sequence[int], activation: Callable[[], nn.Module], out_activatio
         elif out_activation is not None:
             layers.append(out_activation())
     return nn.Sequential(*layers)
+
+
+def full_precision(x: Tensor) -> Tensor:
+    """``x`` as fp32 when it is a narrower float (bf16 / fp16 under autocast); fp32 and fp64 tensors unchanged."""
+    return x.to(torch.promote_types(x.dtype, torch.float32))
 
 
 class Actor(nn.Module):

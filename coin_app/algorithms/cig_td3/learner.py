@@ -11,10 +11,17 @@ One ``update`` = one gradient step on one sampled batch:
        critics step before the actor loss is computed, so it is taken on the updated critics;
        ``"joint"`` computes it from the critics before the update and applies all steps together.
 On other updates the actor's parameters get no gradient, so Adam leaves them untouched.
+
+``precision="bf16"`` runs every loss's forward pass under ``torch.autocast(bfloat16)`` on the
+module's device; the losses widen the network outputs to fp32 (``losses.py``), so parameters,
+gradients, Adam state, TD targets, loss reductions and soft updates stay fp32. Nothing here
+creates a tensor on a fixed device, so the learner runs where RLlib puts its module
+(``num_gpus_per_learner``), in the algorithm process or as one remote learner (``num_learners=1``).
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from typing import Any
 
@@ -25,6 +32,17 @@ from ray.rllib.core.rl_module.apis import TargetNetworkAPI
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from coin_app.algorithms.cig_td3.losses import LossConfig, actor_loss, central_critic_loss, local_critic_loss, td_targets
+
+PRECISIONS = ("fp32", "bf16")
+
+
+def autocast(module: torch.nn.Module, precision: str) -> contextlib.AbstractContextManager:
+    """The context the loss forward passes of ``module`` run in: bfloat16 autocast on its device for "bf16", else nothing."""
+    if precision == "fp32":
+        return contextlib.nullcontext()
+    if precision != "bf16":
+        raise ValueError(f"precision={precision!r}; allowed: {' | '.join(PRECISIONS)}")
+    return torch.autocast(device_type=next(module.parameters()).device.type, dtype=torch.bfloat16)
 
 
 def loss_config(config: Any) -> LossConfig:
@@ -43,11 +61,17 @@ def loss_config(config: Any) -> LossConfig:
     )
 
 
+def _cpu_state(net: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """``net``'s state dict with every tensor on the CPU (a checkpoint readable without the learner's GPU)."""
+    return {k: v.cpu() for k, v in net.state_dict().items()}
+
+
 class CigTd3TorchLearner(TorchLearner):
     """Torch learner of CIG-TD3 (and ITD3 when the module has no centralized critic)."""
 
     def build(self) -> None:
-        """Build module and optimizers, then the target networks."""
+        """Build module and optimizers, then the target networks (with ``learner_threads`` torch threads)."""
+        torch.set_num_threads(self.config.learner_threads)  # also in a remote learner's own process
         super().build()
         self.module.foreach_module(lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None)
         self.num_updates = 0
@@ -84,14 +108,16 @@ class CigTd3TorchLearner(TorchLearner):
         """All CIG-TD3 losses; the per-network gradients are taken here, one loss each."""
         module = self.module[module_id].unwrapped()
         cfg = loss_config(config)
-        y_local, y_global = td_targets(batch, module.actor_target, module.local_q_target, module.central_target, cfg)
+        with autocast(module, config.precision):
+            y_local, y_global = td_targets(batch, module.actor_target, module.local_q_target, module.central_target, cfg)
+            loss_l, stats = local_critic_loss(module.local_q, batch, y_local)
         grads: dict[str, Any] = {}
-        loss_l, stats = local_critic_loss(module.local_q, batch, y_local)
         grads["local_critic"] = (loss_l, list(module.local_q.parameters()))
         total = loss_l.detach()
         self.metrics.log_value((module_id, "local_critic_loss"), loss_l.detach(), window=1)
         if module.central is not None:
-            loss_g, g_stats = central_critic_loss(module.central, batch, y_global, cfg)
+            with autocast(module, config.precision):
+                loss_g, g_stats = central_critic_loss(module.central, batch, y_global, cfg)
             grads["central_critic"] = (loss_g, list(module.central.parameters()))
             total = total + loss_g.detach()
             stats.update(g_stats)
@@ -99,7 +125,8 @@ class CigTd3TorchLearner(TorchLearner):
         if self.actor_learns(config):
 
             def actor_objective() -> tuple[torch.Tensor, dict[str, Any]]:
-                return actor_loss(module.actor, module.local_q, module.central, batch, cfg)
+                with autocast(module, config.precision):
+                    return actor_loss(module.actor, module.local_q, module.central, batch, cfg)
 
             if config.update_order == "joint":  # every loss from the critics before this update
                 loss_pi, pi_stats = actor_objective()
@@ -164,16 +191,17 @@ class CigTd3TorchLearner(TorchLearner):
         self.num_updates += 1
 
     def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
-        """Learner state plus the update counter, target networks and torch RNG (exact resume)."""
+        """Learner state plus the update counter, target networks and torch RNG, the CUDA one too on a GPU (exact resume)."""
         state = super().get_state(*args, **kwargs)
         state["cig_td3"] = {
             "num_updates": self.num_updates,
             "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state(self._device) if self._device.type == "cuda" else None,
             "targets": {
                 mid: {
-                    "actor_target": m.unwrapped().actor_target.state_dict(),
-                    "local_q_target": m.unwrapped().local_q_target.state_dict(),
-                    "central_target": None if m.unwrapped().central_target is None else m.unwrapped().central_target.state_dict(),
+                    "actor_target": _cpu_state(m.unwrapped().actor_target),
+                    "local_q_target": _cpu_state(m.unwrapped().local_q_target),
+                    "central_target": None if m.unwrapped().central_target is None else _cpu_state(m.unwrapped().central_target),
                 }
                 for mid, m in self.module.items()
             },
@@ -187,6 +215,8 @@ class CigTd3TorchLearner(TorchLearner):
         if extra:
             self.num_updates = int(extra["num_updates"])
             torch.set_rng_state(extra["torch_rng"])
+            if extra.get("cuda_rng") is not None and self._device.type == "cuda":
+                torch.cuda.set_rng_state(extra["cuda_rng"], self._device)
             for mid, targets in extra["targets"].items():
                 mod = self.module[mid].unwrapped()
                 mod.actor_target.load_state_dict(targets["actor_target"])

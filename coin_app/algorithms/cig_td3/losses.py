@@ -21,6 +21,10 @@ Notation (one row per sampled agent transition i at env step t):
 
 V does not depend on the ego action, so with a deterministic policy it leaves the actor's
 gradient unchanged (``docs/decisions.md`` §2.2); it is still trained and logged, as Eq. 12 is written.
+
+Every network output is widened to fp32 (``full_precision``) before it enters a target, a
+difference or a mean, so under bf16 autocast (``precision="bf16"``) only the networks' own
+layers run in bf16; with fp32 networks this changes nothing.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import torch
 from torch import nn
 
 from coin_app.algorithms.cig_td3 import columns as col
+from coin_app.algorithms.cig_td3.individual import full_precision
 
 
 @dataclass(frozen=True)
@@ -55,7 +60,7 @@ SATURATED_PREACT = math.atanh(0.99)  # |u| above this: |tanh(u)| > 0.99, tanh's 
 
 def smoothed_target_action(actor_target: nn.Module, obs: torch.Tensor, noise_std: float, noise_clip: float) -> torch.Tensor:
     """Target policy smoothing: clip(mu_targ(o) + clip(N(0, std), -c, c), -1, 1), any leading shape."""
-    mu = actor_target(obs)
+    mu = full_precision(actor_target(obs))
     eps = (torch.randn_like(mu) * noise_std).clamp(-noise_clip, noise_clip)
     return (mu + eps).clamp(-1.0, 1.0)
 
@@ -78,7 +83,7 @@ def td_targets(
     nd = not_done(batch)
     next_a = smoothed_target_action(actor_target, batch[col.NEXT_OBS], cfg.target_noise, cfg.target_noise_clip)
     q1_t, q2_t = local_q_target(batch[col.NEXT_OBS], next_a)
-    y_local = batch[col.REWARDS] + cfg.gamma * nd * torch.minimum(q1_t, q2_t)
+    y_local = batch[col.REWARDS] + cfg.gamma * nd * torch.minimum(full_precision(q1_t), full_precision(q2_t))
     if central_target is None:
         return y_local, None
     mask_next = batch[col.NEXT_OTHERS_MASK].bool()
@@ -87,13 +92,13 @@ def td_targets(
     g1_t, g2_t = central_target.q_values(
         batch[col.NEXT_OBS], batch[col.NEXT_STATE], next_a, batch[col.NEXT_OTHERS_STATE], others_next_a, mask_next
     )
-    y_global = batch[col.GLOBAL_REWARDS] + cfg.gamma * nd * torch.minimum(g1_t, g2_t)
+    y_global = batch[col.GLOBAL_REWARDS] + cfg.gamma * nd * torch.minimum(full_precision(g1_t), full_precision(g2_t))
     return y_local, y_global
 
 
 def local_critic_loss(local_q: nn.Module, batch: dict[str, torch.Tensor], y_local: torch.Tensor) -> tuple[torch.Tensor, dict]:
     """Eq. 7: sum over the twin local critics of the mean squared TD error."""
-    q1, q2 = local_q(batch[col.OBS], batch[col.ACTIONS])
+    q1, q2 = map(full_precision, local_q(batch[col.OBS], batch[col.ACTIONS]))
     loss = ((q1 - y_local) ** 2).mean() + ((q2 - y_local) ** 2).mean()
     return loss, {"local_q1_mean": q1.mean().detach(), "local_q_target_mean": y_local.mean()}
 
@@ -107,13 +112,14 @@ def central_critic_loss(
     if cfg.vae_weight > 0:
         target_y = torch.cat([batch[col.NEXT_OBS], batch[col.NEXT_STATE], batch[col.REWARDS].unsqueeze(-1)], dim=-1)
     out = central(batch[col.OBS], batch[col.STATE], batch[col.ACTIONS], batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask, target_y)
-    loss_q = ((out.q1 - y_global) ** 2).mean() + ((out.q2 - y_global) ** 2).mean()
-    stats = {"global_q1_mean": out.q1.mean().detach(), "global_q_target_mean": y_global.mean(), "global_q_loss": loss_q.detach()}
+    q1, q2, v = full_precision(out.q1), full_precision(out.q2), full_precision(out.v)
+    loss_q = ((q1 - y_global) ** 2).mean() + ((q2 - y_global) ** 2).mean()
+    stats = {"global_q1_mean": q1.mean().detach(), "global_q_target_mean": y_global.mean(), "global_q_loss": loss_q.detach()}
     loss = loss_q
     if cfg.counterfactual_baseline:
-        loss_v = ((out.v - y_global) ** 2).mean()
+        loss_v = ((v - y_global) ** 2).mean()
         loss = loss + loss_v
-        stats.update(baseline_mean=out.v.mean().detach(), baseline_loss=loss_v.detach())
+        stats.update(baseline_mean=v.mean().detach(), baseline_loss=loss_v.detach())
     if cfg.vae_weight > 0:
         loss = loss + cfg.vae_weight * (out.recon_mse + cfg.kl_beta * out.kl)
         stats.update(vae_recon=out.recon_mse.detach(), vae_kl=out.kl.detach())
@@ -133,19 +139,21 @@ def actor_loss(
     ``preactivation(obs)`` (its output before the tanh); the stats include the share of saturated
     outputs (``actor_saturation``: |tanh(u)| > 0.99) and the mean |u|.
     """
-    pre = actor.preactivation(batch[col.OBS])
+    pre = full_precision(actor.preactivation(batch[col.OBS]))
     a = torch.tanh(pre)
-    q_local = local_q.q1_only(batch[col.OBS], a)
+    q_local = full_precision(local_q.q1_only(batch[col.OBS], a))
     objective = q_local
     stats = {"actor_q_local": q_local.mean().detach()}
     if central is not None and cfg.global_weight > 0:
         mask = batch[col.OTHERS_MASK].bool()
-        q_global = central.q1(batch[col.OBS], batch[col.STATE], a, batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask)
+        q_global = full_precision(central.q1(batch[col.OBS], batch[col.STATE], a, batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask))
         advantage = q_global
         if cfg.counterfactual_baseline:
             # V has no ego action, so it carries no actor gradient: evaluate it without a graph
             with torch.no_grad():
-                v = central.baseline(batch[col.OBS], batch[col.STATE], batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask)
+                v = full_precision(
+                    central.baseline(batch[col.OBS], batch[col.STATE], batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], mask)
+                )
             advantage = q_global - v
             stats["actor_counterfactual_advantage"] = advantage.mean().detach()
         objective = objective + cfg.global_weight * advantage

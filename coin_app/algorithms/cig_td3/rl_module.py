@@ -15,6 +15,7 @@ whatever the iteration length.
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import torch
@@ -80,9 +81,9 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
             order = canonical_order(obs)
             mu = self.actor(obs[order])
             if t is not None and t < self.warmup_steps:
-                actions = torch.rand(mu.shape) * 2.0 - 1.0
+                actions = torch.rand(mu.shape, device=mu.device) * 2.0 - 1.0  # on the CPU: the seeded default generator
             else:
-                actions = (mu + torch.randn(mu.shape) * self.noise_std(t)).clamp(-1.0, 1.0)
+                actions = (mu + torch.randn(mu.shape, device=mu.device) * self.noise_std(t)).clamp(-1.0, 1.0)
             return {Columns.ACTIONS: unsort(actions, order)}
 
     def _forward_train(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
@@ -98,13 +99,15 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
 
     # ------------------------------------------------------------------ the algorithm contract (ActorModule)
     def deterministic_actor(self) -> torch.nn.Module:
-        """The tanh actor mu(o) as a plain ``nn.Sequential`` (evaluation and export)."""
-        return self.actor.net
+        """The tanh actor mu(o) as a plain ``nn.Sequential`` on the CPU (evaluation and export; a copy if the module is on a GPU)."""
+        net = self.actor.net
+        return net if next(net.parameters()).device.type == "cpu" else copy.deepcopy(net).cpu()
 
     def inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
-        """The env actions of ``forward_inference`` on ``obs`` (already in [-1, 1])."""
+        """The env actions of ``forward_inference`` on ``obs`` (already in [-1, 1]), on ``obs``'s device."""
+        device = next(self.actor.parameters()).device
         with torch.no_grad():
-            return self.forward_inference({Columns.OBS: obs})[Columns.ACTIONS]
+            return self.forward_inference({Columns.OBS: obs.to(device)})[Columns.ACTIONS].to(obs.device)
 
     # ------------------------------------------------------------------ APIs
     def get_non_inference_attributes(self) -> list[str]:
@@ -139,7 +142,7 @@ def canonical_order(obs: torch.Tensor) -> torch.Tensor:
     can depend on a row's position), so a seeded run gives the same result in every process.
     """
     n, dim = obs.shape[0], obs.shape[-1]
-    weights = torch.cos(torch.arange(dim, dtype=torch.float64) * 0.731) + 1.618
+    weights = torch.cos(torch.arange(dim, dtype=torch.float64, device=obs.device) * 0.731) + 1.618
     return torch.argsort(obs.reshape(n, dim).to(torch.float64) @ weights, stable=True)
 
 

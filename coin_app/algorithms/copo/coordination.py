@@ -32,7 +32,7 @@ def lcf_distribution(params: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def lcf_parameters(mean: float, std: float) -> Tensor:
-    """The two parameters (atanh mean, log std) of an LCF distribution."""
+    """The two parameters (atanh mean, log std) of an LCF distribution (on the CPU: a module's buffer moves with the module)."""
     if not (-1.0 < mean < 1.0 and std > 0.0):
         raise ValueError(f"bad LCF distribution mean={mean!r}, std={std!r}; allowed: -1 < mean < 1 and std > 0")
     return torch.tensor([math.atanh(mean), math.log(std)], dtype=torch.float32)
@@ -70,7 +70,7 @@ def gradient_dot(loss_a: Tensor, params_a: Sequence[Tensor], loss_b: Tensor, par
         raise ValueError(f"parameter lists differ in length ({len(params_a)} vs {len(params_b)})")
     ga = torch.autograd.grad(loss_a, list(params_a), allow_unused=True)
     gb = torch.autograd.grad(loss_b, list(params_b), allow_unused=True)
-    total = torch.zeros(())
+    total = torch.zeros((), device=loss_a.device)
     for a, b in zip(ga, gb):
         if a is not None and b is not None:
             total = total + (a * b).sum()

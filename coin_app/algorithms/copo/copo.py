@@ -23,6 +23,7 @@ from typing import Any
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
+from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.common import SHARED_MODULE_ID, coin_envs, shared_policy_config
 from coin_app.algorithms.copo.learner import CoPOLearner
@@ -59,7 +60,12 @@ COPO_KEYS: dict[str, tuple[Any, str]] = {
 
 
 def _set_lcf(env_runner: Any, mean: float, std: float) -> int:
-    """Set the LCF distribution on every coin env of an env runner; returns how many."""
+    """Set the LCF distribution on every coin env of an env runner (the batched runner's vector env included); returns how many."""
+    if isinstance(env_runner, BatchedEnvRunner):
+        if env_runner.vector_env is None:
+            return 0
+        env_runner.set_lcf_distribution(mean, std)
+        return env_runner.vector_env.num_envs
     envs = coin_envs(env_runner)
     for env in envs:
         env.set_lcf_distribution(mean, std)

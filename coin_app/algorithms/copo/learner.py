@@ -10,7 +10,8 @@
   of the meta-gradient step of ``coordination.py`` over shuffled minibatches of the same
   batch's real rows, against a frozen copy of the policy taken before the epochs; the new
   LCF parameters go into the module's buffer (and from there into checkpoints and the weights
-  of the env runners; the algorithm pushes the distribution to their envs).
+  of the env runners; the algorithm pushes the distribution to their envs). It runs outside
+  the minibatch updates' autocast, in fp32 under either ``precision`` (``ppo_family/precision.py``).
 """
 
 from __future__ import annotations
@@ -73,11 +74,13 @@ class CoPOLearner(ClippedValuePPOLearner):
         self._learner_connector.remove(RealRowAdvantages)
         self._lcf_params: dict[str, torch.nn.Parameter] = {}
         self._lcf_optimizers: dict[str, torch.optim.Optimizer] = {}
-        for mid in self.module.keys():
-            param = torch.nn.Parameter(self.module[mid].unwrapped().lcf_params.detach().clone())
+        for mid in self.module.keys():  # on the module's device (``super().build()`` moved the module there)
+            module = self.module[mid].unwrapped()
+            param = torch.nn.Parameter(module.lcf_params.detach().clone().to(next(module.parameters()).device))
             self._lcf_params[mid] = param
             self._lcf_optimizers[mid] = torch.optim.Adam([param], lr=cfg["lcf_lr"])
-        self._meta_generator = torch.Generator().manual_seed(int(self.config.seed or 0))
+        # shuffles and LCF noise draw on the CPU whatever the device (seeded runs draw the same numbers), then move to the data's
+        self._meta_generator = torch.Generator(device="cpu").manual_seed(int(self.config.seed or 0))
         self._copo_batch: Any = None
         self._policy_before: dict[str, Any] = {}
 
@@ -117,7 +120,7 @@ class CoPOLearner(ClippedValuePPOLearner):
         keys = (Columns.OBS, Columns.ACTIONS, Columns.ACTION_LOGP, GLOBAL_ADVANTAGES, EGO_ADVANTAGES, NEI_ADVANTAGES)
         mask = batch[Columns.LOSS_MASK] if Columns.LOSS_MASK in batch else None
         data = {k: batch[k] if mask is None else batch[k][mask] for k in keys}
-        n = len(data[Columns.OBS])
+        n, device = len(data[Columns.OBS]), data[Columns.OBS].device
         mean, std = float(batch[COORD_MEAN][0]), float(batch[COORD_STD][0])
         size = int(cfg["lcf_minibatch_size"] or self.config.minibatch_size or n)
         new_params, old_params = policy_parameters(module), policy_parameters(before)
@@ -126,14 +129,14 @@ class CoPOLearner(ClippedValuePPOLearner):
             param.copy_(module.lcf_params)
         scales, objectives = [], []
         for _ in range(int(cfg["lcf_num_iters"])):
-            order = torch.randperm(n, generator=self._meta_generator)
+            order = torch.randperm(n, generator=self._meta_generator, device="cpu").to(device)
             for start in range(0, n, size):
                 mb = {k: v[order[start : start + size]] for k, v in data.items()}
                 logp_new = policy_logp(module, mb[Columns.OBS], mb[Columns.ACTIONS])
                 new_loss = surrogate_loss(logp_new, mb[Columns.ACTION_LOGP], mb[GLOBAL_ADVANTAGES], self.config.clip_param)
                 old_logp = policy_logp(before, mb[Columns.OBS], mb[Columns.ACTIONS]).mean()
                 scale = gradient_dot(new_loss, new_params, old_logp, old_params)
-                noise = torch.randn(len(mb[Columns.OBS]), generator=self._meta_generator)
+                noise = torch.randn(len(mb[Columns.OBS]), generator=self._meta_generator, device="cpu").to(device)
                 objective = lcf_objective(param, mb[EGO_ADVANTAGES], mb[NEI_ADVANTAGES], mean, std, noise)
                 optimizer.zero_grad()
                 (scale * objective).backward()

@@ -25,6 +25,7 @@ from torch import nn
 from coin_app.adapters.lcf import encode
 from coin_app.algorithms.copo.coordination import lcf_distribution, lcf_parameters
 from coin_app.algorithms.ppo_family.centralized import value_mlp
+from coin_app.algorithms.ppo_family.precision import full_precision
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 
 
@@ -55,9 +56,10 @@ class CoPOModule(PPOActorModule):
         return [*super().get_non_inference_attributes(), "nei_vf", "global_vf"]
 
     def compute_all_values(self, batch: dict[str, Any], embeddings: Any = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(ego, neighbour, global) values of the batch's observations, each of shape (B,) (``embeddings``: the critic encoder's)."""
+        """(ego, neighbour, global) fp32 values of the batch's observations, each (B,) (``embeddings``: the critic encoder's)."""
         obs = batch["obs"]
-        return self.compute_values(batch, embeddings), self.nei_vf(obs).squeeze(-1), self.global_vf(obs).squeeze(-1)
+        ego = self.compute_values(batch, embeddings)
+        return ego, full_precision(self.nei_vf(obs).squeeze(-1)), full_precision(self.global_vf(obs).squeeze(-1))
 
     def lcf_distribution(self) -> tuple[float, float]:
         """The current LCF (mean, std)."""

@@ -14,6 +14,9 @@ ours are Stable-Baselines3's PPO defaults with a larger minibatch for speed, all
 ``HYPERPARAMETERS``. Where the paper trains one "primary" vehicle and copies its policy to
 the others, every vehicle here trains the one shared policy (parameter sharing): the same
 policy for all, without discarding the other vehicles' experience.
+
+The learner is RLlib's PPO learner with the PPO family's ``precision`` option (``learner.py``):
+"bf16" runs each minibatch's forward pass and loss under bfloat16 autocast.
 """
 
 from __future__ import annotations
@@ -27,6 +30,9 @@ from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
 from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.common import shared_policy_config
+from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
+from coin_app.algorithms.ppo_family.config import check_choice
+from coin_app.algorithms.ppo_family.precision import PRECISIONS
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.arena.config import ArenaConfig
@@ -50,7 +56,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "num_epochs": (10, "SGD passes over each batch"),
     "hidden": (256, "width of the two tanh layers of the separate policy and value networks (paper: 256)"),
     "num_env_runners": (0, "remote env runners (0 = sample in the training process)"),
-    "num_envs_per_env_runner": (1, "arena copies each env runner steps"),
+    "precision": (
+        "fp32",
+        "learner update precision: 'fp32', or 'bf16' = each minibatch's forward pass and loss under torch.autocast bfloat16 "
+        "(module outputs, losses, parameters, optimizer state and the value predictions for GAE stay fp32)",
+    ),
 }
 
 
@@ -73,15 +83,17 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
         raise ValueError(f"nav_ppo trains on the arena only, got {type(scenario).__name__}; allowed: an ArenaConfig")
     stage_of(algo_cfg)  # the stage's scenario mix is in ``scenario`` already (the spec's scenario_defaults)
     hp = {k: v for k, (v, _) in HYPERPARAMETERS.items() if k != "stage"} | {k: v for k, v in algo_cfg.items() if k != "stage"}
-    for key in ("hidden", "num_envs_per_env_runner"):
+    for key in ("hidden",):
         if not (isinstance(hp[key], int) and not isinstance(hp[key], bool) and hp[key] >= 1):
             raise ValueError(f"bad value for {key!r}: {hp[key]!r}; allowed: an integer >= 1")
+    precision = check_choice("precision", hp.pop("precision"), PRECISIONS)
     model = DefaultModelConfig(fcnet_hiddens=[hp.pop("hidden")] * 2, fcnet_activation="tanh", vf_share_layers=False, head_fcnet_hiddens=[])
     config = (
         PPOConfig()
         .environment("coin-arena-v0", env_config=env_config_of(scenario))
-        .env_runners(num_env_runners=hp.pop("num_env_runners"), num_envs_per_env_runner=hp.pop("num_envs_per_env_runner"))
+        .env_runners(num_env_runners=hp.pop("num_env_runners"))
         .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
+        .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision})
         .rl_module(model_config=model, rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
         .debugging(seed=seed)
         .evaluation(evaluation_interval=None)

@@ -22,6 +22,7 @@ from torch import nn
 
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
 from coin_app.algorithms.ppo_family.neighbours import concat_critic_input, mean_field_critic_input, neighbour_indices
+from coin_app.algorithms.ppo_family.precision import full_precision
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.ppo_family.rows import check_aligned, episode_rows, like
 
@@ -80,8 +81,8 @@ class CentralizedCriticPPOModule(PPOActorModule):
         return [*super().get_non_inference_attributes(), "central_vf"]
 
     def compute_values(self, batch: dict[str, Any], embeddings: Any = None) -> torch.Tensor:
-        """V(critic input) of shape (B,)."""
-        return self.central_vf(batch[CRITIC_OBS]).squeeze(-1)
+        """V(critic input) of shape (B,), in fp32."""
+        return full_precision(self.central_vf(batch[CRITIC_OBS]).squeeze(-1))
 
 
 class CentralizedCriticPPOLearner(ClippedValuePPOLearner):

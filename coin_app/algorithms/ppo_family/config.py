@@ -15,7 +15,8 @@ The other reference behaviours are defaults too, each with RLlib's behaviour as 
 ``kl_signal`` (the adaptive-KL step reads the mean KL of the last SGD epoch, Ray 1.x, or the
 last minibatch's, RLlib), ``timeout_bootstrap`` (a vehicle's own step limit is terminal, Ray
 1.x, or bootstraps V(o_T), RLlib) and ``weight_init`` (Ray 1.x's normc, or PyTorch's
-default). See ``learner.py`` and ``rl_module.py``.
+default). See ``learner.py`` and ``rl_module.py``. ``precision`` "bf16" runs the learner's SGD
+forward passes in bfloat16 (``precision.py``); the default "fp32" is RLlib's update.
 
 The helpers (``ppo_settings``, ``policy_model``, ``ppo_base_config``, ``learner_options``,
 ``checked``) are shared with CoPO (``coin_app.algorithms.copo.copo``).
@@ -36,6 +37,7 @@ from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.common import backend_errors, shared_policy_config
 from coin_app.algorithms.ppo_family.centralized import CentralizedCriticPPOLearner, CentralizedCriticPPOModule, critic_input_dim
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
+from coin_app.algorithms.ppo_family.precision import PRECISIONS
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
@@ -73,9 +75,14 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         "normc",
         "'normc' = Ray 1.x's initialization (each unit's weights of norm 1, output layers 0.01, biases 0); 'torch' = PyTorch's default",
     ),
+    "precision": (
+        "fp32",
+        "learner update precision: 'fp32', or 'bf16' = each minibatch's forward pass and losses under torch.autocast bfloat16 "
+        "(module outputs, losses, parameters, optimizer state and the value predictions for GAE stay fp32)",
+    ),
 }
 # the HYPERPARAMETERS that are not PPOConfig.training arguments (sampling, learner and model options)
-OWN_KEYS = ("hidden", "num_env_runners", "rollout_fragment_length", "kl_signal", "timeout_bootstrap", "weight_init")
+OWN_KEYS = ("hidden", "num_env_runners", "rollout_fragment_length", "kl_signal", "timeout_bootstrap", "weight_init", "precision")
 # the HYPERPARAMETERS that go to PPOConfig.training as they are
 TRAINING_KEYS = tuple(k for k in HYPERPARAMETERS if k not in OWN_KEYS)
 KL_SIGNALS = ("epoch_mean", "last_minibatch")
@@ -109,6 +116,7 @@ def ppo_settings(algo_cfg: Mapping[str, Any], extra: Mapping[str, tuple[Any, str
     check_choice("kl_signal", hp["kl_signal"], KL_SIGNALS)
     check_choice("weight_init", hp["weight_init"], WEIGHT_INITS)
     check_choice("timeout_bootstrap", hp["timeout_bootstrap"], (False, True))
+    check_choice("precision", hp["precision"], PRECISIONS)
     return hp, opts
 
 
@@ -126,8 +134,8 @@ def policy_model(hidden: int, weight_init: str) -> dict[str, Any]:
 
 
 def learner_options(hp: Mapping[str, Any]) -> dict[str, Any]:
-    """The learner options of the PPO family's ``learner_config_dict`` (``learner.py``): the KL signal and the time-out bootstrap."""
-    return {"kl_signal": hp["kl_signal"], "timeout_bootstrap": hp["timeout_bootstrap"]}
+    """The learner options of the PPO family's ``learner_config_dict`` (``learner.py``): KL signal, time-out bootstrap, precision."""
+    return {"kl_signal": hp["kl_signal"], "timeout_bootstrap": hp["timeout_bootstrap"], "precision": hp["precision"]}
 
 
 def ppo_base_config(

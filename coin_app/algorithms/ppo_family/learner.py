@@ -19,6 +19,9 @@ learner does what Ray 1.x did, each difference a learner-connector piece or a le
   (above 2 x target / below target / 2) reads the mean KL of the last epoch's minibatches, the
   value Ray 1.x's SGD loops reported; "last_minibatch" keeps RLlib 2.60's signal, the KL of the
   last minibatch only.
+
+``learner_config_dict["precision"]`` "bf16" runs each minibatch's forward pass and losses under
+bfloat16 autocast (``precision.py``); "fp32", the default, is RLlib's update as it is.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.torch_utils import explained_variance
 
 from coin_app.algorithms.ppo_family.losses import clipped_value_loss, last_epoch_mean, surrogate_loss
+from coin_app.algorithms.ppo_family.precision import MixedPrecisionLearner
 
 OLD_VALUES = "coin_old_values"
 EPOCH_KL_KEY = "mean_kl_last_epoch"  # the KL the coefficient adapted to (kl_signal "epoch_mean")
@@ -76,15 +80,16 @@ class RealRowAdvantages(ConnectorV2):
         for module_batch in batch.values():
             if not all(k in module_batch for k in needed):
                 continue
-            raw = torch.as_tensor(module_batch[Postprocessing.VALUE_TARGETS]) - torch.as_tensor(module_batch[OLD_VALUES])
+            old = torch.as_tensor(module_batch[OLD_VALUES])  # the module's output: on the learner's device
+            raw = torch.as_tensor(module_batch[Postprocessing.VALUE_TARGETS], device=old.device) - old
             real = torch.as_tensor(module_batch[Columns.LOSS_MASK], dtype=torch.bool, device=raw.device)
             mean, std = raw[real].mean(), raw[real].std(correction=0)
             module_batch[Postprocessing.ADVANTAGES] = (raw - mean) / torch.clamp(std, min=1e-4)
         return batch
 
 
-class ClippedValuePPOLearner(PPOTorchLearner):
-    """RLlib's PPO learner with Ray 1.x's value clipping, advantage standardization, time-outs and KL signal (module doc)."""
+class ClippedValuePPOLearner(MixedPrecisionLearner, PPOTorchLearner):
+    """RLlib's PPO learner with Ray 1.x's value clipping, advantage standardization, time-outs, KL signal and precision (module doc)."""
 
     def build(self) -> None:
         """Build as RLlib's PPO learner, then add the time-out, old-value and advantage pieces around its GAE."""
@@ -136,7 +141,7 @@ class ClippedValuePPOLearner(PPOTorchLearner):
         pi_loss = surrogate_loss(logp, batch[Columns.ACTION_LOGP], adv, config.clip_param)
         vf_loss, values, targets, extra = self.value_loss(module, batch, fwd_out, config)
         entropy = dist.entropy().mean()
-        kl = old_dist.kl(dist).mean() if config.use_kl_loss else torch.zeros(())
+        kl = old_dist.kl(dist).mean() if config.use_kl_loss else torch.zeros((), dtype=logp.dtype, device=logp.device)
         entropy_coeff = self.entropy_coeff_schedulers_per_module[module_id].get_current_value()
         total = pi_loss + config.vf_loss_coeff * vf_loss - entropy_coeff * entropy
         if config.use_kl_loss:

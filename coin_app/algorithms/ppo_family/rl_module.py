@@ -13,14 +13,23 @@ and each output unit's incoming weights are a Gaussian vector scaled to norm 1 i
 and to norm 0.01 in output layers (the policy's (mean, log std) head and every value head), so
 the initial Gaussian means are within ``0.01 ||h||`` of 0 and the log stds near 0. A missing key
 or ``"torch"`` keeps PyTorch's default (nav_ppo, modules saved before the key).
+
+Outputs are fp32 whatever the autocast (``precision.py``): under a bf16 learner update the
+layers compute in bf16, and ``forward_train``'s Gaussian inputs and ``compute_values``' values
+leave the module as fp32 (subclasses' value heads too), so every loss is computed in fp32.
 """
 
 from __future__ import annotations
+
+import copy
+from typing import Any
 
 import torch
 from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 from ray.rllib.core.columns import Columns
 from torch import nn
+
+from coin_app.algorithms.ppo_family.precision import full_precision
 
 NORMC_OUTPUT_STD = 0.01  # norm of an output unit's weights under normc (Ray 1.x's fcnet: logits and value_out)
 
@@ -68,17 +77,34 @@ class PPOActorModule(DefaultPPOTorchRLModule):
     def setup_heads(self) -> None:
         """Build a subclass's extra networks (before the initialization); none here."""
 
+    def _forward_train(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
+        """RLlib's train forward pass, with the Gaussian inputs in fp32."""
+        out = super()._forward_train(batch, **kwargs)
+        out[Columns.ACTION_DIST_INPUTS] = full_precision(out[Columns.ACTION_DIST_INPUTS])
+        return out
+
+    def compute_values(self, batch: dict[str, Any], embeddings: Any = None) -> torch.Tensor:
+        """RLlib's V(o) of shape (B,), in fp32."""
+        return full_precision(super().compute_values(batch, embeddings))
+
     def deterministic_actor(self) -> nn.Sequential:
-        """The actor encoder and the ``pi`` head's mean outputs, then ``Hardtanh(-1, 1)``, as an ``nn.Sequential``."""
+        """The actor encoder and the ``pi`` head's mean outputs, then ``Hardtanh(-1, 1)``, as an ``nn.Sequential`` on the CPU.
+
+        On the CPU its layers are the module's own; a module on another device (a GPU learner's) gives a CPU copy.
+        """
         encoder = getattr(self.encoder, "actor_encoder", self.encoder)
         layers = [*encoder.net.mlp, *self.pi.net.mlp]
         head = layers[-1]
         if not isinstance(head, nn.Linear):
             raise ValueError(f"cannot extract a deterministic actor: the policy head ends in {head!r}")
+        if head.weight.device.type != "cpu":
+            layers = [copy.deepcopy(layer).cpu() for layer in layers]
+            head = layers[-1]
         return nn.Sequential(*layers[:-1], gaussian_mean(head), nn.Hardtanh(-1.0, 1.0)).eval()
 
     def inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
-        """The mean of ``forward_inference``'s Gaussian inputs on ``obs``, clamped to [-1, 1]."""
+        """The mean of ``forward_inference``'s Gaussian inputs on ``obs``, clamped to [-1, 1], on ``obs``'s device."""
+        device = next(self.pi.parameters()).device
         with torch.no_grad():
-            inputs = self.forward_inference({Columns.OBS: obs})[Columns.ACTION_DIST_INPUTS]
-        return inputs[:, : inputs.shape[1] // 2].clamp(-1.0, 1.0)
+            inputs = self.forward_inference({Columns.OBS: obs.to(device)})[Columns.ACTION_DIST_INPUTS]
+        return inputs[:, : inputs.shape[1] // 2].clamp(-1.0, 1.0).to(obs.device)
