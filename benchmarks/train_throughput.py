@@ -11,8 +11,8 @@ Usage: python benchmarks/train_throughput.py [--cases ippo nav_ppo cig_td3] [--i
   agents after a short warm-up, with ``precision`` fp32 and bf16 where the algorithm has it.
 
 Each case builds the algorithm with ``coin_app.training.build_config``, runs one warm-up
-iteration, then times ``--iterations`` ``algo.train()`` calls and prints env steps per second
-and the share of sampling and learner-update time (RLlib's timers). One torch thread, a local
+iteration, then times ``--iterations`` ``algo.train()`` calls and prints env steps per second.
+``benchmarks/ppo_update.py`` and ``benchmarks/learner_update.py`` time the updates alone. One torch thread, a local
 Ray session over all cores (the runners sample in the training process, ``num_env_runners=0``).
 """
 
@@ -33,7 +33,7 @@ from coin_app.training import build_config  # noqa: E402
 
 
 def timed_train(name: str, scenario: str, overrides: dict, iterations: int, min_steps: int | None = None) -> dict[str, float]:
-    """Env steps/s over ``iterations`` timed ``train()`` calls (after one warm-up), and the sampling / update shares."""
+    """Env steps/s and wall seconds over ``iterations`` timed ``train()`` calls (after one warm-up iteration)."""
     cfg = build_config(name, scenario, overrides, 0)
     if min_steps is not None:
         cfg = cfg.copy(copy_frozen=False).reporting(min_sample_timesteps_per_iteration=min_steps)
@@ -41,27 +41,19 @@ def timed_train(name: str, scenario: str, overrides: dict, iterations: int, min_
     try:
         algo.train()
         start = algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"))
-        sample_s = update_s = 0.0
         t0 = time.perf_counter()
         for _ in range(iterations):
             result = algo.train()
-            timers = result.get("timers", {})
-            sample_s += float(timers.get("env_runner_sampling_timer", 0.0))
-            update_s += float(timers.get("learner_update_timer", 0.0))
         wall = time.perf_counter() - t0
         steps = result["env_runners"]["num_env_steps_sampled_lifetime"] - start
     finally:
         algo.stop()
-    return {"env_steps_per_s": steps / wall, "wall_s": wall, "sample_share": sample_s / wall, "update_share": update_s / wall}
+    return {"env_steps_per_s": steps / wall, "wall_s": wall}
 
 
 def show(label: str, r: dict[str, float]) -> None:
     """One line of the table."""
-    print(
-        f"  {label:<44} {r['env_steps_per_s']:>9.1f} env steps/s  ({r['wall_s']:.0f} s; "
-        f"sampling ~{r['sample_share']:.0%}, updates ~{r['update_share']:.0%} of it)",
-        flush=True,
-    )
+    print(f"  {label:<44} {r['env_steps_per_s']:>9.1f} env steps/s  ({r['wall_s']:.0f} s)", flush=True)
 
 
 def main() -> None:

@@ -1,16 +1,14 @@
 """CIG-TD3 on any device: no tensor created on a fixed device in updates and exploration, CUDA, one remote learner."""
 
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from device_audit import CreationAudit
 from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
-from torch.overrides import TorchFunctionMode
-from torch.utils._pytree import tree_flatten
 
 import coin_app.algorithms.cig_td3 as cig_td3_package
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
@@ -23,33 +21,6 @@ register_envs()
 ENV_CFG = {"num_agents": 4, "horizon": 50, "max_agent_steps": 50}
 B = 16
 AUDITED = (Path(cig_td3_package.__file__).parent, Path(__file__).parent)  # the CIG-TD3 code, and this file for the self-check
-
-
-class CreationAudit(TorchFunctionMode):
-    """Records every tensor the audited files create from no input tensor, with the device it lands on.
-
-    Each such call (``torch.rand(shape)``, ``torch.arange(n, device=x.device)``, ...) is replayed
-    once with the default device set to ``meta``: a call that names no device lands there, one that
-    takes its device from an input tensor or the module lands on that device. The real call then
-    runs unchanged (a meta replay draws no random numbers).
-    """
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.created: list[tuple[str, str, torch.device]] = []  # (file:line, function, device)
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        caller = sys._getframe(1)
-        if Path(caller.f_code.co_filename).parent in AUDITED:
-            leaves, _ = tree_flatten((args, kwargs))
-            if not any(isinstance(x, torch.Tensor) for x in leaves):
-                with torch.device("meta"):
-                    probe = func(*args, **kwargs)
-                if isinstance(probe, torch.Tensor):
-                    where = f"{Path(caller.f_code.co_filename).name}:{caller.f_lineno}"
-                    self.created.append((where, getattr(func, "__name__", repr(func)), probe.device))
-        return func(*args, **kwargs)
 
 
 def random_batch(cfg, seed=0):
@@ -99,12 +70,12 @@ def test_the_audit_sees_a_tensor_created_without_a_device():
     torch.manual_seed(3)
     expected = torch.rand(3)
     torch.manual_seed(3)
-    audit = CreationAudit()
+    audit = CreationAudit(AUDITED)
     with audit:
         drawn = torch.rand(3)
         torch.zeros(2, device="cpu")
         torch.ones(2).new_zeros(3)  # from an input tensor: not a creation from scratch
-    assert [(f, d.type) for _, f, d in audit.created] == [("rand", "meta"), ("zeros", "cpu"), ("ones", "meta")]
+    assert [(f, d.type) for _, f, d, _ in audit.created] == [("rand", "meta"), ("zeros", "cpu"), ("ones", "meta")]
     assert torch.equal(drawn, expected)  # the meta replay drew no random numbers
 
 
@@ -120,10 +91,10 @@ def test_the_audit_sees_a_tensor_created_without_a_device():
 def test_update_and_exploration_create_tensors_on_the_module_device(training):
     cfg, learner = build_learner(**training)
     device = next(learner.module["shared"].unwrapped().parameters()).device
-    audit = CreationAudit()
+    audit = CreationAudit(AUDITED)
     with audit:
         actions = update_and_explore(learner, cfg)
-    assert {"arange", "rand", "randn"} <= {f for _, f, _ in audit.created}  # canonical order, warm-up and exploration noise
+    assert {"arange", "rand", "randn"} <= {f for _, f, _, _ in audit.created}  # canonical order, warm-up and exploration noise
     assert [c for c in audit.created if c[2] != device] == []
     assert all(a.device == device and a.abs().max() <= 1 for a in actions)
 
@@ -136,7 +107,7 @@ def test_one_update_and_exploration_on_cuda(precision, ray_session):  # a Ray dr
     assert {p.device.type for p in module.parameters()} == {"cuda"}
     assert {p.device.type for t in (module.actor_target, module.local_q_target, module.central_target) for p in t.parameters()} == {"cuda"}
     before = [p.detach().clone() for p in module.actor.parameters()]
-    audit = CreationAudit()
+    audit = CreationAudit(AUDITED)
     with audit:
         actions = update_and_explore(learner, cfg)
     assert [c for c in audit.created if c[2].type != "cuda"] == []

@@ -1,14 +1,12 @@
 """The PPO family on any device: no tensor created on a fixed device in an update, CUDA, one remote learner."""
 
 import os
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from device_audit import CreationAudit
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
-from torch.overrides import TorchFunctionMode
-from torch.utils._pytree import tree_flatten
 
 import coin_app.algorithms.copo as copo_package
 import coin_app.algorithms.nav_ppo as nav_ppo_package
@@ -33,40 +31,6 @@ EXPECTED = {
     "nav_ppo": set(),
 }
 SEEDED_DRAWS = {("learner.py", "randperm"), ("learner.py", "randn")}  # CoPO's meta-gradient shuffles and LCF noise
-
-
-class CreationAudit(TorchFunctionMode):
-    """Records every tensor the audited files create from no input tensor, with the device it lands on.
-
-    Each such call (``torch.zeros(())``, ``torch.as_tensor(array, device=x.device)``, ...) is replayed
-    once with the default device set to ``meta``: a call that names no device lands there, one that
-    takes its device from an input tensor or the module lands on that device. The real call then
-    runs unchanged: a replay on a real device draws from forked global generators or a copy of the
-    call's ``generator``, so the audit changes no random numbers. A call given a ``generator`` is marked
-    seeded: CoPO draws on a CPU generator on purpose (bit-identical seeded runs) and moves the draw.
-    """
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.created: list[tuple[str, str, torch.device, bool]] = []  # (file:line, function, device, seeded)
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        caller = sys._getframe(1)
-        if Path(caller.f_code.co_filename).parent in AUDITED:
-            leaves, _ = tree_flatten((args, kwargs))
-            if not any(isinstance(x, torch.Tensor) for x in leaves):
-                replay = dict(kwargs)
-                if isinstance(kwargs.get("generator"), torch.Generator):
-                    replay["generator"] = torch.Generator(kwargs["generator"].device).set_state(kwargs["generator"].get_state())
-                cuda = list(range(torch.cuda.device_count())) if torch.cuda.is_initialized() else []
-                with torch.random.fork_rng(devices=cuda), torch.device("meta"):
-                    probe = func(*args, **replay)
-                if isinstance(probe, torch.Tensor):
-                    where = f"{Path(caller.f_code.co_filename).name}:{caller.f_lineno}"
-                    seeded = kwargs.get("generator") is not None
-                    self.created.append((where, getattr(func, "__name__", repr(func)), probe.device, seeded))
-        return func(*args, **kwargs)
 
 
 def config(name, **learners):
@@ -116,7 +80,7 @@ def test_the_audit_sees_a_tensor_created_without_a_device():
     reference = torch.Generator().manual_seed(0)
     expected_seeded = torch.randn(2, generator=reference)
     generator = torch.Generator().manual_seed(0)
-    audit = CreationAudit()
+    audit = CreationAudit(AUDITED)
     with audit:
         drawn = torch.rand(3)
         torch.zeros(2, device="cpu")
@@ -140,7 +104,7 @@ def test_an_update_creates_tensors_on_the_module_device(name):
     module = learner.module[SHARED_MODULE_ID].unwrapped()
     device = next(module.parameters()).device
     before = policy_state(module)
-    audit = CreationAudit()
+    audit = CreationAudit(AUDITED)
     with audit:
         results = update(cfg, learner, episodes)
     assert results and changed(before, policy_state(module))
@@ -158,7 +122,7 @@ def test_one_update_on_cuda(name, ray_session):  # a Ray driver, as in training:
     module = learner.module[SHARED_MODULE_ID].unwrapped()
     assert {p.device.type for p in module.parameters()} == {"cuda"}
     before = policy_state(module)
-    audit = CreationAudit()
+    audit = CreationAudit(AUDITED)
     with audit:
         update(cfg, learner, episodes)
     assert [c for c in audit.created if not c[3] and c[2].type != "cuda"] == []  # seeded CPU draws are moved to the data
