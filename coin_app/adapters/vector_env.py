@@ -79,12 +79,14 @@ class VectorEnv:
         """The ids ``agent<N>`` of the current vehicles of ``slots``."""
         return [agent_name(int(n)) for n in self.agent_num[slots]]
 
-    def _ended_envs(self, acted: np.ndarray, ended: np.ndarray, no_vehicle_left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(over, over_truncated) per env from the acted / ended slots, as the adapter decides them."""
+    def _ended_envs(
+        self, acted: np.ndarray, ended: np.ndarray, truncated: np.ndarray, no_vehicle_left: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(over, over_truncated) per env from the acted / ended / truncated slots, as the adapter decides them."""
         n_acted = np.bincount(self.env_of[acted], minlength=self.num_envs)
         n_ended = np.bincount(self.env_of[ended], minlength=self.num_envs)
         over = no_vehicle_left | ((n_acted > 0) & (n_ended == n_acted))
-        return over, n_acted > 0
+        return over, over & (np.bincount(self.env_of[ended & ~truncated], minlength=self.num_envs) == 0)
 
     def set_lcf_distribution(self, mean: float, std: float) -> None:
         """Refused: only a driving scenario with CoPO's LCFs has a distribution to move."""
@@ -131,8 +133,7 @@ class DrivingVectorEnv(VectorEnv):
         res = self.sim.step(actions)
         acted = res.acted
         ended = acted & (res.terminated | res.truncated)
-        over, _ = self._ended_envs(acted, ended, res.episode_over)
-        over_trunc = over & (np.bincount(self.env_of[ended & ~res.truncated], minlength=self.num_envs) == 0)
+        over, over_trunc = self._ended_envs(acted, ended, res.truncated, res.episode_over)
         spawned = res.spawned & ~over[self.env_of]  # the adapter drops vehicles spawned in an over step
         self._count_outcomes(res, acted, ended)
         self._returns[res.spawned] = 0.0
@@ -279,8 +280,7 @@ class ArenaVectorEnv(VectorEnv):
                 next_infos[slot] = infos[aid]
         ended = acted & (term | trunc)
         no_vehicle_left = np.array([env.episode_over for env in self.envs])
-        over, _ = self._ended_envs(acted, ended, no_vehicle_left)
-        over_trunc = over & (np.bincount(self.env_of[ended & ~trunc], minlength=self.num_envs) == 0)
+        over, over_trunc = self._ended_envs(acted, ended, trunc, no_vehicle_left)
         o = self.outcomes
         o["finished"] += int(ended.sum())
         slots = np.nonzero(ended)[0].tolist()
