@@ -18,6 +18,11 @@ share of the CPU cores as torch threads) and evaluates its deterministic actor o
 validation seeds every ``--eval-every`` env steps. Writes ``curves.csv`` (algo, seed,
 env_steps, metric columns) and ``curves.png`` (mean ± std of the success rate over seeds) and
 prints the final table.
+
+Nothing finished is lost: the runs are ordered seed by seed (every variant of seed 0, then of
+seed 1, ...), each finished run's rows are appended to ``curves.csv`` at once and the table and
+figure are rewritten from whatever has finished; running the same command again skips the runs
+already in ``curves.csv`` (a session cut mid-comparison resumes where it stopped).
 """
 
 from __future__ import annotations
@@ -102,7 +107,7 @@ def freeze_table(rows: list[dict]) -> str:
     for algo, variant in sorted({(r["algo"], r["variant"]) for r in rows}):
         runs = [r for r in rows if r["algo"] == algo and r["variant"] == variant]
         seeds = sorted({r["seed"] for r in runs})
-        final = [max((r for r in runs if r["seed"] == s), key=lambda r: r["env_steps"]) for s in seeds]
+        final = [max((r for r in runs if r["seed"] == s), key=lambda r: int(r["env_steps"])) for s in seeds]
         success = [float(r["success_rate"]) for r in final]
         collision = [float(r["collision_rate"]) for r in final]
         lines.append(
@@ -122,8 +127,8 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     for k, (key, label) in enumerate((("success_rate", "success rate"), ("episode_return", "mean return per vehicle"))):
         ax = fig.add_subplot(1, 2, k + 1)
         for algo in sorted({r["algo"] for r in rows}):
-            steps = sorted({r["env_steps"] for r in rows if r["algo"] == algo})
-            vals = [[float(r[key]) for r in rows if r["algo"] == algo and r["env_steps"] == s] for s in steps]
+            steps = sorted({int(r["env_steps"]) for r in rows if r["algo"] == algo})
+            vals = [[float(r[key]) for r in rows if r["algo"] == algo and int(r["env_steps"]) == s] for s in steps]
             mean = np.array([np.mean(v) for v in vals])
             std = np.array([np.std(v) for v in vals])
             ax.plot(steps, mean, label=algo)
@@ -168,44 +173,86 @@ def main() -> None:
     variants = parse_variants(args.variants)
     jobs = [
         (a, v, s, args.scenario, args.steps, args.eval_every, overrides | extra, args.eval_episodes, threads)
+        for s in args.seeds
         for a in args.algos
         for v, extra in variants.items()
-        for s in args.seeds
     ]
-    print(
-        f"{len(jobs)} runs of {args.steps} env steps on {args.scenario} ({args.procs} at a time); "
-        f"quick settings {[quick_settings(a) for a in args.algos]} + {overrides}"
-    )
-    with mp.get_context("spawn").Pool(args.procs) as pool:
-        rows = [r for rows in pool.map(run_one, jobs) for r in rows]
-    with open(out / "curves.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    for r in rows:
-        r["algo_variant"] = r["algo"] if len(variants) == 1 else f"{r['algo']} {r['variant']}"
-    plot(
-        [r | {"algo": r["algo_variant"]} for r in rows],
-        out / "curves.png",
-        f"{args.scenario}: success vs env steps ({len(args.seeds)} seeds)",
-    )
-    table = freeze_table(rows)
-    (out / "freeze_table.md").write_text(table)
+    csv_path = out / "curves.csv"
+    rows = read_rows(csv_path)
+    done = {(r["algo"], r["variant"], int(r["seed"])) for r in rows}
+    todo = [j for j in jobs if (j[0], j[1], j[2]) not in done]
     (out / "settings.json").write_text(
         json.dumps(
             vars(args) | {"quick_settings": {a: quick_settings(a) for a in args.algos}, "overrides": overrides, "variants": variants},
             indent=2,
         )
     )
+    print(
+        f"{len(jobs)} runs of {args.steps} env steps on {args.scenario} ({args.procs} at a time, "
+        f"{len(jobs) - len(todo)} already in {csv_path}); quick settings {[quick_settings(a) for a in args.algos]} + {overrides}",
+        flush=True,
+    )
+    with mp.get_context("spawn").Pool(args.procs) as pool:
+        for k, run_rows in enumerate(pool.imap_unordered(run_one, todo), 1):
+            append_rows(csv_path, run_rows)
+            rows = read_rows(csv_path)  # one type for every row (as read back from the CSV)
+            write_summary(rows, out, args.scenario, len(variants))
+            last = run_rows[-1]
+            print(
+                f"[{k}/{len(todo)}] finished {last['algo']} {last['variant']} seed {last['seed']}: "
+                f"success {float(last['success_rate']):.3f} at {last['env_steps']} env steps",
+                flush=True,
+            )
+    if not rows:
+        print("no run finished; nothing written")
+        return
+    table = write_summary(rows, out, args.scenario, len(variants))
     print("\nfinal evaluation (mean ± std over seeds):")
-    for label in sorted({r["algo_variant"] for r in rows}):
-        runs = {r["seed"] for r in rows if r["algo_variant"] == label}
-        final = [max((r for r in rows if r["algo_variant"] == label and r["seed"] == s), key=lambda r: r["env_steps"]) for s in runs]
+    for label in sorted({label_of(r, len(variants)) for r in rows}):
+        runs = {r["seed"] for r in rows if label_of(r, len(variants)) == label}
+        final = [
+            max((r for r in rows if label_of(r, len(variants)) == label and r["seed"] == s), key=lambda r: int(r["env_steps"]))
+            for s in runs
+        ]
         for key in ("success_rate", "collision_rate", "out_of_road_rate", "episode_return"):
-            v = [r[key] for r in final]
+            v = [float(r[key]) for r in final]
             print(f"  {label:<16} {key:<17} {np.mean(v):.3f} ± {np.std(v):.3f}")
     print("\n" + table)
-    print(f"wrote {out / 'curves.csv'}, {out / 'curves.png'} and {out / 'freeze_table.md'}")
+    print(f"wrote {csv_path}, {out / 'curves.png'} and {out / 'freeze_table.md'}")
+
+
+def label_of(row: dict, num_variants: int) -> str:
+    """The curve's label: the algorithm, plus the variant when several are compared."""
+    return row["algo"] if num_variants == 1 else f"{row['algo']} {row['variant']}"
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The evaluation rows already in ``curves.csv`` (none if it does not exist)."""
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def append_rows(path: Path, rows: list[dict]) -> None:
+    """Append one finished run's rows to ``curves.csv`` (header first if new), flushed to disk."""
+    new = not path.exists()
+    with open(path, "a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def write_summary(rows: list[dict], out: Path, scenario: str, num_variants: int) -> str:
+    """Rewrite ``curves.png`` and ``freeze_table.md`` from the finished runs; returns the table."""
+    seeds = len({r["seed"] for r in rows})
+    plot([r | {"algo": label_of(r, num_variants)} for r in rows], out / "curves.png", f"{scenario}: success vs env steps ({seeds} seeds)")
+    table = freeze_table(rows)
+    (out / "freeze_table.md").write_text(table)
+    return table
 
 
 if __name__ == "__main__":

@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import pickle
 import shlex
 import sys
 import time
+import traceback
+import zipfile
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -16,8 +19,9 @@ import numpy as np
 import pandas as pd
 
 from cluster import jobs
+from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoints import export_actor, load_module, read_metadata, scenario_of
-from coin_app.algorithms.registry import parse_overrides
+from coin_app.algorithms.registry import parse_overrides, quick_settings
 from coin_app.evaluation.arena_suite import evaluate_suite, markdown_table, parse_cases, plot_scenarios, summarize
 from coin_app.evaluation.evaluate import evaluate_policy, record
 from coin_app.evaluation.metrics import METRIC_KEYS, EpisodeRecorder, aggregate
@@ -33,7 +37,7 @@ from coin_app.sim.heuristic import HeuristicDriver
 from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
 from coin_app.sim.rollout import DictEnvs, rollout
 from coin_app.sim.scenarios import config_from_dict
-from coin_app.sim.seeds import eval_test_seeds
+from coin_app.sim.seeds import TEST_SEED_BASE, eval_test_seeds
 from coin_app.training import train
 from tuning.sweep import run_sweep, write_generalization
 
@@ -101,6 +105,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     """Train an algorithm of the registry; checkpoints and a summary go to ``--out``."""
 
     overrides = parse_overrides(args.set)
+    if args.quick:  # the small settings that learn within minutes, beneath the user's --set
+        overrides = {**quick_settings(args.algo), **overrides}
     if args.num_agents is not None:
         overrides["num_agents"] = args.num_agents
     if args.backend != "native":
@@ -108,6 +114,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{args.algo}_{args.scenario}_s{args.seed}")
     resume = Path(args.resume) if args.resume else None
     print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
+    if args.quick:
+        print(f"  --quick: {', '.join(f'{k}={v}' for k, v in quick_settings(args.algo).items())} (your --set wins)")
     summary = train(
         args.algo,
         args.scenario,
@@ -120,6 +128,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         max_minutes=args.max_minutes,
         threads=args.threads,
         address=args.address,
+        overwrite=args.overwrite,
     )
     print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations, {summary['wall_s']:.0f} s")
     print(f"  checkpoint: {summary['checkpoint']}")
@@ -157,6 +166,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
     seeds = args.seeds if args.seeds else eval_test_seeds(args.episodes)
+    not_test = [s for s in seeds if s < TEST_SEED_BASE]
+    if not_test:
+        print(
+            f"warning: --seeds {not_test[:5]}{' ...' if len(not_test) > 5 else ''} are training or validation seeds "
+            f"(test seeds are >= {TEST_SEED_BASE}); figures on them are not test results",
+            file=sys.stderr,
+        )
     overrides = parse_overrides(args.set)
     if args.num_agents is not None:
         overrides["num_agents"] = args.num_agents
@@ -374,13 +390,43 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
         if f.name != "reward":
             print(f"  {f.name:<20} {getattr(arena, f.name)!r}")
     print("  reward               a dict of RewardConfig fields (Eqs. 2-6), e.g. --set \"reward={'success_reward': 100}\"")
+    for name, spec in registry.ALGORITHMS.items():
+        print(f"\n{name} keys (--set key=value; {spec.description}; scenarios: {', '.join(spec.scenarios)}):")
+        for key, (default, meaning) in spec.hyperparameters.items():
+            print(f"  {key:<30} {default!r:<14} {meaning}")
+    print("\nkeys of every algorithm (how it samples, where its learner runs):")
+    for key, (default, meaning) in registry.COMMON_KEYS.items():
+        print(f"  {key:<30} {default!r:<14} {meaning}")
     return 0
+
+
+class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default, unless its help already says it or it is a flag (default False)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        empty = action.default is None or action.default is False or action.default == [] or action.default == argparse.SUPPRESS
+        if "default" in text or empty or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+class DefaultsParser(argparse.ArgumentParser):
+    """A command's parser whose --help shows every option's default."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", DefaultsFormatter)
+        super().__init__(*args, **kwargs)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every command."""
-    parser = argparse.ArgumentParser(prog="python -m coin_app", description="COIN / CIG-TD3 multi-agent driving on Ray RLlib.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    parser = argparse.ArgumentParser(
+        prog="python -m coin_app",
+        description="COIN / CIG-TD3 multi-agent driving on Ray RLlib.",
+        epilog="--debug (anywhere on the line): show the traceback of an error instead of its one-line message",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=DefaultsParser)
     sub.required = True
 
     demo = sub.add_parser("demo", help="drive a scenario with the heuristic driver; metrics, GIF and trajectory plot")
@@ -388,7 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--preset", default="paper", help="paper | metadrive_compat | kinematic")
     demo.add_argument("--num-agents", type=int, default=None, help="vehicles at reset (default: the scenario's)")
     demo.add_argument("--steps", type=int, default=300, help="env steps to run (stops earlier if the episode ends)")
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--seed", type=int, default=0, help="episode seed")
     demo.add_argument("--out", default="runs/demo", help="output directory")
     demo.add_argument("--gif-every", type=int, default=2, help="render every k-th step into the GIF")
     demo.add_argument("--no-gif", action="store_true", help="skip the animation")
@@ -398,15 +444,22 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train an algorithm (cig_td3, itd3, ippo, cppo, mfpo, copo, nav_ppo) with checkpoints and --resume")
     tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | ippo | cppo | mfpo | copo | nav_ppo (arena)")
     tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck | arena (nav_ppo)")
-    tr.add_argument("--num-agents", type=int, default=None)
+    tr.add_argument("--num-agents", type=int, default=None, help="vehicles (default: the scenario's)")
     tr.add_argument("--backend", default="native", help="native | metadrive (needs requirements-metadrive.txt)")
     tr.add_argument("--steps", type=int, default=1_000_000, help="env steps to train for")
-    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--seed", type=int, default=0, help="training seed, an integer in [0, 90000) (higher ones are evaluation seeds)")
     tr.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario or algorithm overrides (see docs)")
     tr.add_argument("--out", default=None, help="run directory (default runs/<algo>_<scenario>_s<seed>)")
     tr.add_argument("--checkpoint-every", type=int, default=10, help="checkpoint every K training iterations")
     tr.add_argument("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this much wall time")
-    tr.add_argument("--resume", default=None, help="checkpoint directory to continue from")
+    tr.add_argument("--resume", default=None, help="checkpoint directory to continue from (same algorithm, scenario and network)")
+    tr.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out (refused without --resume or this)")
+    tr.add_argument(
+        "--quick",
+        action="store_true",
+        help="the algorithm's small settings that show learning within minutes (4 agents, horizon 300, small networks, "
+        "CIG-TD3/ITD3: warm-up 500); --set values override them",
+    )
     tr.add_argument(
         "--threads",
         type=int,
@@ -428,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.set_defaults(func=cmd_evaluate)
 
     ex = sub.add_parser("export", help="export a checkpoint's actor for Ray-free inference")
-    ex.add_argument("checkpoint")
+    ex.add_argument("checkpoint", help="a checkpoint directory written by train or a sweep")
     ex.add_argument(
         "--format",
         default="numpy",
@@ -471,7 +524,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.set_defaults(func=cmd_sweep)
 
     ge = sub.add_parser("generalize", help="evaluate a sweep's final checkpoints at other agent counts (tidy CSV)")
-    ge.add_argument("experiment_dir")
+    ge.add_argument("experiment_dir", help="a sweep's experiment directory")
     ge.add_argument("--counts", type=int, nargs="*", default=None, help="agent counts (default: the sweep's grid)")
     ge.add_argument("--test-seeds", type=int, default=None, help="episodes per checkpoint and count (default: the sweep's, 20)")
     ge.set_defaults(func=cmd_generalize)
@@ -501,25 +554,46 @@ def build_parser() -> argparse.ArgumentParser:
 
     jb = sub.add_parser("job", help="status, logs or stop of a submitted job")
     jb.add_argument("action", choices=["status", "logs", "stop"])
-    jb.add_argument("job_id")
+    jb.add_argument("job_id", help="the id submit printed")
     jb.add_argument("--address", default=None, help="job server URL, default http://127.0.0.1:8265")
     jb.set_defaults(func=cmd_job)
 
-    scen = sub.add_parser("scenarios", help="list scenarios, presets and config keys")
+    scen = sub.add_parser("scenarios", help="list scenarios, presets, their config keys and every algorithm's keys with defaults")
     scen.set_defaults(func=cmd_scenarios)
     return parser
 
 
+USER_ERRORS = (ValueError, ImportError, OSError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile)
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: its first line, with the type for errors that are not ValueErrors."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) not in text:
+        text += f": {exc.filename}"
+    return text if isinstance(exc, ValueError) else f"{type(exc).__name__}: {text}"
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; bad input exits with status 2 and a one-line message."""
+    """Entry point; bad input exits with status 2 and a one-line message (``--debug`` anywhere: the traceback too)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
     parser = build_parser()
     args = parser.parse_args(argv)
-    args.command_line = shlex.join(["python", "-m", "coin_app", *(sys.argv[1:] if argv is None else argv)])
+    args.command_line = shlex.join(["python", "-m", "coin_app", *argv])
     try:
         return int(args.func(args))
-    except (ValueError, ImportError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if debug:
+            traceback.print_exc()
+        known = isinstance(exc, USER_ERRORS)
+        hint = "" if debug else " (--debug shows the traceback)"
+        print(f"error: {one_line(exc)}" + ("" if known else f"; an unexpected error{hint}"), file=sys.stderr)
+        return 2 if known else 1
 
 
 if __name__ == "__main__":

@@ -11,9 +11,12 @@ iteration and writes coin_app checkpoints (RLlib's layout plus ``coin_app.json``
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +31,7 @@ from ray.rllib.core.rl_module.rl_module import RLModule
 from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import make_env, register_envs
 from coin_app.algorithms import registry
-from coin_app.algorithms.checkpoints import actor_policy, write_metadata
+from coin_app.algorithms.checkpoints import PREVIOUS_SUFFIX, actor_policy, latest_complete, save_checkpoint
 from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes, scenario_config_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import aggregate
@@ -38,6 +41,28 @@ from coin_app.sim.scenarios import config_from_dict
 from coin_app.sim.seeds import check_training_seed, validation_seeds
 
 EVAL_RESULT_KEY = "coin_eval"  # the periodic evaluation's metrics in an iteration's result
+RAY_LOG = "ray.log"  # Ray's and RLlib's log records and Python warnings of a train run, in its --out
+
+
+@contextmanager
+def ray_noise_to(path: Path) -> Iterator[None]:
+    """While inside, Ray's and RLlib's log records (``ray`` loggers) and Python warnings go to ``path``, not the console."""
+    handler = logging.FileHandler(path)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    loggers = [logging.getLogger(name) for name in ("ray", "ray.rllib", "py.warnings")]  # ray.rllib has its own handler
+    saved = [(lg, lg.handlers[:], lg.propagate) for lg in loggers]
+    for lg in loggers:
+        lg.handlers, lg.propagate = [handler], False
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # each distinct warning once, into the file
+        logging.captureWarnings(True)
+        try:
+            yield
+        finally:
+            logging.captureWarnings(False)
+            for lg, handlers, propagate in saved:
+                lg.handlers, lg.propagate = handlers, propagate
+            handler.close()
 
 
 def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int) -> AlgorithmConfig:
@@ -56,7 +81,13 @@ def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int)
     cfg = with_env_runner(cfg, run.env_runner, run.num_envs_per_env_runner, spec.capabilities.on_policy, scenario_config)
     if run.num_learners or run.num_gpus_per_learner:
         cfg = cfg.learners(num_learners=run.num_learners, num_gpus_per_learner=run.num_gpus_per_learner)
-    cfg.validate()
+    notice = logging.getLogger("ray.rllib.algorithms.algorithm_config")  # "You are running X on the new API stack!" (once)
+    level = notice.level
+    notice.setLevel(logging.ERROR)
+    try:
+        cfg.validate()
+    finally:
+        notice.setLevel(level)
     register_envs()  # the coin-<scenario>-v0 names the config refers to
     return cfg
 
@@ -196,10 +227,62 @@ def checkpoint_meta(name: str, scenario: str, seed: int, overrides: dict[str, An
     return meta | ({"learners": learners} if learners else {}) | extra
 
 
-def save(algo: Algorithm, checkpoint: Path, meta: dict[str, Any]) -> None:
-    """Save the algorithm and its coin_app metadata to ``checkpoint``."""
-    algo.save_to_path(str(checkpoint.resolve()))
-    write_metadata(checkpoint, meta)
+def save(algo: Algorithm, checkpoint: Path, meta: dict[str, Any], atomic: bool = True) -> None:
+    """Save the algorithm, its coin_app metadata and manifest to ``checkpoint`` (atomically: ``checkpoints.save_checkpoint``)."""
+    save_checkpoint(algo, checkpoint, meta, atomic=atomic)
+
+
+def check_resume(checkpoint: Path, meta: dict[str, Any], name: str, scenario: str, overrides: dict[str, Any]) -> None:
+    """Refuse to resume ``checkpoint`` (metadata ``meta``) as another algorithm, scenario, scenario config or network shape."""
+    if meta.get("algo") != name:
+        raise ValueError(f"--resume {checkpoint} was trained by {meta.get('algo')!r}, not {name!r}; allowed: --algo {meta.get('algo')}")
+    if meta.get("scenario") != scenario:
+        trained = meta.get("scenario")
+        raise ValueError(f"--resume {checkpoint} was trained on scenario {trained!r}, not {scenario!r}; allowed: --scenario {trained}")
+    spec = registry.get(name)
+    old_overrides = dict(meta.get("overrides", {}))
+    old_env, old_algo = registry.split_overrides(name, old_overrides, scenario)
+    new_env, _ = registry.split_overrides(name, overrides, scenario)
+    old_cfg = config_from_dict(scenario, {**spec.scenario_defaults(old_algo), **old_env})
+    new_cfg = config_from_dict(scenario, {**spec.scenario_defaults(dict(overrides)), **new_env})
+    if old_cfg != new_cfg:
+        diff = sorted(k for k in old_cfg.__dataclass_fields__ if getattr(old_cfg, k) != getattr(new_cfg, k))
+        shown = ", ".join(f"{k}={getattr(old_cfg, k)!r} there, {getattr(new_cfg, k)!r} here" for k in diff[:4])
+        raise ValueError(
+            f"--resume {checkpoint} was trained on another {scenario} config ({shown}); allowed: the checkpoint's --set values"
+        )
+    seed = int(meta.get("seed", 0))
+    old_shapes = _parameter_shapes(fresh_module(name, scenario, old_overrides, seed))
+    new_shapes = _parameter_shapes(fresh_module(name, scenario, dict(overrides), seed))
+    if old_shapes != new_shapes:
+        diff = sorted(k for k in old_shapes.keys() | new_shapes.keys() if old_shapes.get(k) != new_shapes.get(k))
+        k = diff[0]
+        raise ValueError(
+            f"--resume {checkpoint} has another network shape ({k}: {old_shapes.get(k)} there, {new_shapes.get(k)} here; "
+            f"{len(diff)} parameter(s) differ); allowed: the checkpoint's --set values {old_overrides}"
+        )
+
+
+def _parameter_shapes(module: RLModule) -> dict[str, tuple[int, ...]]:
+    """Name -> shape of every parameter and buffer of a module."""
+    return {k: tuple(v.shape) for k, v in module.state_dict().items() if hasattr(v, "shape")}
+
+
+def check_run_dir(out: Path, resume: Path | None, overwrite: bool) -> None:
+    """Refuse ``out`` if it holds an earlier run (unless resumed or overwritten) or cannot be written; before any work."""
+    earlier = [p for p in (out / "checkpoint", out / ("checkpoint" + PREVIOUS_SUFFIX), out / "summary.json") if p.exists()]
+    if earlier and resume is None and not overwrite:
+        raise ValueError(
+            f"{out} holds an earlier run ({earlier[0].name}); allowed: --resume {out / 'checkpoint'} to continue it, "
+            "--overwrite to replace it, or another --out"
+        )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".coin_app_write_test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        raise ValueError(f"cannot write the run directory {out}: {exc.strerror or exc}; allowed: a writable path for --out") from exc
 
 
 def _eval_line(metrics: dict[str, float]) -> str:
@@ -221,12 +304,16 @@ def train(
     max_minutes: float | None = None,
     threads: int = 1,
     address: str | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end.
 
     ``threads``: torch threads of this process (its learner and local env runner; one by default,
     as every Ray worker gets). ``address``: a running Ray cluster to use instead of a local session
-    over all of this machine's cores.
+    over all of this machine's cores. ``out`` must not hold an earlier run unless ``resume`` or
+    ``overwrite``; ``resume`` must be a complete checkpoint (or its ``.prev``, after an interrupted
+    save) of the same algorithm, scenario config and network shape. Everything is checked before
+    any work starts.
     """
     if steps < 1:
         raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
@@ -237,9 +324,20 @@ def train(
     if not (isinstance(threads, int) and threads >= 1):
         raise ValueError(f"bad threads {threads!r}; allowed: an integer >= 1")
     cfg = build_config(name, scenario, overrides, seed)
-    if resume is not None and not (resume / "rllib_checkpoint.json").exists():
-        raise ValueError(f"--resume {resume} is not a checkpoint directory (no rllib_checkpoint.json)")
-    out.mkdir(parents=True, exist_ok=True)
+    if resume is not None:
+        found, resume_meta = latest_complete(resume)
+        if found != resume:
+            log(f"{resume} is incomplete (a save was interrupted); resuming from the previous checkpoint {found}")
+        resume = found
+        check_resume(resume, resume_meta, name, scenario, overrides)
+    check_run_dir(out, resume, overwrite)
+    spec = registry.get(name)
+    warmup = cfg.warmup_steps if "warmup_steps" in spec.hyperparameters else 0
+    if warmup and steps <= warmup:
+        log(
+            f"warning: --steps {steps} <= warmup_steps {warmup}: every action is uniform random and the networks are never "
+            f"updated (losses print nan). Train longer, or --set warmup_steps=N; small settings that learn in minutes: --quick"
+        )
     torch.set_num_threads(threads)
     if not ray.is_initialized():
         ray.init(address=address or "local", include_dashboard=False, log_to_driver=False, configure_logging=False)
@@ -250,46 +348,46 @@ def train(
         f"sampling: {runner} env runner, {max(1, cfg.num_env_runners)} runner(s) x {cfg.num_envs_per_env_runner} env(s); "
         f"learner: {'remote' if cfg.num_learners else 'in this process'}, {torch.get_num_threads()} torch thread(s) here"
     )
-    algo = cfg.build_algo()
-    if resume is not None:
-        algo.restore_from_path(str(resume.resolve()))
-        log(f"resumed from {resume}")
-    meta = checkpoint_meta(name, scenario, seed, overrides)
-    (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
-    spec = registry.get(name)
-    warmup = cfg.warmup_steps if "warmup_steps" in spec.hyperparameters else 0
-    if spec.capabilities.joint_replay:
-        agents = scenario_config_of(cfg).num_agents
-        log(f"replay: {cfg.replay_capacity:,} agent transitions, about {cfg.replay_capacity // agents:,} env steps at {agents} agents")
-    freeze = FreezeDetector(warmup)
-    t0 = time.perf_counter()
-    start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
-    result: dict[str, Any] = {}
-    last_eval: dict[str, float] = {}
-    ckpt = out / "checkpoint"
-    while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
-        result = algo.train()
-        m = iteration_metrics(result)
-        sampled = m["env_steps"]
-        it = int(result["training_iteration"])
-        elapsed = time.perf_counter() - t0
-        critic = m.get("learner/local_critic_loss", m.get("learner/vf_loss", np.nan))
-        log(
-            f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
-            f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
-        )
-        warning = freeze.update(m)
-        if warning:
-            log(warning)
-        if EVAL_RESULT_KEY in result:
-            last_eval = result[EVAL_RESULT_KEY]
-            log(_eval_line(last_eval))
-        if it % checkpoint_every == 0:
-            save(algo, ckpt, meta)
-    save(algo, ckpt, meta)
-    algo.stop()
+    with ray_noise_to(out / RAY_LOG):  # Ray's and RLlib's log records and warnings: a file, not the console
+        algo = cfg.build_algo()
+        if resume is not None:
+            algo.restore_from_path(str(resume.resolve()))
+            log(f"resumed from {resume}")
+        meta = checkpoint_meta(name, scenario, seed, overrides)
+        (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
+        if spec.capabilities.joint_replay:
+            agents = scenario_config_of(cfg).num_agents
+            log(f"replay: {cfg.replay_capacity:,} agent transitions, about {cfg.replay_capacity // agents:,} env steps at {agents} agents")
+        freeze = FreezeDetector(warmup)
+        t0 = time.perf_counter()
+        start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
+        result: dict[str, Any] = {}
+        last_eval: dict[str, float] = {}
+        ckpt = out / "checkpoint"
+        while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
+            result = algo.train()
+            m = iteration_metrics(result)
+            sampled = m["env_steps"]
+            it = int(result["training_iteration"])
+            elapsed = time.perf_counter() - t0
+            critic = m.get("learner/local_critic_loss", m.get("learner/vf_loss", np.nan))
+            log(
+                f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
+                f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
+            )
+            warning = freeze.update(m)
+            if warning:
+                log(warning)
+            if EVAL_RESULT_KEY in result:
+                last_eval = result[EVAL_RESULT_KEY]
+                log(_eval_line(last_eval))
+            if it % checkpoint_every == 0:
+                save(algo, ckpt, meta)
+        save(algo, ckpt, meta)
+        algo.stop()
     summary = {
         "checkpoint": str(ckpt),
+        "ray_log": str(out / RAY_LOG),
         "env_steps": sampled,
         "iterations": int(result.get("training_iteration", 0)),
         "wall_s": round(time.perf_counter() - t0, 1),

@@ -72,7 +72,7 @@ def test_train_and_evaluate_refuse_bad_input(tmp_path, capsys):
     assert main(["train", "--steps", "10", "--set", "colour=3", "--out", str(tmp_path / "x")]) == 2
     assert "colour" in capsys.readouterr().err
     assert main(["train", "--steps", "10", "--set", "policy_delay=0", "--out", str(tmp_path / "x")]) == 2
-    assert "policy_delay=0" in capsys.readouterr().err
+    assert "bad value for 'policy_delay': 0; allowed: an integer >= 1" in capsys.readouterr().err
     # training seeds stay below the validation (100000 + k) and test (200000 + k) seeds
     assert main(["train", "--steps", "10", "--seed", "200003", "--out", str(tmp_path / "x")]) == 2
     assert "bad seed 200003; allowed: an integer in [0, 90000)" in capsys.readouterr().err

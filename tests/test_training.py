@@ -29,3 +29,21 @@ def test_detector_warns_after_a_scripted_stand_still_and_not_before():
     # warm-up iterations never count; stand-still runs 4-7 (speeds 0.1, 0.2, 0.0, 0.0) warn from the third on; moving resets
     assert [w is not None for w in warnings] == [False, False, False, False, False, True, True, False]
     assert "stood still" in warnings[5] and "97%" in warnings[5] and "for 3 iterations" in warnings[5]
+
+
+def test_ray_noise_goes_to_the_log_file_not_the_console(tmp_path, capsys):
+    import logging
+    import warnings
+
+    from coin_app.training import ray_noise_to
+
+    log = tmp_path / "ray.log"
+    before = logging.getLogger("ray").handlers[:]
+    with ray_noise_to(log):
+        logging.getLogger("ray.rllib.some_module").warning("rllib says hello")
+        warnings.warn("a deprecated thing", DeprecationWarning, stacklevel=1)
+    captured = capsys.readouterr()
+    assert "rllib says hello" not in captured.err + captured.out and "deprecated thing" not in captured.err + captured.out
+    text = log.read_text()
+    assert "rllib says hello" in text and "a deprecated thing" in text
+    assert logging.getLogger("ray").handlers == before  # restored afterwards

@@ -25,6 +25,7 @@ from ray import tune
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.tune import PlacementGroupFactory
 
+from coin_app.algorithms.checkpoints import verify
 from coin_app.training import build_config, checkpoint_meta, iteration_metrics, save
 from tuning.experiment import trial_overrides
 
@@ -82,10 +83,11 @@ class CoinTrial(tune.Trainable):
     def save_checkpoint(self, checkpoint_dir: str) -> None:
         """Write a coin_app checkpoint (algorithm state and metadata) into Tune's checkpoint directory."""
 
-        save(self.algo, Path(checkpoint_dir), self.meta)
+        save(self.algo, Path(checkpoint_dir), self.meta, atomic=False)  # Tune made this directory for this save
 
     def load_checkpoint(self, checkpoint: str) -> None:
-        """Restore the algorithm (weights, optimizers, replay buffer, counters) from a checkpoint."""
+        """Restore the algorithm (weights, optimizers, replay buffer, counters) from a verified checkpoint."""
+        verify(Path(checkpoint))  # a torn or altered checkpoint is refused by name
         self.algo.restore_from_path(str(Path(checkpoint).resolve()))
         self.last = {"env_steps": int(self.algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))}
 

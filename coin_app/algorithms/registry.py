@@ -12,6 +12,7 @@ import ast
 from dataclasses import dataclass, fields
 from typing import Any
 
+from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3, ITD3
 from coin_app.algorithms.copo.copo import COPO
 from coin_app.algorithms.nav_ppo.config import NAV_PPO
@@ -109,7 +110,7 @@ def scenario_keys(scenario: str) -> set[str]:
 
 
 def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "intersection") -> tuple[dict[str, Any], dict[str, Any]]:
-    """Route ``--set`` keys to (scenario config, algorithm config); unknown keys are refused."""
+    """Route ``--set`` keys to (scenario config, algorithm config); unknown keys and bad algorithm values are refused."""
     env_keys = scenario_keys(scenario)
     algo_keys = set(keys(name))
     env_cfg = {k: v for k, v in overrides.items() if k in env_keys}
@@ -119,18 +120,25 @@ def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "inter
         raise ValueError(
             f"unknown --set key(s) {unknown}; scenario keys: {', '.join(sorted(env_keys))}; {name} keys: {', '.join(sorted(algo_keys))}"
         )
+    check_values(algo_cfg)  # type, finiteness and range of every value (coin_app.algorithms.checks)
     return env_cfg, algo_cfg
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``key=value`` strings to a dict; values are Python literals when they parse as one."""
+    """``key=value`` strings to a dict; values are Python literals when they parse as one (``inf``/``nan``: floats)."""
     out: dict[str, Any] = {}
     for item in items:
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise ValueError(f"bad --set {item!r}; expected key=value, e.g. --set crash_penalty=10")
+        if raw.strip().lower() in NON_FINITE:  # refused by name later, rather than read as the string 'inf'
+            out[key] = float(raw)
+            continue
         try:
             out[key] = ast.literal_eval(raw)
         except (ValueError, SyntaxError):
             out[key] = raw
     return out
+
+
+NON_FINITE = ("inf", "+inf", "-inf", "nan", "infinity", "-infinity")

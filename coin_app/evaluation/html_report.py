@@ -5,7 +5,6 @@ from __future__ import annotations
 import base64
 import json
 import platform
-import subprocess
 import sys
 import time
 from html import escape
@@ -15,6 +14,7 @@ from typing import Any
 
 import pandas as pd
 
+from coin_app.algorithms.checkpoints import git_commit
 from coin_app.evaluation.tables import to_html
 
 PACKAGES = ("ray", "torch", "numpy", "pandas", "scipy", "matplotlib", "gymnasium", "pettingzoo")
@@ -37,14 +37,7 @@ def versions() -> dict[str, str]:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             out[name] = "not installed"
-    try:
-        root = Path(__file__).resolve().parents[2]
-        commit = subprocess.run(
-            ["git", "-C", str(root), "describe", "--always", "--dirty", "--abbrev=12"], capture_output=True, text=True, timeout=10
-        )
-        out["coin_app commit"] = commit.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        out["coin_app commit"] = "unknown"
+    out["coin_app commit"] = git_commit()
     return out
 
 

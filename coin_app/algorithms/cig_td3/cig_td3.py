@@ -113,6 +113,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         "optimizer state, TD targets, loss reductions and soft updates stay fp32; 0.37x the fp32 update time at the paper's "
         "sizes on this CPU, no loss of success at equal env steps: docs/learning_curves_precision)",
     ),
+    "checkpoint_replay": (
+        True,
+        "keep the replay buffer in checkpoints (at its used size), so --resume continues exactly; False = small "
+        "checkpoints, and a resumed run refills an empty buffer (its updates wait for a batch of new transitions)",
+    ),
     "eval_every": (25, "training iterations between deterministic evaluations on validation seeds (0 = off)"),
     "eval_episodes": (5, "validation episodes (seeds) per periodic evaluation"),
 }
@@ -375,7 +380,7 @@ class CigTd3(Algorithm):
         """Algorithm state plus the replay buffer (RLlib's new stack leaves it out)."""
         state = super().get_state(*args, **kwargs)
         state[REPLAY_STATE_KEY] = {
-            "buffer": self.replay.get_state(),
+            "buffer": self.replay.get_state() if self.config.checkpoint_replay else None,
             "update_credit": self._update_credit,
             "num_updates": self._num_updates,
         }
@@ -386,7 +391,8 @@ class CigTd3(Algorithm):
         super().set_state(state)
         extra = state.get(REPLAY_STATE_KEY)
         if extra is not None:
-            self.replay.set_state(extra["buffer"])
+            if extra["buffer"] is not None:  # None: saved with checkpoint_replay=False, the buffer starts empty
+                self.replay.set_state(extra["buffer"])
             self._update_credit = float(extra["update_credit"])
             self._num_updates = int(extra["num_updates"])
 

@@ -1,0 +1,213 @@
+"""Checkpoints: atomic saves that survive SIGKILL anywhere, a manifest every loader checks, resume that refuses a mismatch."""
+
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from coin_app.algorithms.checkpoints import (
+    MANIFEST_FILE,
+    META_FILE,
+    MODULE_PATH,
+    PARTIAL_SUFFIX,
+    PREVIOUS_SUFFIX,
+    config_hash,
+    latest_complete,
+    verify,
+)
+from coin_app.cli import main
+
+# A stand-in for an RLlib algorithm whose save writes several files slowly, each stamped with the
+# generation it belongs to, so a checkpoint that mixes two saves is visible in its content.
+SAVER = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from coin_app.algorithms.checkpoints import MODULE_PATH, save_checkpoint
+
+    class SlowAlgo:
+        gen = 0
+        def save_to_path(self, path):
+            path = Path(path)
+            (path.joinpath(*MODULE_PATH)).mkdir(parents=True)
+            for k in range(4):
+                with open(path / f"part{k}.bin", "wb") as f:
+                    for _ in range(8):
+                        f.write(bytes([self.gen % 256]) * 32768)
+                        f.flush()
+                        time.sleep(0.002)
+            (path.joinpath(*MODULE_PATH) / "module_state.pkl").write_bytes(bytes([self.gen % 256]) * 1000)
+
+    algo, ckpt = SlowAlgo(), Path(sys.argv[1])
+    algo.gen = int(sys.argv[2])  # generations keep counting across the killed processes
+    while True:
+        algo.gen += 1
+        save_checkpoint(algo, ckpt, {"algo": "itd3", "scenario": "intersection", "overrides": {}, "env_config": {}, "gen": algo.gen})
+        print(algo.gen, flush=True)
+    """
+)
+
+
+def generation_of(checkpoint: Path) -> int:
+    """The one generation all data files of a checkpoint belong to (assert: they all agree with its metadata)."""
+    gen = json.loads((checkpoint / META_FILE).read_text())["gen"]
+    files = [checkpoint / f"part{k}.bin" for k in range(4)] + [checkpoint.joinpath(*MODULE_PATH) / "module_state.pkl"]
+    for f in files:
+        data = f.read_bytes()
+        assert set(data) == {gen % 256}, f"{f} mixes generations"
+    return gen
+
+
+def test_sigkill_at_random_points_of_repeated_saves_always_leaves_one_complete_checkpoint(tmp_path):
+    script = tmp_path / "saver.py"
+    script.write_text(SAVER)
+    rng = random.Random(0)
+    ckpt = tmp_path / "run" / "checkpoint"
+    ckpt.parent.mkdir()
+    last_seen = 0
+    states = {"checkpoint": 0, "prev": 0}
+    for _ in range(12):  # each kill lands somewhere in a save: writing files, the manifest, or between the two renames
+        proc = subprocess.Popen([sys.executable, str(script), str(ckpt), str(last_seen)], stdout=subprocess.PIPE, text=True)
+        assert proc.stdout.readline().strip().isdigit()  # its first save is complete (the import takes seconds)
+        time.sleep(rng.uniform(0.0, 0.4))  # a save takes ~0.1 s: the kill lands in one of the next few
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        found, meta = latest_complete(ckpt)  # never raises: some complete checkpoint always exists after the first save
+        gen = generation_of(found)
+        assert meta["gen"] == gen
+        assert gen >= last_seen  # never older than a checkpoint that was complete before
+        last_seen = gen
+        states["checkpoint" if found == ckpt else "prev"] += 1
+        partial = ckpt.with_name("." + ckpt.name + PARTIAL_SUFFIX)
+        if partial.exists():  # an interrupted save's directory is never accepted unless it is complete
+            try:
+                verify(partial)
+            except ValueError:
+                pass
+            else:
+                generation_of(partial)
+    assert states["checkpoint"] > 0
+
+
+def torn_copies(good: Path, tmp: Path) -> dict[str, Path]:
+    """Copies of a good checkpoint broken in the ways a kill, a disk or a user can break one."""
+    out = {}
+
+    def copy(name: str) -> Path:
+        dst = tmp / name
+        shutil.copytree(good, dst)
+        out[name] = dst
+        return dst
+
+    biggest = max((p for p in good.rglob("*") if p.is_file() and p.name != MANIFEST_FILE), key=lambda p: p.stat().st_size)
+    rel = biggest.relative_to(good)
+    with open(copy("truncated") / rel, "r+b") as f:
+        f.truncate(biggest.stat().st_size // 2)
+    (copy("missing_file") / rel).unlink()
+    (copy("no_manifest") / MANIFEST_FILE).unlink()
+    flipped = copy("flipped_byte") / rel
+    data = bytearray(flipped.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    flipped.write_bytes(bytes(data))
+    meta_path = copy("foreign_meta") / META_FILE
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps(meta | {"algo": "cig_td3"}))
+    (copy("extra_file") / "stray.pkl").write_bytes(b"x")
+    return out
+
+
+TINY = ["--scenario", "bottleneck", "--num-agents", "3", "--set", "horizon=40", "max_agent_steps=40", "warmup_steps=60"]
+TINY += ["train_batch_size_per_learner=16", "hidden=16", "eval_every=0", "--checkpoint-every", "1"]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny ITD3 run trained through the CLI (a real checkpoint with its manifest)."""
+    import ray
+
+    out = tmp_path_factory.mktemp("ckpt") / "run"
+    try:
+        assert main(["train", "--algo", "itd3", "--steps", "120", "--out", str(out), *TINY]) == 0
+    finally:
+        ray.shutdown()
+    return out
+
+
+def test_manifest_lists_every_file_with_size_and_checksum(trained):
+    ckpt = trained / "checkpoint"
+    manifest = json.loads((ckpt / MANIFEST_FILE).read_text())
+    meta = verify(ckpt)
+    files = sorted(p.relative_to(ckpt).as_posix() for p in ckpt.rglob("*") if p.is_file() and p.name != MANIFEST_FILE)
+    assert sorted(manifest["files"]) == files and META_FILE in files
+    assert all(manifest["files"][f]["size"] == (ckpt / f).stat().st_size for f in files)
+    assert manifest["algo"] == "itd3" and manifest["scenario"] == "bottleneck" and manifest["config_hash"] == config_hash(meta)
+    assert manifest["code_version"].startswith("0.")
+    assert not ckpt.with_name(ckpt.name + PREVIOUS_SUFFIX).exists()  # removed once the new one was in place
+    assert not ckpt.with_name("." + ckpt.name + PARTIAL_SUFFIX).exists()
+
+
+def test_every_loader_refuses_a_torn_or_altered_checkpoint_in_one_line(trained, tmp_path, capsys):
+    expected = {
+        "truncated": "is torn or altered",
+        "missing_file": "missing",
+        "no_manifest": "not a complete coin_app checkpoint",
+        "flipped_byte": "fails its SHA-256 check",
+        "foreign_meta": "coin_app.json has",  # the metadata is one of the checksummed files
+        "extra_file": "files not in its manifest",
+    }
+    for name, bad in torn_copies(trained / "checkpoint", tmp_path).items():
+        with pytest.raises(ValueError, match=expected[name]):
+            verify(bad)
+        for argv in (
+            ["evaluate", str(bad), "--episodes", "1"],
+            ["export", str(bad), "--out", str(tmp_path / "p.npz")],
+            ["train", "--algo", "itd3", "--steps", "200", "--out", str(tmp_path / f"r_{name}"), "--resume", str(bad), *TINY],
+        ):
+            assert main(argv) == 2, (name, argv[0])
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and expected[name] in err and "Traceback" not in err, (name, argv[0], err)
+        assert not (tmp_path / f"r_{name}").exists()  # refused before any work
+
+
+def test_train_refuses_an_existing_run_and_a_mismatched_resume(trained, tmp_path, capsys):
+    ckpt = trained / "checkpoint"
+    argv = ["train", "--algo", "itd3", "--steps", "200", *TINY]
+    assert main([*argv, "--out", str(trained)]) == 2
+    assert "holds an earlier run" in capsys.readouterr().err
+    cases = [
+        (["--algo", "cig_td3"], "was trained by 'itd3', not 'cig_td3'"),
+        (["--algo", "ippo", "--set", "horizon=40", "max_agent_steps=40"], "was trained by 'itd3', not 'ippo'"),  # the last --set wins
+        (["--scenario", "intersection"], "was trained on scenario 'bottleneck', not 'intersection'"),
+        ([a.replace("horizon=40", "horizon=50") for a in TINY], "another bottleneck config (horizon=40 there, 50 here)"),
+        ([a.replace("hidden=16", "hidden=32") for a in TINY], "another network shape"),
+    ]
+    for extra, message in cases:
+        assert main([*argv, *extra, "--out", str(tmp_path / "new"), "--resume", str(ckpt)]) == 2, extra
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, (extra, err)
+    assert not (tmp_path / "new").exists()
+
+
+def test_resume_falls_back_to_the_previous_checkpoint_after_an_interrupted_rename(trained, tmp_path, capsys):
+    import ray
+
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    ckpt = run / "checkpoint"
+    ckpt.rename(ckpt.with_name(ckpt.name + PREVIOUS_SUFFIX))  # killed between the two renames of a save
+    with pytest.raises(ValueError, match=r"does not exist .*the previous checkpoint is .*checkpoint\.prev"):
+        verify(ckpt)
+    try:
+        assert main(["train", "--algo", "itd3", "--steps", "200", "--out", str(run), "--resume", str(ckpt), *TINY]) == 0
+    finally:
+        ray.shutdown()
+    assert "resuming from the previous checkpoint" in capsys.readouterr().out
+    assert verify(ckpt)["algo"] == "itd3"
