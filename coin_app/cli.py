@@ -327,7 +327,9 @@ def cmd_report(args: argparse.Namespace) -> int:
             print(f"    {name}: {value}")
     for f in summary["failures"]:
         print(f"  NOT EVALUATED {f.get('trial') or f.get('checkpoint')}: {f['error']}")
-    return 1 if summary["failures"] else 0
+    for f in summary.get("unreadable", []):
+        print(f"  UNREADABLE {f['path']}: {f['error']} (left out of the learning curves)")
+    return 1 if summary["failures"] or summary.get("unreadable") else 0
 
 
 def _check_command(command: list[str]) -> None:

@@ -149,3 +149,27 @@ def test_report_names_the_path_of_a_file_that_is_not_a_results_table(tmp_path, c
     bad.write_text("a,b\n1,2\n")
     assert main(["report", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert f"{bad} is not a coin_app results table" in capsys.readouterr().err
+
+
+def test_report_lists_unreadable_trials_and_still_writes_everything_else(sweep_dir, tmp_path, capsys):
+    broken = tmp_path / "broken_sweep"
+    shutil.copytree(sweep_dir, broken)
+    trials = {t.config["algo"]: t.path.relative_to(sweep_dir) for t in load_trials(sweep_dir)}
+    result_json = broken / trials["ippo"] / "result.json"
+    lines = result_json.read_text().splitlines()
+    result_json.write_text("\n".join([lines[0], "{not json", *lines[1:]]) + "\n")  # a corrupt line mid-file
+    progress = broken / trials["cig_td3"] / "progress.csv"
+    progress.write_bytes(b'env_steps,a\n1,2\n"3,4,5\n\x00\x01')  # an unterminated quote: pandas cannot parse it
+    out = tmp_path / "report"
+    argv = ["report", str(broken), "--out", str(out), "--test-seeds", "1", "--tsne-samples", "20", "--tsne-episodes", "1"]
+    assert main(argv) == 1  # something was left out: the exit status says so
+    printed = capsys.readouterr().out
+    assert "NOT EVALUATED" in printed and trials["ippo"].name in printed and "is not valid JSON" in printed
+    assert f"UNREADABLE {progress}" in printed
+    for name in ("results.csv", "table_main.md", "stats.csv", "report.html", "trajectories_intersection_cig_td3.png"):
+        assert (out / name).is_file(), name
+    # one method left: nothing is marked best, and no radar pretends to compare
+    assert "**" not in (out / "table_main.md").read_text() and "<u>" not in (out / "table_main.md").read_text()
+    assert not (out / "radar_intersection.png").exists() and "radar_intersection: not drawn (a radar compares methods" in printed
+    page = html.unescape((out / "report.html").read_text())
+    assert "Not evaluated or unreadable" in page and str(progress) in page

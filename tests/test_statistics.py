@@ -188,3 +188,11 @@ def test_tsne_separates_clusters_and_is_deterministic():
     assert all(len(set(found[labels == c])) == 1 for c in range(3)) and len(set(found)) == 3
     with pytest.raises(ValueError, match="bad perplexity 200"):
         tsne(x, perplexity=200)
+
+
+def test_a_single_label_has_no_best_or_second():
+    summary = pd.DataFrame(
+        {"scenario": ["s", "s"], "label": ["only", "only"], "metric": ["success_rate", "out_of_road_rate"], "mean": [0.0, 0.97]}
+    )
+    summary["std"], summary["n"] = 0.0, 5
+    assert list(statistics.rank_marks(summary)["rank"]) == [0, 0]

@@ -84,8 +84,10 @@ def write_html(
         "(disjoint from training and validation seeds).</p>",
     ]
     if fails:
-        items = "".join(f"<li>{escape(f.get('trial') or f.get('checkpoint', '?'))}: {escape(f['error'])}</li>" for f in fails)
-        parts.append(f"<h2>Not evaluated</h2><ul class='note'>{items}</ul>")
+        items = "".join(
+            f"<li>{escape(f.get('trial') or f.get('checkpoint') or f.get('path', '?'))}: {escape(f['error'])}</li>" for f in fails
+        )
+        parts.append(f"<h2>Not evaluated or unreadable</h2><ul class='note'>{items}</ul>")
     parts += [
         "<h2>Main results (Table 5.1 layout)</h2>",
         "<p>Mean (std) over all test episodes of all trained seeds; best in bold, second underlined.</p>",

@@ -67,8 +67,10 @@ def radar_values(summary: pd.DataFrame) -> pd.DataFrame:
 
 
 def plot_radar(summary: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:
-    """Radar chart of success, safety and efficiency per method for one scenario."""
+    """Radar chart of success, safety and efficiency per method for one scenario (a comparison: two methods at least)."""
     values = radar_values(summary)
+    if len(values) < 2:
+        raise ValueError(f"a radar compares methods after min-max normalization; only {', '.join(values.index)} is here")
     angles = np.linspace(0.0, 2.0 * np.pi, len(RADAR_METRICS), endpoint=False)
     closed = np.append(angles, angles[0])
     fig = _figure(5.2, 4.6)

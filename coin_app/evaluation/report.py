@@ -97,7 +97,7 @@ def gather(paths: Sequence[Path]) -> Sources:
             raise ValueError(f"{path} is not a results file, a sweep directory (with {SETTINGS_FILE}) or a directory of sweeps")
         for d in sweep_dirs:
             runs, skipped, unfinished = [], [], []
-            for trial in load_trials(d):
+            for trial in load_trials(d, unreadable=skipped):  # a corrupt trial is listed, the others reported
                 if not trial.finished:
                     unfinished.append(f"{trial.name} ({trial.last.get('env_steps', 0)} of {trial.config.get('steps')} env steps)")
                 ckpt = trial.final_checkpoint
@@ -157,15 +157,23 @@ def ordered_labels(labels: Sequence[str], method: str) -> list[str]:
     return first + [x for x in uniq if x not in first]
 
 
-def learning_curves(table: pd.DataFrame) -> pd.DataFrame:
-    """Per run (label, seed) the Tune progress rows (env steps, return, train success) next to its checkpoint."""
+def learning_curves(table: pd.DataFrame, unreadable: list[dict[str, Any]] | None = None) -> pd.DataFrame:
+    """Per run (label, seed) the Tune progress rows (env steps, return, train success) next to its checkpoint.
+
+    A ``progress.csv`` that cannot be read is left out and, with ``unreadable``, listed there.
+    """
     parts = []
     runs = table.drop_duplicates("checkpoint")
     for r in runs.itertuples():
         progress = Path(r.checkpoint).parent / "progress.csv"
         if not progress.is_file():
             continue
-        df = pd.read_csv(progress)
+        try:
+            df = pd.read_csv(progress)
+        except (ValueError, OSError, UnicodeDecodeError) as exc:  # pandas' ParserError and EmptyDataError are ValueErrors
+            if unreadable is not None:
+                unreadable.append({"path": str(progress), "error": f"unreadable progress.csv ({str(exc).splitlines()[0]})"})
+            continue
         cols = [c for c in ("env_steps", "episode_return_mean", "train_success_rate") if c in df.columns]
         if "env_steps" not in cols:
             continue
@@ -258,7 +266,10 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
     files += [out / "stats.csv", write_marl_eval(table, out / "marl_eval.json")]
 
     figures: dict[str, Any] = {}
-    curves = learning_curves(table)
+    unreadable: list[dict[str, Any]] = []  # files read after the evaluation that could not be read (named, not fatal)
+    curves = learning_curves(table, unreadable)
+    for u in unreadable:
+        log(f"  unreadable, left out of the learning curves: {u['path']}: {u['error']}")
     for scenario in sorted(table["scenario"].unique()):
         s_sum = main_summary[main_summary["scenario"] == scenario]
         _attempt(f"radar_{scenario}", figures, log, lambda s=s_sum, n=scenario: plots.plot_radar(s, out / f"radar_{n}.png", n, colors))
@@ -297,7 +308,7 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
         "sweeps": [{"path": str(s["path"]), "settings": s["settings"], "unfinished": s["unfinished"]} for s in sources.sweeps],
         "tables": [{"path": str(t["path"]), "settings": t["settings"]} for t in sources.tables],
         "evaluation": eval_settings,
-        "failures": failures,
+        "failures": failures + unreadable,
     }
     html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context)
     summary = {
@@ -305,6 +316,7 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
         "episodes": len(table),
         "models": int(table["checkpoint"].nunique()),
         "failures": failures,
+        "unreadable": unreadable,
         "files": [str(f) for f in [*files, html]],
         "figures": {k: str(v) for k, v in figures.items()},
         "success": {f"{r.scenario}/{r.label}": r.mean for r in main_summary[main_summary["metric"] == "success_rate"].itertuples()},

@@ -108,9 +108,14 @@ def displayed(metric: str, value: float) -> float:
 
 
 def rank_marks(summary: pd.DataFrame) -> pd.DataFrame:
-    """``summary`` with column ``rank``: 1 for the best displayed mean per (scenario, metric), 2 for the second, else 0."""
+    """``summary`` with column ``rank``: 1 for the best displayed mean per (scenario, metric), 2 for the second, else 0.
+
+    A (scenario, metric) with a single label has no ranks: nothing is "best" without a comparison.
+    """
     ranks = np.zeros(len(summary), dtype=int)
     for _, g in summary.groupby(["scenario", "metric"], sort=False):
+        if g["label"].nunique() < 2:
+            continue
         spec = METRIC_BY_KEY[g["metric"].iloc[0]]
         shown = np.array([displayed(spec.key, v) if not np.isnan(v) else np.nan for v in g["mean"]])
         distinct = sorted({v for v in shown if not np.isnan(v)}, reverse=spec.higher_is_better)

@@ -76,11 +76,12 @@ def _read_json_lines(path: Path) -> list[dict[str, Any]]:
     return results
 
 
-def load_trials(experiment_dir: Path, live: bool = False) -> list[TrialRecord]:
+def load_trials(experiment_dir: Path, live: bool = False, unreadable: list[dict[str, Any]] | None = None) -> list[TrialRecord]:
     """Every trial directory of a sweep, sorted by trial name.
 
     ``live=True`` is for a sweep that may be running: a trial whose ``params.json`` is still
-    being written is left out instead of refused.
+    being written is left out instead of refused. ``unreadable``: a list that collects the trials
+    whose files are corrupt (``{"trial", "path", "error"}``) instead of refusing the whole sweep.
     """
     read_settings(experiment_dir)
     trials = []
@@ -88,12 +89,23 @@ def load_trials(experiment_dir: Path, live: bool = False) -> list[TrialRecord]:
         d = params.parent
         try:
             config = json.loads(params.read_text())
-        except json.JSONDecodeError as err:
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
             if live:
                 continue
-            raise ValueError(f"{params} is not valid JSON ({err.msg}); the trial's config is missing or corrupt") from err
+            error = f"{params} is not valid JSON ({getattr(err, 'msg', err)}); the trial's config is missing or corrupt"
+            if unreadable is None:
+                raise ValueError(error) from err
+            unreadable.append({"trial": d.name, "path": str(d), "error": error})
+            continue
         checkpoints = sorted(
             (c for c in d.glob("checkpoint_*") if (c / "coin_app.json").is_file()), key=lambda c: int(c.name.split("_")[-1])
         )
-        trials.append(TrialRecord(d, config, _read_json_lines(d / "result.json"), checkpoints))
+        try:
+            results = _read_json_lines(d / "result.json")
+        except (ValueError, UnicodeDecodeError) as err:
+            if unreadable is None:
+                raise
+            unreadable.append({"trial": d.name, "path": str(d), "error": str(err)})
+            continue
+        trials.append(TrialRecord(d, config, results, checkpoints))
     return sorted(trials, key=lambda t: t.name)
