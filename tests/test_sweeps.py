@@ -20,6 +20,7 @@ from coin_app.training import checkpoint_meta
 from tuning import EXPERIMENTS, get_experiment
 from tuning.ablations import VARIANTS
 from tuning.experiment import expand_grid, trial_overrides
+from tuning.progress_csv import aligned_row, read_table, write_table
 from tuning.sweep import check_address, check_local_gpus, validate_trials
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus, trial_resources
 
@@ -271,3 +272,22 @@ def test_sweep_killed_with_sigkill_resumes_without_rerunning_or_losing_anything(
     # it continued from its checkpoint: its env-step count never went back to the start
     steps = [r["env_steps"] for r in resumed.results]
     assert steps[0] == 500 and steps.count(500) == 1 and steps[-1] >= 1000
+    # progress.csv: every row of the resumed trial under the right header (one column order across the restore)
+    header, rows = read_table(resumed.path / "progress.csv")
+    assert len(header) == len(set(header)) and rows
+    for row in rows:
+        assert None not in row and float(row["env_steps"]).is_integer() and float(row["training_iteration"]).is_integer()
+        assert row["done"] in ("True", "False") and row["trial_id"] == rows[0]["trial_id"]
+
+
+def test_progress_rows_follow_the_existing_header_and_new_keys_extend_it(tmp_path):
+    path = tmp_path / "progress.csv"
+    write_table(path, ["env_steps", "learner/lr", "done"], [{"env_steps": 500, "learner/lr": 0.1, "done": False}])
+    header, rows = read_table(path)
+    # a restored process reports the same keys in another order, plus a new one
+    columns, row = aligned_row(header, {"done": True, "eval/success": 0.5, "learner/lr": 0.2, "env_steps": 1000})
+    assert columns == ["env_steps", "learner/lr", "done", "eval/success"]
+    assert list(row) == columns and row == {"env_steps": 1000, "learner/lr": 0.2, "done": True, "eval/success": 0.5}
+    write_table(path, columns, [*rows, row])
+    header, rows = read_table(path)
+    assert header == columns and rows[0]["eval/success"] == "" and rows[1]["learner/lr"] == "0.2" and rows[1]["env_steps"] == "1000"

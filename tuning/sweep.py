@@ -39,6 +39,7 @@ from coin_app.evaluation.generalization import evaluate_at_counts
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings, trial_name
 from tuning import get_experiment
 from tuning.experiment import expand_grid
+from tuning.progress_csv import AlignedCSVLogger
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus
 
 EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
@@ -190,6 +191,7 @@ def run_sweep(
                     checkpoint_frequency=sc.checkpoint_every, checkpoint_at_end=True, num_to_keep=sc.keep
                 ),
                 failure_config=tune.FailureConfig(max_failures=1),
+                callbacks=[AlignedCSVLogger()],  # progress.csv keeps one column order across restores
             ),
         )
     t0 = time.perf_counter()
