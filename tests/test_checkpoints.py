@@ -211,3 +211,32 @@ def test_resume_falls_back_to_the_previous_checkpoint_after_an_interrupted_renam
         ray.shutdown()
     assert "resuming from the previous checkpoint" in capsys.readouterr().out
     assert verify(ckpt)["algo"] == "itd3"
+
+
+def test_train_killed_at_random_points_always_resumes_from_a_complete_checkpoint(tmp_path):
+    """SIGKILL a real ``train`` (a save every iteration) several times; each restart resumes from a complete checkpoint."""
+    run, rng = tmp_path / "run", random.Random(3)
+    ckpt = run / "checkpoint"
+    repo = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1"}
+    base = [sys.executable, "-m", "coin_app", "train", "--algo", "itd3", "--out", str(run), *TINY]
+    last_mtime = 0.0
+    for k in range(3):
+        argv = [*base, "--steps", "1000000", *(["--resume", str(ckpt)] if k else [])]
+        with open(tmp_path / f"train{k}.log", "w") as log:
+            proc = subprocess.Popen(argv, cwd=repo, env=env, stdout=log, stderr=log, start_new_session=True)
+            t0 = time.time()
+            while not ((ckpt / MANIFEST_FILE).is_file() and (ckpt / MANIFEST_FILE).stat().st_mtime > last_mtime):
+                assert proc.poll() is None and time.time() - t0 < 240, (tmp_path / f"train{k}.log").read_text()[-2000:]
+                time.sleep(0.2)
+            time.sleep(rng.uniform(0.0, 2.0))  # saves follow each other: the kill lands in one, or between two
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        found, meta = latest_complete(ckpt)  # a complete checkpoint under one of the two names, never a torn one
+        assert meta["algo"] == "itd3" and found in (ckpt, ckpt.with_name(ckpt.name + PREVIOUS_SUFFIX))
+        last_mtime = (found / MANIFEST_FILE).stat().st_mtime
+        if k:
+            assert "resumed from" in (tmp_path / f"train{k}.log").read_text()
+    done = subprocess.run([*base, "--steps", "1", "--resume", str(ckpt)], cwd=repo, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "resumed from" in done.stdout, done.stdout[-2000:] + done.stderr[-2000:]
+    assert verify(ckpt)["algo"] == "itd3"
