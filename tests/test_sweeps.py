@@ -291,3 +291,40 @@ def test_progress_rows_follow_the_existing_header_and_new_keys_extend_it(tmp_pat
     write_table(path, columns, [*rows, row])
     header, rows = read_table(path)
     assert header == columns and rows[0]["eval/success"] == "" and rows[1]["learner/lr"] == "0.2" and rows[1]["env_steps"] == "1000"
+
+
+def _processes_with_env(text: str) -> list[str]:
+    """Command lines of live processes whose environment contains ``text`` (Linux /proc; Ray retitles its processes)."""
+    found = []
+    for environ in Path("/proc").glob("[0-9]*/environ"):
+        try:
+            if text.encode() in environ.read_bytes():
+                found.append((environ.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:160])
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["kill-9", "sigterm"])
+def test_sweep_driver_stopped_leaves_no_ray_process(tmp_path, sig):
+    import tempfile
+
+    ray_tmp = tempfile.mkdtemp(prefix="cr", dir="/tmp")  # short: Ray's socket paths must fit in 107 characters
+    storage = tmp_path / "sweeps"
+    argv = ["sweep", "seeds", "--smoke", "--seeds", "0", "--num-cpus", "1", "--storage", str(storage), "--name", "stop"]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "RAY_TMPDIR": ray_tmp}
+    with open(tmp_path / "driver.log", "w") as log:
+        driver = subprocess.Popen([sys.executable, "-m", "coin_app", *argv], cwd=REPO, env=env, stdout=log, stderr=log)
+        try:
+            _wait_for(lambda: any(storage.glob("stop/*/result.json")), 300, "a running trial")
+            running = _processes_with_env(ray_tmp)
+            assert any("DashboardAgent" in p for p in running) and any("raylet" in p for p in running), running
+            driver.send_signal(sig)
+            driver.wait(timeout=120)
+        finally:
+            if driver.poll() is None:
+                driver.kill()
+    # Ray's agents outlived a kill -9 of the driver before tuning/reaper.py; now nothing of this sweep's Ray is left
+    _wait_for(lambda: not _processes_with_env(ray_tmp), 30, f"the sweep's Ray processes to exit: {_processes_with_env(ray_tmp)}")
+    if sig == signal.SIGTERM:
+        assert "Traceback" not in (tmp_path / "driver.log").read_text()

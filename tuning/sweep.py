@@ -24,9 +24,12 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
@@ -40,6 +43,7 @@ from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_s
 from tuning import get_experiment
 from tuning.experiment import expand_grid
 from tuning.progress_csv import AlignedCSVLogger
+from tuning.reaper import clear_mark, start_reaper
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus
 
 EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
@@ -164,7 +168,11 @@ def run_sweep(
     started_here = not ray.is_initialized()
     if started_here:
         if local_ray:
-            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
+            start_reaper()  # this sweep's Ray processes go with its driver, even after kill -9 (tuning/reaper.py)
+            try:
+                ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
+            finally:
+                clear_mark()
         else:  # an explicit cluster, or the one a Ray job runs in (RAY_ADDRESS)
             ray.init(address=address)
     if local_ray and gpus:
@@ -195,7 +203,12 @@ def run_sweep(
             ),
         )
     t0 = time.perf_counter()
-    grid = tuner.fit()
+    try:
+        with terminate_as_interrupt():  # SIGTERM stops Tune as Ctrl-C does: experiment state saved, trials resumable
+            grid = tuner.fit()
+    finally:
+        if started_here:  # no Ray process of this sweep outlives it (raylet, GCS, dashboard and runtime-env agents)
+            ray.shutdown()
     summary: dict[str, Any] = {"experiment_dir": str(path), "wall_s": round(time.perf_counter() - t0, 1), "errors": grid.num_errors}
     if not local:
         return summary
@@ -217,6 +230,19 @@ def run_sweep(
         if done:
             summary["generalization_csv"] = str(write_generalization(path, records=done, log=log))
     return summary
+
+
+@contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """While inside (main thread only), SIGTERM is turned into SIGINT, which Tune handles by stopping gracefully."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: os.kill(os.getpid(), signal.SIGINT))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def write_generalization(
