@@ -275,6 +275,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         resume=args.resume,
         num_cpus=args.num_cpus,
         command=getattr(args, "command_line", None),
+        wandb_project=args.wandb,
+        mlflow_uri=args.mlflow,
     )
     print(f"\nsweep summary: {summary['experiment_dir']} ({summary['wall_s']:.0f} s, {summary['errors']} errored trials)")
     for t in summary.get("trials", []):
@@ -523,6 +525,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--max-concurrent", type=int, default=None, help="trials running at once (default: as many as fit)")
     sw.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
     sw.add_argument("--resume", action="store_true", help="continue the named sweep: finished trials stay, others resume")
+    sw.add_argument("--wandb", default=None, metavar="PROJECT", help="also log trials to this W&B project (needs wandb)")
+    sw.add_argument("--mlflow", default=None, metavar="URI", help="also log trials to this MLflow tracking URI (needs mlflow)")
     sw.set_defaults(func=cmd_sweep)
 
     ge = sub.add_parser("generalize", help="evaluate a sweep's final checkpoints at other agent counts (tidy CSV)")

@@ -27,6 +27,7 @@ from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.callbacks.callbacks import RLlibCallback
 from ray.rllib.core.rl_module.rl_module import RLModule
+from tensorboardX import SummaryWriter
 
 from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import make_env, register_envs
@@ -41,6 +42,7 @@ from coin_app.sim.scenarios import config_from_dict
 from coin_app.sim.seeds import check_training_seed, validation_seeds
 
 EVAL_RESULT_KEY = "coin_eval"  # the periodic evaluation's metrics in an iteration's result
+TENSORBOARD_DIR = "tensorboard"  # the iteration metrics of a train run as TensorBoard event files, in its --out
 RAY_LOG = "ray.log"  # Ray's and RLlib's log records and Python warnings of a train run, in its --out
 
 
@@ -359,6 +361,7 @@ def train(
             agents = scenario_config_of(cfg).num_agents
             log(f"replay: {cfg.replay_capacity:,} agent transitions, about {cfg.replay_capacity // agents:,} env steps at {agents} agents")
         freeze = FreezeDetector(warmup)
+        board = SummaryWriter(str(out / TENSORBOARD_DIR))  # what Tune trials write too: tensorboard --logdir <out>
         t0 = time.perf_counter()
         start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
         result: dict[str, Any] = {}
@@ -375,6 +378,10 @@ def train(
                 f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
                 f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
             )
+            for key, value in m.items():
+                if math.isfinite(value):
+                    board.add_scalar(key, value, global_step=sampled)
+            board.flush()
             warning = freeze.update(m)
             if warning:
                 log(warning)
@@ -384,10 +391,12 @@ def train(
             if it % checkpoint_every == 0:
                 save(algo, ckpt, meta)
         save(algo, ckpt, meta)
+        board.close()
         algo.stop()
     summary = {
         "checkpoint": str(ckpt),
         "ray_log": str(out / RAY_LOG),
+        "tensorboard": str(out / TENSORBOARD_DIR),
         "env_steps": sampled,
         "iterations": int(result.get("training_iteration", 0)),
         "wall_s": round(time.perf_counter() - t0, 1),

@@ -106,3 +106,15 @@ def test_one_line_of_any_exception():
     )
     assert one_line(RuntimeError("")) == "RuntimeError: RuntimeError"
     assert math.isfinite(np.float64(1.0))
+
+
+@pytest.mark.parametrize(("flag", "package"), [("--wandb", "wandb"), ("--mlflow", "mlflow")])
+def test_sweep_tracking_flags_refuse_a_missing_package_before_any_work(flag, package, tmp_path, capsys):
+    import importlib.util
+
+    if importlib.util.find_spec(package) is not None:
+        pytest.skip(f"{package} is installed")
+    assert main(["sweep", "seeds", "--smoke", flag, "x", "--storage", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert f"{flag} x needs the {package} package; allowed: pip install {package}" in err and err.count("\n") == 1
+    assert not (tmp_path / "s").exists()

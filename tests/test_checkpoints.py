@@ -141,6 +141,14 @@ def trained(tmp_path_factory):
     return out
 
 
+def test_train_writes_tensorboard_events_and_keeps_ray_noise_in_its_log(trained):
+    events = list((trained / "tensorboard").glob("events.out.tfevents.*"))
+    assert len(events) == 1 and events[0].stat().st_size > 0
+    data = events[0].read_bytes()
+    assert b"env_steps" in data and b"episode_return_mean" in data and b"learner/local_critic_loss" in data
+    assert (trained / "ray.log").is_file()
+
+
 def test_manifest_lists_every_file_with_size_and_checksum(trained):
     ckpt = trained / "checkpoint"
     manifest = json.loads((ckpt / MANIFEST_FILE).read_text())

@@ -22,6 +22,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -113,9 +114,16 @@ def run_sweep(
     num_cpus: int | None = None,
     log: Callable[[str], None] = print,
     command: str | None = None,
+    wandb_project: str | None = None,
+    mlflow_uri: str | None = None,
 ) -> dict[str, Any]:
-    """Run (or resume) one sweep; returns its summary (experiment directory, trials, generalization CSV)."""
+    """Run (or resume) one sweep; returns its summary (experiment directory, trials, generalization CSV).
 
+    ``wandb_project`` / ``mlflow_uri``: also log every trial's results with Tune's W&B / MLflow
+    logger callbacks (the package must be installed; refused with one line before any work if not).
+    """
+
+    extra_loggers = tracking_callbacks(wandb_project, mlflow_uri, name or experiment)
     exp = get_experiment(experiment)
     sc = exp.scale(scale)
     if max_concurrent is not None and max_concurrent < 1:
@@ -199,7 +207,7 @@ def run_sweep(
                     checkpoint_frequency=sc.checkpoint_every, checkpoint_at_end=True, num_to_keep=sc.keep
                 ),
                 failure_config=tune.FailureConfig(max_failures=1),
-                callbacks=[AlignedCSVLogger()],  # progress.csv keeps one column order across restores
+                callbacks=[AlignedCSVLogger(), *extra_loggers],  # progress.csv keeps one column order across restores
             ),
         )
     t0 = time.perf_counter()
@@ -230,6 +238,24 @@ def run_sweep(
         if done:
             summary["generalization_csv"] = str(write_generalization(path, records=done, log=log))
     return summary
+
+
+def tracking_callbacks(wandb_project: str | None, mlflow_uri: str | None, experiment_name: str) -> list[Any]:
+    """Tune's W&B and MLflow logger callbacks for the flags given; a ValueError if a package is not installed."""
+    out: list[Any] = []
+    if wandb_project is not None:
+        if importlib.util.find_spec("wandb") is None:
+            raise ValueError(f"--wandb {wandb_project} needs the wandb package; allowed: pip install wandb, or leave out --wandb")
+        from ray.air.integrations.wandb import WandbLoggerCallback  # optional: imports wandb
+
+        out.append(WandbLoggerCallback(project=wandb_project))
+    if mlflow_uri is not None:
+        if importlib.util.find_spec("mlflow") is None:
+            raise ValueError(f"--mlflow {mlflow_uri} needs the mlflow package; allowed: pip install mlflow, or leave out --mlflow")
+        from ray.air.integrations.mlflow import MLflowLoggerCallback  # optional: imports mlflow
+
+        out.append(MLflowLoggerCallback(tracking_uri=mlflow_uri, experiment_name=experiment_name))
+    return out
 
 
 @contextmanager
