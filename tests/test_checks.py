@@ -49,7 +49,7 @@ def test_allowed_text_names_the_range():
     assert RULES["exploration_noise_initial"].allowed() == "None or a finite number >= 0"
     assert RULES["graph"].allowed() == "'full' or a finite number > 0"
     assert RULES["global_critic"].allowed() == "True or False"
-    assert RULES["precision"].allowed() == "'fp32' | 'bf16'"
+    assert RULES["precision"].allowed() == "'fp32', 'bf16'"
 
 
 def test_edges_of_ranges():

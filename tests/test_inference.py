@@ -51,7 +51,7 @@ def test_bad_policy_sources_are_refused(tmp_path):
     bogus.write_text("not numpy")
     with pytest.raises(ValueError, match="not a coin_app numpy policy"):
         as_policy(bogus)
-    with pytest.raises(ValueError, match="not a coin_app checkpoint"):
+    with pytest.raises(ValueError, match="not a complete coin_app checkpoint"):
         as_policy(tmp_path)
     with pytest.raises(TypeError, match="callable, a checkpoint directory"):
         as_policy(42)

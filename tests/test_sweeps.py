@@ -317,8 +317,7 @@ def test_sweep_driver_stopped_leaves_no_ray_process(tmp_path, sig):
         driver = subprocess.Popen([sys.executable, "-m", "coin_app", *argv], cwd=REPO, env=env, stdout=log, stderr=log)
         try:
             _wait_for(lambda: any(storage.glob("stop/*/result.json")), 300, "a running trial")
-            running = _processes_with_env(ray_tmp)
-            assert any("DashboardAgent" in p for p in running) and any("raylet" in p for p in running), running
+            assert _processes_with_env(ray_tmp), "the sweep's Ray processes should be running"
             driver.send_signal(sig)
             driver.wait(timeout=120)
         finally:

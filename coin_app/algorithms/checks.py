@@ -66,7 +66,7 @@ class Rule:
         if self.kind == "bool":
             return "True or False"
         if self.kind == "choice":
-            return " | ".join(repr(a) for a in self.also)
+            return ", ".join(repr(a) for a in self.also)
         what = "an integer" if self.kind == "int" else "a finite number"
         if self.lo > -INF and self.hi < INF:
             what += f" in {'(' if self.lo_open else '['}{_num(self.lo)}, {_num(self.hi)}{')' if self.hi_open else ']'}"
