@@ -20,7 +20,7 @@ import pandas as pd
 
 from cluster import jobs
 from coin_app.algorithms import registry
-from coin_app.algorithms.checkpoints import export_actor, load_module, read_metadata, scenario_of
+from coin_app.algorithms.checkpoints import export_actor, load_module, read_metadata
 from coin_app.algorithms.registry import parse_overrides, quick_settings
 from coin_app.evaluation.arena_suite import evaluate_suite, markdown_table, parse_cases, plot_scenarios, summarize
 from coin_app.evaluation.evaluate import evaluate_policy, record
@@ -31,7 +31,7 @@ from coin_app.inference import export_policy, load_policy
 from coin_app.inference.formats import check_format
 from coin_app.inference.switching import write_pair
 from coin_app.sim.arena.config import ArenaConfig
-from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, ScenarioConfig, make_config
+from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, DynamicsConfig, ScenarioConfig, make_config
 from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.heuristic import HeuristicDriver
 from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
@@ -44,15 +44,28 @@ from tuning.sweep import run_sweep, write_generalization
 CONSOLE_FORMATS = {"efficiency": "{:.0f}", "safety": "{:.0f}", "avg_travel_steps": "{:.1f}"}  # the rates: "{:.3f}"
 # (key, label, format) of the six COIN metrics as the commands print them
 METRIC_ROWS = tuple((k, k.replace("_", " ").replace("out of road", "off-road"), CONSOLE_FORMATS.get(k, "{:.3f}")) for k in METRIC_KEYS)
+# ... then the arrivals-only travel steps and the vehicle counts ("count": an integer, or one decimal for a mean)
+CONSOLE_ROWS = (
+    *METRIC_ROWS,
+    ("avg_travel_steps_arrived", "travel (arrived)", "{:.1f}"),
+    ("num_vehicles", "vehicles", "count"),
+    ("num_timeout", "time-outs", "count"),
+)
+PRESET_KEYS = tuple(dict.fromkeys(k for values in PRESETS.values() for k in values))  # the config keys some preset sets
+
+
+def shown(value: float, fmt: str) -> str:
+    """``value`` as the console shows it: ``fmt`` (``"count"``: no decimals if whole, else one); ``n/a`` for NaN."""
+    if isinstance(value, float) and math.isnan(value):
+        return "n/a"
+    if fmt == "count":
+        return f"{value:.0f}" if float(value).is_integer() else f"{value:.1f}"
+    return fmt.format(value)
 
 
 def format_metrics(metrics: dict[str, float]) -> str:
-    """The six COIN metrics as an aligned two-column table."""
-    lines = []
-    for key, label, fmt in METRIC_ROWS:
-        v = metrics.get(key, math.nan)
-        lines.append(f"  {label:<18}{'n/a' if isinstance(v, float) and math.isnan(v) else fmt.format(v):>10}")
-    return "\n".join(lines)
+    """The six COIN metrics, the arrivals' travel steps, vehicles and time-outs as an aligned two-column table."""
+    return "\n".join(f"  {label:<18}{shown(metrics.get(key, math.nan), fmt):>10}" for key, label, fmt in CONSOLE_ROWS)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -69,7 +82,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     env = DrivingEnv(config)
-    recorder, trace, frames = EpisodeRecorder(), EpisodeTrace(), []
+    recorder, trace, frames = EpisodeRecorder(config.max_agent_steps), EpisodeTrace(), []
     print(f"demo: {config.scenario}, {config.num_agents} agents, seed {args.seed}, up to {args.steps} steps -> {out}")
     t0 = time.perf_counter()
     agent_steps = 0
@@ -129,6 +142,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         threads=args.threads,
         address=args.address,
         overwrite=args.overwrite,
+        progress={"auto": None, "always": True, "never": False}[args.progress],
     )
     print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations, {summary['wall_s']:.0f} s")
     print(f"  checkpoint: {summary['checkpoint']}")
@@ -138,13 +152,28 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any]) -> Any:
-    """The scenario config to evaluate ``source`` on: its training scenario (checkpoint / export metadata) plus overrides."""
+def check_preset(preset: str | None) -> None:
+    """Refuse a preset name that is not one of :data:`PRESETS` (None: no preset asked for)."""
+    if preset is not None and preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; allowed: {', '.join(PRESETS)}")
+
+
+def with_preset(env_config: dict[str, Any], preset: str | None) -> dict[str, Any]:
+    """A stored env_config under an explicit ``preset``: its own preset and every key a preset sets dropped (None: as stored)."""
+    check_preset(preset)
+    if preset is None:
+        return dict(env_config)
+    return {**{k: v for k, v in env_config.items() if k != "preset" and k not in PRESET_KEYS}, "preset": preset}
+
+
+def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any], preset: str | None = None) -> Any:
+    """The scenario config to evaluate ``source`` on: its training config (checkpoint / export metadata), ``preset``, then overrides."""
 
     if source.is_dir():
-        if read_metadata(source).get("scenario") == "arena" or scenario == "arena":
+        meta = read_metadata(source)
+        if meta.get("scenario") == "arena" or scenario == "arena":
             raise ValueError(f"{source} is an arena policy; evaluate it with: python -m coin_app evaluate-arena {source}")
-        config = scenario_of(source, **overrides)
+        config = config_from_dict(meta["scenario"], {**with_preset(meta.get("env_config", {}), preset), **overrides})
         if scenario is not None and scenario != config.scenario:
             raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {config.scenario}")
         return config
@@ -157,7 +186,14 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
         raise ValueError(f"{source} is an arena policy; evaluate it with: python -m coin_app evaluate-arena {source}")
     if scenario is None:
         raise ValueError(f"{source} does not say which scenario it was trained on; pass --scenario")
-    return config_from_dict(scenario, {**meta.get("env_config", {}), **overrides})
+    return config_from_dict(scenario, {**with_preset(meta.get("env_config", {}), preset), **overrides})
+
+
+def _dynamics_name(dynamics: DynamicsConfig) -> str:
+    """``fitted`` (the default), ``kinematic`` (the preset's) or ``custom``."""
+    if dynamics == DynamicsConfig():
+        return "fitted"
+    return "kinematic" if dynamics == DynamicsConfig.kinematic() else "custom"
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -165,6 +201,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.episodes < 1:
         raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
+    check_preset(args.preset)
     seeds = args.seeds if args.seeds else eval_test_seeds(args.episodes)
     not_test = [s for s in seeds if s < TEST_SEED_BASE]
     if not_test:
@@ -179,19 +216,31 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.backend is not None:
         overrides["backend"] = args.backend
     source = Path(args.policy)
-    config = _evaluation_config(source, args.scenario, overrides)
+    config = _evaluation_config(source, args.scenario, overrides, args.preset)
     policy = as_policy(source)
     print(
         f"evaluate: {source} on {config.scenario} ({config.num_agents} agents, backend {config.backend}), "
         f"seeds {seeds[0]}..{seeds[-1]} ({len(seeds)})"
     )
+    origin = f"--preset {args.preset}" if args.preset else "the policy's training config"
+    print(
+        f"  settings ({origin}): lidar_range {config.lidar_range:g}, crash_penalty {config.crash_penalty:g}, "
+        f"out_of_road_penalty {config.out_of_road_penalty:g}, dynamics {_dynamics_name(config.dynamics)}, "
+        f"max_agent_steps {config.max_agent_steps}"
+    )
     t0 = time.perf_counter()
     per_episode = evaluate_policy(policy, config, seeds)
     agg = aggregate(per_episode)
-    print(f"\n{len(seeds)} episodes in {time.perf_counter() - t0:.1f} s; mean (std):")
-    for key, label, fmt in METRIC_ROWS:
-        m, sd = agg[key]["mean"], agg[key]["std"]
-        print(f"  {label:<18}{fmt.format(m):>10} ({fmt.format(sd)})")
+    print(f"\n{len(seeds)} episodes in {time.perf_counter() - t0:.1f} s; mean (std) per episode:")
+    for key, label, fmt in CONSOLE_ROWS:
+        m, sd = (agg[key]["mean"], agg[key]["std"]) if key in agg else (math.nan, math.nan)
+        total = f"  {sum(e[key] for e in per_episode):.0f} in all" if fmt == "count" and key in agg else ""
+        print(f"  {label:<18}{shown(m, fmt):>10} ({shown(sd, fmt)}){total}")
+    print(
+        f"  avg travel steps: finished vehicles, one that did not arrive counting as max_agent_steps ({config.max_agent_steps}), "
+        "as COIN's Table 5.1; travel (arrived): arrivals only\n"
+        "  time-outs: vehicles done without arriving, crashing or leaving the road (their step limit or the forced stop)"
+    )
     if args.out:
         Path(args.out).write_text(json.dumps({"seeds": seeds, "episodes": per_episode, "aggregate": agg}, indent=2, default=float))
         print(f"  per-episode results: {args.out}")
@@ -459,6 +508,12 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--resume", default=None, help="checkpoint directory to continue from (same algorithm, scenario and network)")
     tr.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out (refused without --resume or this)")
     tr.add_argument(
+        "--progress",
+        choices=("auto", "always", "never"),
+        default="auto",
+        help="progress bar over env steps, with the updates inside each iteration (auto: on a terminal only)",
+    )
+    tr.add_argument(
         "--quick",
         action="store_true",
         help="the algorithm's small settings that show learning within minutes (4 agents, horizon 300, small networks, "
@@ -477,6 +532,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("policy", help="a checkpoint directory or an exported .npz file")
     ev.add_argument("--scenario", default=None, help="scenario (default: the one the policy was trained on)")
     ev.add_argument("--backend", default=None, help="native | metadrive (default: the training backend)")
+    ev.add_argument(
+        "--preset",
+        default=None,
+        help=f"{' | '.join(PRESETS)}: evaluate with this preset's settings in place of the training config's preset and the keys "
+        "presets set (e.g. metadrive_compat: lidar_range 40); --set still wins (default: the policy's own training config)",
+    )
     ev.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
     ev.add_argument("--episodes", type=int, default=20, help="number of test seeds (paper: 20)")
     ev.add_argument("--seeds", type=int, nargs="*", default=None, help="explicit seeds (default: the fixed test seeds)")

@@ -28,12 +28,13 @@ from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.callbacks.callbacks import RLlibCallback
 from ray.rllib.core.rl_module.rl_module import RLModule
 from tensorboardX import SummaryWriter
+from tqdm import tqdm
 
 from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import make_env, register_envs
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoints import PREVIOUS_SUFFIX, actor_policy, latest_complete, save_checkpoint
-from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes, scenario_config_of
+from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes, ProgressReporting, scenario_config_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import aggregate
 from coin_app.sim.arena.config import ArenaConfig
@@ -44,6 +45,47 @@ from coin_app.sim.seeds import check_training_seed, validation_seeds
 EVAL_RESULT_KEY = "coin_eval"  # the periodic evaluation's metrics in an iteration's result
 TENSORBOARD_DIR = "tensorboard"  # the iteration metrics of a train run as TensorBoard event files, in its --out
 RAY_LOG = "ray.log"  # Ray's and RLlib's log records and Python warnings of a train run, in its --out
+
+
+class RunProgress:
+    """The train loop's progress display: a tqdm bar over env steps, showing the phase inside the current iteration.
+
+    ``enabled``: ``None`` shows the bar only on a terminal (a log file gets the iteration lines
+    alone); ``True`` always; ``False`` never. Log lines are written around the bar.
+    """
+
+    def __init__(self, steps: int, start: int, log: Callable[[str], None], enabled: bool | None = None):
+        self.bar = tqdm(
+            total=steps, initial=min(start, steps), unit="step", unit_scale=True, desc="train", leave=False, dynamic_ncols=True,
+            disable=None if enabled is None else not enabled,
+        )  # fmt: skip
+        self.log = log
+        self._shown = 0.0
+
+    def say(self, line: str) -> None:
+        """Log one line without tearing the bar."""
+        if self.bar.disable:
+            self.log(line)
+        else:
+            with tqdm.external_write_mode():
+                self.log(line)
+
+    def phase(self, phase: str, done: int, total: int) -> None:
+        """Show how far the current iteration's phase is (at most twice a second)."""
+        now = time.monotonic()
+        if self.bar.disable or now - self._shown < 0.5:
+            return
+        self._shown = now
+        self.bar.set_postfix_str(f"{phase} {done}/{total}" if total else phase, refresh=False)
+        self.bar.refresh()
+
+    def advance(self, sampled: int) -> None:
+        """Move the bar to ``sampled`` env steps."""
+        self.bar.update(max(0, min(sampled, self.bar.total) - self.bar.n))
+
+    def close(self) -> None:
+        """Remove the bar."""
+        self.bar.close()
 
 
 @contextmanager
@@ -307,6 +349,7 @@ def train(
     threads: int = 1,
     address: str | None = None,
     overwrite: bool = False,
+    progress: bool | None = None,
 ) -> dict[str, Any]:
     """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end.
 
@@ -315,7 +358,7 @@ def train(
     over all of this machine's cores. ``out`` must not hold an earlier run unless ``resume`` or
     ``overwrite``; ``resume`` must be a complete checkpoint (or its ``.prev``, after an interrupted
     save) of the same algorithm, scenario config and network shape. Everything is checked before
-    any work starts.
+    any work starts. ``progress``: the progress bar (``None``: on a terminal only; see ``RunProgress``).
     """
     if steps < 1:
         raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
@@ -367,30 +410,39 @@ def train(
         result: dict[str, Any] = {}
         last_eval: dict[str, float] = {}
         ckpt = out / "checkpoint"
-        while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
-            result = algo.train()
-            m = iteration_metrics(result)
-            sampled = m["env_steps"]
-            it = int(result["training_iteration"])
-            elapsed = time.perf_counter() - t0
-            critic = m.get("learner/local_critic_loss", m.get("learner/vf_loss", np.nan))
-            log(
-                f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
-                f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
-            )
-            for key, value in m.items():
-                if math.isfinite(value):
-                    board.add_scalar(key, value, global_step=sampled)
-            board.flush()
-            warning = freeze.update(m)
-            if warning:
-                log(warning)
-            if EVAL_RESULT_KEY in result:
-                last_eval = result[EVAL_RESULT_KEY]
-                log(_eval_line(last_eval))
-            if it % checkpoint_every == 0:
-                save(algo, ckpt, meta)
-        save(algo, ckpt, meta)
+        bar = RunProgress(steps, start, log, progress)
+        if isinstance(algo, ProgressReporting):  # long iterations: their updates are shown as they go
+            algo.progress_callback = bar.phase
+        try:
+            while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
+                result = algo.train()
+                m = iteration_metrics(result)
+                sampled = m["env_steps"]
+                bar.advance(sampled)
+                it = int(result["training_iteration"])
+                elapsed = time.perf_counter() - t0
+                critic = m.get("learner/local_critic_loss", m.get("learner/vf_loss", np.nan))
+                bar.say(
+                    f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
+                    f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
+                )
+                for key, value in m.items():
+                    if math.isfinite(value):
+                        board.add_scalar(key, value, global_step=sampled)
+                board.flush()
+                warning = freeze.update(m)
+                if warning:
+                    bar.say(warning)
+                if EVAL_RESULT_KEY in result:
+                    last_eval = result[EVAL_RESULT_KEY]
+                    bar.say(_eval_line(last_eval))
+                if it % checkpoint_every == 0:
+                    bar.phase("saving checkpoint", 0, 0)
+                    save(algo, ckpt, meta)
+            bar.phase("saving checkpoint", 0, 0)
+            save(algo, ckpt, meta)
+        finally:
+            bar.close()
         board.close()
         algo.stop()
     summary = {

@@ -36,6 +36,7 @@ CASES = [
     (["evaluate", "{missing}"], "does not exist"),
     (["evaluate", "{truncated_npz}"], "BadZipFile"),
     (["evaluate", "{file}"], "no known policy suffix"),
+    (["evaluate", "{missing}", "--preset", "mdc"], "unknown preset 'mdc'; allowed: paper, metadrive_compat, kinematic"),
     (["export", "{missing}", "--out", "x.npz"], "does not exist"),
     (["export", "{missing}", "--format", "tflite", "--out", "x.tflite"], "unknown format 'tflite'"),
     (["evaluate-arena", "heuristic", "--cases", "4x"], "bad case"),

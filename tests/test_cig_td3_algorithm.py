@@ -39,7 +39,22 @@ def tiny_algo(seed=0, **extra):
 
 def test_trains_evaluates_and_keeps_critics_off_the_env_runner():
     algo = tiny_algo()
+    calls, updates = [], []
+    algo.progress_callback = lambda phase, done, total: calls.append((phase, done, total))
+    update = algo.learner_group.update
+    algo.learner_group.update = lambda *a, **k: updates.append(1) or update(*a, **k)
     results = [algo.train() for _ in range(3)]
+    # progress inside each iteration: every training step samples first, then counts each update up to its total
+    starts = [i for i, c in enumerate(calls) if c[0] == "sampling"]
+    assert starts[0] == 0 and len(starts) >= 3
+    reported = 0
+    for a, b in zip(starts, starts[1:] + [len(calls)]):
+        steps = calls[a + 1 : b]
+        if steps:
+            n = steps[-1][2]
+            assert steps == [("updates", i, n) for i in range(n)] + [("updates", n, n)]
+            reported += n
+    assert reported == len(updates) > 0
     learner = results[-1]["learners"]["shared"]
     for key in ("local_critic_loss", "central_critic_loss", "actor_loss", "global_q1_mean", "baseline_mean", "vae_recon"):
         assert np.isfinite(float(learner[key])), key

@@ -183,12 +183,12 @@ def test_itd3_has_no_central_critic_and_trains():
     "training,match",
     [
         ({"global_critic": False}, "counterfactual_baseline=True needs global_critic"),
-        ({"local_module": "transformer"}, "local_module='transformer'.*cvae"),
+        ({"local_module": "transformer"}, "'local_module': 'transformer'; allowed: 'cvae'"),
         ({"global_module": "none", "graph": 40.0}, "sparse graph radius needs a graph module"),
         ({"local_module": "none"}, "vae_weight=1.0 but local_module='none'"),
-        ({"graph": -3}, "graph=-3"),
-        ({"policy_delay": 0}, "policy_delay=0"),
-        ({"tau": 2.0}, "tau=2.0"),
+        ({"graph": -3}, r"'graph': -3; allowed: 'full' or a finite number > 0"),
+        ({"policy_delay": 0}, "'policy_delay': 0; allowed: an integer >= 1"),
+        ({"tau": 2.0}, r"'tau': 2.0; allowed: a finite number in \(0, 1\]"),
     ],
 )
 def test_invalid_configs_are_refused(training, match):

@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from coin_app.evaluation import EpisodeRecorder, aggregate, episode_metrics, metrics_from_infos
+from coin_app.evaluation import EpisodeRecorder, VehicleRecord, aggregate, episode_metrics, metrics_from_infos
 from coin_app.sim.driving_env import DrivingEnv
+
+HORIZON = 10  # the scripted episode's vehicle step limit (each non-arrival's travel steps)
 
 
 def _info(arrive=False, crash=False, oor=False, max_step=False, length=0, ret=0.0, step_reward=0.0):
@@ -74,7 +76,9 @@ def _expected(ret):
         "out_of_road_rate": 2 / n,  # a3 and a5
         "efficiency": 2 - 2 - 2,
         "safety": -(2 + 2),
-        "avg_travel_steps": (3 + 5) / 2,
+        # finished: a0, a1 (arrived: 3, 5) and a2, a3, a5, a6 (at the horizon); a4 still runs: left out
+        "avg_travel_steps": (3 + 5 + 4 * HORIZON) / 6,
+        "avg_travel_steps_arrived": (3 + 5) / 2,
         "num_vehicles": n,
         "episode_return": sum(ret.values()) / n,
         "env_steps": 6,
@@ -99,7 +103,7 @@ def _assert_metrics(got, want):
 
 def test_scripted_episode_with_recorder():
     reset, infos_l, terms_l, truncs_l, ret = _scripted_episode()
-    rec = EpisodeRecorder()
+    rec = EpisodeRecorder(horizon=HORIZON)
     rec.reset(reset)
     for infos, terms, truncs in zip(infos_l, terms_l, truncs_l):
         rec.step(infos, terms, truncs)
@@ -116,9 +120,9 @@ def test_scripted_episode_with_recorder():
 def test_metrics_from_infos_with_and_without_done_dicts():
     reset, infos_l, terms_l, truncs_l, ret = _scripted_episode()
     want = _expected(ret)
-    _assert_metrics(metrics_from_infos(infos_l, terms_l, truncs_l, reset_infos=reset), want)
+    _assert_metrics(metrics_from_infos(infos_l, terms_l, truncs_l, reset_infos=reset, horizon=HORIZON), want)
     # the flags alone give the same answer (done = any outcome flag)
-    _assert_metrics(metrics_from_infos(infos_l), want)
+    _assert_metrics(metrics_from_infos(infos_l, horizon=HORIZON), want)
     with pytest.raises(ValueError, match="one dict per env step"):
         metrics_from_infos(infos_l, terms_l[:-1])
 
@@ -130,18 +134,59 @@ def test_return_from_rewards_when_infos_lack_episode_reward():
     rec.step({"x": {"arrive_dest": True}}, {"x": True}, {"x": False}, rewards={"x": 10.0})
     m = rec.metrics()
     assert m["episode_return"] == pytest.approx(11.5)
-    assert m["avg_travel_steps"] == 2  # no episode_length in the infos: steps seen acting
+    assert m["avg_travel_steps_arrived"] == 2  # no episode_length in the infos: steps seen acting, the arriving one included
+    assert math.isnan(m["avg_travel_steps"])  # the recorder was given no horizon
     assert m["success_rate"] == 1.0
+    assert episode_metrics(rec, horizon=1000)["avg_travel_steps"] == 2  # the only finished vehicle arrived
 
 
 def test_no_arrivals_and_empty_episode_give_nan():
     m = metrics_from_infos([{"a": _info(crash=True, length=1)}])
-    assert math.isnan(m["avg_travel_steps"])
+    assert math.isnan(m["avg_travel_steps"]) and math.isnan(m["avg_travel_steps_arrived"])
+    crashed = metrics_from_infos([{"a": _info(crash=True, length=1)}], horizon=1000)
+    assert crashed["avg_travel_steps"] == 1000  # the crash counts as the horizon
     assert m["collision_rate"] == 1.0 and m["efficiency"] == -1 and m["safety"] == -1
     empty = metrics_from_infos([])
     assert empty["num_vehicles"] == 0
     assert all(math.isnan(empty[k]) for k in ("success_rate", "collision_rate", "out_of_road_rate", "avg_travel_steps", "episode_return"))
+    assert math.isnan(metrics_from_infos([], horizon=1000)["avg_travel_steps"])  # no finished vehicle
     assert empty["efficiency"] == 0 and empty["safety"] == 0
+
+
+def test_travel_steps_paper_definition_from_hand_built_records():
+    """COIN Table 5.1's travel steps: finished vehicles, a non-arrival counting as the horizon; running vehicles left out."""
+    records = [
+        VehicleRecord("arrived_300", 0, 300, steps=300, episode_length=300, arrived=True, done=True),
+        VehicleRecord("arrived_500", 0, 500, steps=500, episode_length=500, arrived=True, done=True),
+        VehicleRecord("crashed_100", 0, 100, steps=100, episode_length=100, crashed=True, done=True),
+        VehicleRecord("timed_out", 0, 1000, steps=1000, episode_length=1000, max_step=True, done=True),
+        VehicleRecord("running", 200, 600, steps=400, episode_length=400),
+    ]
+    m = episode_metrics(records, horizon=1000)
+    assert m["avg_travel_steps"] == (300 + 500 + 1000 + 1000) / 4 == 700
+    assert m["avg_travel_steps_arrived"] == (300 + 500) / 2 == 400
+    assert (m["num_vehicles"], m["num_timeout"], m["num_running"]) == (5, 1, 1)
+    assert math.isnan(episode_metrics(records)["avg_travel_steps"])  # no horizon given: undefined, not guessed
+    # a force-stopped vehicle (done, no flag) before its limit and an off-road one also count as the horizon
+    short = [
+        VehicleRecord("arrived", 0, 40, steps=40, episode_length=40, arrived=True, done=True),
+        VehicleRecord("forced", 0, 70, steps=70, episode_length=70, done=True),
+        VehicleRecord("off_road", 0, 10, steps=10, episode_length=10, out_of_road=True, done=True),
+    ]
+    assert episode_metrics(short, horizon=80)["avg_travel_steps"] == (40 + 80 + 80) / 3
+    assert episode_metrics(short, horizon=80)["avg_travel_steps_arrived"] == 40
+
+
+def test_travel_steps_count_the_step_in_which_the_vehicle_finished():
+    """A vehicle present at reset that acts in env steps 1, 2, 3 and arrives in step 3 has 3 travel steps (not 2)."""
+    rec = EpisodeRecorder(horizon=1000)
+    rec.reset({"x": {}, "y": {}})
+    rec.step({"x": {}, "y": {}}, {"x": False, "y": False}, {"x": False, "y": False})
+    rec.step({"x": {}, "y": {"crash_vehicle": True}}, {"x": False, "y": True}, {"x": False, "y": False})
+    rec.step({"x": {"arrive_dest": True}}, {"x": True}, {"x": False})
+    m = rec.metrics()
+    assert m["avg_travel_steps_arrived"] == 3
+    assert m["avg_travel_steps"] == (3 + 1000) / 2
 
 
 def test_aggregate_mean_std_skips_nan():
@@ -163,7 +208,7 @@ def test_recorder_on_native_env_counts_each_vehicle_once():
     env = DrivingEnv(scenario="intersection", num_agents=6, horizon=60, max_agent_steps=60)
     obs, infos = env.reset(seed=3)
     rng = np.random.default_rng(0)
-    rec = EpisodeRecorder()
+    rec = EpisodeRecorder(horizon=env.config.max_agent_steps)
     rec.reset(infos)
     all_infos = [infos]
     all_dones = [{}]
@@ -219,5 +264,13 @@ def test_recorder_on_native_env_counts_each_vehicle_once():
     assert m["efficiency"] == arrivals - crashes - offroads
     assert m["safety"] == -(crashes + offroads)
     lengths = [last[a]["episode_length"] for a in distinct if last[a]["arrive_dest"]]
-    assert (math.isnan(m["avg_travel_steps"]) and not lengths) or m["avg_travel_steps"] == pytest.approx(np.mean(lengths))
+    assert (math.isnan(m["avg_travel_steps_arrived"]) and not lengths) or m["avg_travel_steps_arrived"] == pytest.approx(np.mean(lengths))
+    paper = [last[a]["episode_length"] if last[a]["arrive_dest"] else 60 for a in distinct if done[a]]
+    assert m["avg_travel_steps"] == pytest.approx(np.mean(paper))
+    # episode_length counts the env steps a vehicle acted in, the one it finished in included:
+    # every step info after its first appearance (a respawn first appears, without acting, in a step)
+    appearances = {a: sum(a in infos for infos in all_infos[1:]) for a in distinct}
+    for a in distinct:
+        acted = appearances[a] - (0 if a in all_infos[0] else 1)
+        assert last[a]["episode_length"] == acted == rec.vehicles[a].travel_steps, a
     assert m["episode_return"] == pytest.approx(np.mean([last[a]["episode_reward"] for a in distinct]))

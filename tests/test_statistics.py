@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from coin_app.evaluation import statistics, tables
-from coin_app.evaluation.embedding import conditional_affinities, kmeans, tsne
+from coin_app.evaluation.embedding import kmeans, tsne
 from coin_app.evaluation.marl_eval import to_marl_eval
 
 
@@ -168,7 +168,17 @@ def test_marl_eval_layout():
     step = runs["seed_0"]["step_0"]
     assert step["step_count"] == 1000 and step["success_rate"] == [0.4, 0.5, 0.6, 0.9]  # sorted by test seed
     assert runs["seed_0"]["absolute_metrics"]["safety"] == [-3, -3, -3, 0]
-    assert "avg_travel_steps" not in step
+    assert step["avg_travel_steps"] == [0.0, 0.0, 0.0, 0.0]  # the table's values, as given
+    assert "avg_travel_steps_arrived" not in step  # undefined without arrivals: not written
+
+
+def test_marl_eval_never_writes_undefined_travel_steps_as_zero():
+    rows = _episodes("m", "intersection", {"success_rate": [0.5, float("nan")], "avg_travel_steps": [700.0, float("nan")]})
+    rows += _episodes("m", "intersection", {"success_rate": [0.5, 0.25], "avg_travel_steps": [700.0, 400.0]}, seed=1)
+    runs = to_marl_eval(pd.DataFrame(rows))["coin_app"]["intersection"]["m"]
+    assert runs["seed_0"]["step_0"]["success_rate"] == [0.5, 0.0]  # an undefined rate is written as 0
+    assert "avg_travel_steps" not in runs["seed_0"]["step_0"]  # 0 would be the best travel steps: left out instead
+    assert runs["seed_1"]["absolute_metrics"]["avg_travel_steps"] == [700.0, 400.0]
 
 
 def test_tsne_separates_clusters_and_is_deterministic():
@@ -176,16 +186,14 @@ def test_tsne_separates_clusters_and_is_deterministic():
     centers = rng.normal(0.0, 10.0, (3, 8))
     labels = np.repeat([0, 1, 2], 40)
     x = centers[labels] + rng.normal(0.0, 1.0, (120, 8))
-    p = conditional_affinities(x, perplexity=15.0)
-    entropy = -(p * np.log(np.where(p > 0, p, 1.0))).sum(1)
-    assert np.allclose(p.sum(1), 1.0) and np.allclose(np.exp(entropy), 15.0, rtol=1e-3) and np.all(np.diag(p) == 0)
     y = tsne(x, perplexity=15.0, iterations=400, seed=1)
     d = ((y[:, None] - y[None]) ** 2).sum(-1)
     np.fill_diagonal(d, np.inf)
     assert (labels[d.argmin(1)] == labels).all()  # every point's nearest embedded neighbour is in its cluster
     assert np.array_equal(y, tsne(x, perplexity=15.0, iterations=400, seed=1))
-    found, _ = kmeans(x, 3, seed=0)
+    found, centers = kmeans(x, 3, seed=0)
     assert all(len(set(found[labels == c])) == 1 for c in range(3)) and len(set(found)) == 3
+    assert np.allclose(centers[found[::40]], [x[labels == c].mean(0) for c in range(3)])  # each center: its cluster's mean
     with pytest.raises(ValueError, match="bad perplexity 200"):
         tsne(x, perplexity=200)
 

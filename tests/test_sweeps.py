@@ -1,5 +1,6 @@
 """Tune sweeps: experiment grids, validation before any work, smoke sweeps end to end, resume after kill -9."""
 
+import importlib.util
 import json
 import os
 import re
@@ -14,6 +15,7 @@ import ray
 
 from coin_app import training
 from coin_app.algorithms import registry
+from coin_app.algorithms.checkpoints import verify
 from coin_app.cli import main
 from coin_app.evaluation.sweep_results import load_trials, trial_name
 from coin_app.training import checkpoint_meta
@@ -217,6 +219,32 @@ def test_ablations_smoke_sweep_end_to_end(local_ray, tmp_path, capsys):
     assert main(["evaluate", str(trials[0].final_checkpoint), "--episodes", "1"]) == 0
 
 
+@pytest.mark.skipif(
+    any(importlib.util.find_spec(p) is None for p in ("wandb", "mlflow")), reason="optional trackers: pip install wandb mlflow-skinny"
+)
+def test_sweep_logs_every_trial_to_wandb_offline_and_an_mlflow_store(local_ray, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("WANDB_MODE", "offline")  # no network: W&B writes its run files locally
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")  # MLflow 3 wants a database; a directory store is enough here
+    store = tmp_path / "mlruns"
+    argv = ["sweep", "seeds", "--smoke", "--storage", str(tmp_path / "s"), "--name", "tracked"]
+    assert main([*argv, "--wandb", "coin-test", "--mlflow", store.as_uri()]) == 0
+    capsys.readouterr()
+    trials = load_trials(tmp_path / "s" / "tracked")
+    assert len(trials) == 2 and all(t.finished for t in trials)
+    for t in trials:  # one offline W&B run per trial, in the trial's directory, with its history file
+        runs = list((t.path / "wandb").glob("offline-run-*"))
+        assert len(runs) == 1 and any(runs[0].glob("*.wandb"))
+    import mlflow
+
+    client = mlflow.tracking.MlflowClient(tracking_uri=store.as_uri())
+    found = client.search_runs([client.get_experiment_by_name("tracked").experiment_id])
+    assert len(found) == 2
+    for run in found:  # each trial's env-step curve is in MLflow as Tune reported it
+        history = [m.value for m in client.get_metric_history(run.info.run_id, "env_steps")]
+        assert history == sorted(history) and history[-1] >= 1000
+
+
 def _wait_for(condition, timeout: float, what: str) -> None:
     t0 = time.time()
     while not condition():
@@ -273,11 +301,78 @@ def test_sweep_killed_with_sigkill_resumes_without_rerunning_or_losing_anything(
     steps = [r["env_steps"] for r in resumed.results]
     assert steps[0] == 500 and steps.count(500) == 1 and steps[-1] >= 1000
     # progress.csv: every row of the resumed trial under the right header (one column order across the restore)
-    header, rows = read_table(resumed.path / "progress.csv")
+    _check_progress_aligned(resumed)
+
+
+def _check_progress_aligned(trial) -> None:
+    """Every row of a trial's progress.csv under the right header."""
+    header, rows = read_table(trial.path / "progress.csv")
     assert len(header) == len(set(header)) and rows
     for row in rows:
         assert None not in row and float(row["env_steps"]).is_integer() and float(row["training_iteration"]).is_integer()
         assert row["done"] in ("True", "False") and row["trial_id"] == rows[0]["trial_id"]
+
+
+FAULT_KILLS = int(os.environ.get("COIN_FAULT_KILLS", "0"))
+
+
+@pytest.mark.skipif(FAULT_KILLS < 1, reason="fault injection run: COIN_FAULT_KILLS=N kills the sweep driver at N random points")
+def test_sweep_killed_at_random_points_loses_nothing(tmp_path, capsys):
+    """SIGKILL a sweep driver at seeded random moments (inside saves or not), resume after each, then check the whole."""
+    import random
+
+    rng = random.Random(int(os.environ.get("COIN_FAULT_SEED", "0")))
+    storage = tmp_path / "sweeps"
+    argv = ["sweep", "seeds", "--smoke", "--seeds", "0", "1", "2", "--steps", "3000", "--max-concurrent", "1"]
+    argv += ["--num-cpus", "1", "--storage", str(storage), "--name", "faults"]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    exp_dir = storage / "faults"
+
+    def trials():
+        return load_trials(exp_dir, live=True) if (exp_dir / "coin_sweep.json").exists() else []
+
+    finished: dict[str, bytes] = {}  # trial -> its result.json when first seen finished
+    for k in range(FAULT_KILLS):
+        if len(finished) == 3:
+            break
+        run = [*argv, "--resume"] if (exp_dir / "coin_sweep.json").exists() else argv
+        with open(tmp_path / f"driver{k}.log", "w") as log:
+            driver = subprocess.Popen(
+                [sys.executable, "-m", "coin_app", *run], cwd=REPO, env=env, stdout=log, stderr=log, start_new_session=True
+            )
+            delay = rng.uniform(4.0, 30.0)
+            time.sleep(delay)
+            driver.send_signal(signal.SIGKILL)
+            driver.wait()
+        time.sleep(1)
+        try:
+            os.killpg(driver.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        for t in trials():
+            if t.finished:
+                finished.setdefault(t.name, (t.path / "result.json").read_bytes())
+        with capsys.disabled():
+            saved = sum(len(t.checkpoints) for t in trials())
+            print(f"kill {k + 1} after {delay:.1f} s: {len(finished)} trial(s) finished, {saved} checkpoint(s) on disk", flush=True)
+    assert main([*argv, "--resume"] if (exp_dir / "coin_sweep.json").exists() else argv) == 0
+    capsys.readouterr()
+    after = trials()
+    assert sorted(t.name for t in after) == ["cig_td3-s0", "cig_td3-s1", "cig_td3-s2"]  # every trial, exactly once
+    assert len(list(exp_dir.glob("*/params.json"))) == 3
+    assert all(t.finished and t.last["env_steps"] >= 3000 for t in after)
+    for t in after:
+        if t.name in finished:  # finished before a kill: not rerun
+            assert (t.path / "result.json").read_bytes() == finished[t.name]
+        steps = [r["env_steps"] for r in t.results]
+        assert steps[0] == 500 and steps[-1] >= 3000 and steps == sorted(steps)  # never went back past a checkpoint
+        _check_progress_aligned(t)
+        for c in t.checkpoints:  # a torn leftover would have failed its trial's restore above; count them for the record
+            try:
+                verify(c)
+            except ValueError as e:
+                with capsys.disabled():
+                    print(f"torn leftover (never restored): {e}", flush=True)
 
 
 def test_progress_rows_follow_the_existing_header_and_new_keys_extend_it(tmp_path):
@@ -324,6 +419,6 @@ def test_sweep_driver_stopped_leaves_no_ray_process(tmp_path, sig):
             if driver.poll() is None:
                 driver.kill()
     # Ray's agents outlived a kill -9 of the driver before tuning/reaper.py; now nothing of this sweep's Ray is left
-    _wait_for(lambda: not _processes_with_env(ray_tmp), 30, f"the sweep's Ray processes to exit: {_processes_with_env(ray_tmp)}")
+    _wait_for(lambda: not _processes_with_env(ray_tmp), 90, f"the sweep's Ray processes to exit: {_processes_with_env(ray_tmp)}")
     if sig == signal.SIGTERM:
         assert "Traceback" not in (tmp_path / "driver.log").read_text()

@@ -248,7 +248,9 @@ def tracking_callbacks(wandb_project: str | None, mlflow_uri: str | None, experi
             raise ValueError(f"--wandb {wandb_project} needs the wandb package; allowed: pip install wandb, or leave out --wandb")
         from ray.air.integrations.wandb import WandbLoggerCallback  # optional: imports wandb
 
-        out.append(WandbLoggerCallback(project=wandb_project))
+        # the logging actors get only the API key from this environment: WANDB_MODE (offline, disabled) is passed on
+        mode = {"mode": os.environ["WANDB_MODE"]} if os.environ.get("WANDB_MODE") else {}
+        out.append(WandbLoggerCallback(project=wandb_project, **mode))  # each trial's run files: <trial dir>/wandb
     if mlflow_uri is not None:
         if importlib.util.find_spec("mlflow") is None:
             raise ValueError(f"--mlflow {mlflow_uri} needs the mlflow package; allowed: pip install mlflow, or leave out --mlflow")

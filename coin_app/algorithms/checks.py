@@ -23,13 +23,17 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from coin_app.algorithms.cig_td3.cig_td3 import UPDATE_ORDERS
-from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES
-from coin_app.algorithms.cig_td3.learner import PRECISIONS
-from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
-from coin_app.algorithms.nav_ppo.config import STAGES
-from coin_app.algorithms.ppo_family.config import KL_SIGNALS, WEIGHT_INITS
-from coin_app.algorithms.spec import LCF_MODES
+from coin_app.algorithms.choices import (
+    GAT_INITS,
+    GLOBAL_MODULES,
+    KL_SIGNALS,
+    LCF_MODES,
+    LOCAL_MODULES,
+    NAV_STAGES,
+    PRECISIONS,
+    UPDATE_ORDERS,
+    WEIGHT_INITS,
+)
 
 INF = math.inf
 
@@ -172,7 +176,7 @@ RULES: dict[str, Rule] = {
     "lcf_minibatch_size": positive("int", INF, None),
     "eval_lcf": choice(*LCF_MODES),
     # nav_ppo
-    "stage": choice(*STAGES),
+    "stage": choice(*NAV_STAGES),
 }
 
 
@@ -188,3 +192,14 @@ def check_values(values: Mapping[str, Any]) -> None:
     """Check every key of ``values`` (:func:`check_value`)."""
     for key, value in values.items():
         check_value(key, value)
+
+
+def value_errors(values: Mapping[str, Any]) -> list[str]:
+    """The one-line message of every bad value in ``values`` (empty when all are allowed)."""
+    errors = []
+    for key, value in values.items():
+        try:
+            check_value(key, value)
+        except ValueError as exc:
+            errors.append(str(exc))
+    return errors

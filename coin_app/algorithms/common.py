@@ -7,6 +7,7 @@ counts into the env runner metrics, so every algorithm logs success and collisio
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
@@ -18,6 +19,23 @@ from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenarios import config_from_dict
 
 SHARED_MODULE_ID = "shared"
+
+ProgressCallback = Callable[[str, int, int], None]
+
+
+class ProgressReporting:
+    """Mixin for an Algorithm whose iterations are long: reports (phase, done, total) inside an iteration.
+
+    ``progress_callback`` is set by the driver that owns a local algorithm (``coin_app train``);
+    it stays ``None`` in Tune trials, where reporting costs nothing.
+    """
+
+    progress_callback: ProgressCallback | None = None
+
+    def report_progress(self, phase: str, done: int, total: int) -> None:
+        """Tell the driver how far the current iteration's ``phase`` is (``total`` 0: unknown)."""
+        if self.progress_callback is not None:
+            self.progress_callback(phase, done, total)
 
 
 def policy_mapping_fn(agent_id: str, episode: Any = None, **kwargs: Any) -> str:

@@ -17,6 +17,7 @@ import torch
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from torch import nn
 
+from coin_app.algorithms.choices import LCF_MODES  # noqa: F401 (re-exported)
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 
@@ -76,9 +77,6 @@ class ActorModule(Protocol):
     def inference_actions(self, obs: torch.Tensor) -> torch.Tensor:
         """The env actions (N, 2) of the module's own ``forward_inference`` on ``obs`` (the export parity reference)."""
         ...
-
-
-LCF_MODES = ("sampled", "mean")  # how evaluation gives each vehicle its LCF (CoordinatedActorModule.evaluation_lcf)
 
 
 @runtime_checkable

@@ -36,7 +36,7 @@ def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int]
     if config.backend == "metadrive":
         return _evaluate_metadrive(policy, config, seeds, max_steps)
     limit = max_steps if max_steps is not None else config.force_stop_factor * config.horizon
-    recorders = [EpisodeRecorder() for _ in seeds]
+    recorders = [EpisodeRecorder(config.max_agent_steps) for _ in seeds]
     for step in rollout(BatchedEnvs(DrivingSimulator(config, num_envs=len(seeds))), policy, seeds, limit):
         record(step, recorders)
     return [rec.metrics() for rec in recorders]
@@ -45,9 +45,10 @@ def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int]
 def run_episode(env: Any, policy: Policy, seed: int, max_steps: int, trace: Any = None) -> dict[str, float]:
     """Metrics of one episode of ``policy`` on a dict-API driving env (native ``DrivingEnv`` or MetaDrive).
 
-    ``trace``: an :class:`~coin_app.sim.rendering.EpisodeTrace` to record the native env's vehicles into.
+    ``trace``: an :class:`~coin_app.sim.rendering.EpisodeTrace` to record the native env's vehicles into. The travel
+    steps' horizon is the env config's ``max_agent_steps``.
     """
-    recorder = EpisodeRecorder()
+    recorder = EpisodeRecorder(env.config.max_agent_steps)
     for step in rollout(DictEnvs([env]), policy, [seed], max_steps):
         record(step, [recorder])
         if trace is not None:

@@ -4,9 +4,14 @@
 "absolute_metrics": {metric: [per episode]}}}}}}`` with environment ``coin_app``, task
 ``<scenario>`` at the training agent count and ``<scenario>_<n>agents`` at other counts,
 algorithm ``<method>[-<variant>]``, run ``seed_<trained seed>``. Only the final checkpoint is
-evaluated, so there is one step, counted in trained env steps. Metrics that can be undefined
-in an episode (``avg_travel_steps``) are left out: marl-eval needs a number per episode; a
-rate of an episode without vehicles (undefined, NaN) is written as 0.
+evaluated, so there is one step, counted in trained env steps. The metrics are the six of
+Table 5.1 and the return. ``avg_travel_steps`` (the paper's: a non-arrival counts as the
+horizon) is defined in every episode with a finished vehicle, i.e. every complete one; it is
+lower-is-better, where marl-eval's aggregate plots assume higher is better (negate it, or leave
+it out of the metrics given to them). A run with an episode that has no travel steps (no
+finished vehicle) leaves ``avg_travel_steps`` out rather than invent a figure; the
+arrivals-only ``avg_travel_steps_arrived`` (undefined without arrivals) is not written. A rate
+of an episode without vehicles (undefined, NaN) is written as 0.
 """
 
 from __future__ import annotations
@@ -20,8 +25,8 @@ import pandas as pd
 
 from coin_app.evaluation.metrics import METRIC_KEYS
 
-# every COIN metric but avg_travel_steps (undefined in an episode without arrivals), and the return
-MARL_EVAL_METRICS = (*(k for k in METRIC_KEYS if k != "avg_travel_steps"), "episode_return")
+MARL_EVAL_METRICS = (*METRIC_KEYS, "episode_return")  # the six COIN metrics and the return
+NO_ZERO_FILL = ("avg_travel_steps",)  # undefined is not 0 (the best value): such a run leaves the metric out
 ENVIRONMENT = "coin_app"
 
 
@@ -38,6 +43,7 @@ def to_marl_eval(table: pd.DataFrame) -> dict[str, Any]:
         task = scenario if count == trained else f"{scenario}_{count}agents"
         g = g.sort_values("test_seed")
         metrics = {m: [float(v) for v in g[m]] for m in MARL_EVAL_METRICS if m in g}
+        metrics = {m: values for m, values in metrics.items() if m not in NO_ZERO_FILL or not any(map(math.isnan, values))}
         if any(math.isnan(v) for values in metrics.values() for v in values):
             metrics = {m: [0.0 if math.isnan(v) else v for v in values] for m, values in metrics.items()}
         steps = g["trained_env_steps"].iloc[0] if "trained_env_steps" in g else None

@@ -32,11 +32,31 @@ Metrics of one episode (:func:`episode_metrics`):
   vehicles (all NaN when there are no vehicles);
 * ``efficiency`` = arrivals − crashes − off-roads (COIN's convention, no /1000);
   ``safety`` = −(crashes + off-roads);
-* ``avg_travel_steps`` = mean ``episode_length`` of arrived vehicles only (NaN if none);
+* ``avg_travel_steps`` = COIN's Table 5.1 "travel steps" (the official evaluation's
+  definition, ``docs/decisions.md`` §5.1): the mean over the *finished* vehicles (done:
+  arrived, crashed, off road or timed out) of their travel steps, a vehicle that did not arrive
+  counting as ``horizon``, the vehicle's own step limit (``ScenarioConfig.max_agent_steps``,
+  1000 in the paper; :func:`~coin_app.evaluation.evaluate.evaluate_policy` passes it to the
+  recorder). NaN without finished vehicles, or when no ``horizon`` was given;
+* ``avg_travel_steps_arrived`` = the mean travel steps of the arrived vehicles only (NaN if
+  none): what coin_app reported as ``avg_travel_steps`` before, kept beside it;
 * ``num_vehicles``, ``episode_return`` (mean per-vehicle return, NaN if no vehicles),
   ``env_steps`` (number of recorded env steps), and the raw counts ``num_arrived``,
   ``num_crashed``, ``num_out_of_road``, ``num_timeout``, ``num_running`` and the exclusive
   ``num_outcome_{arrived,out_of_road,crashed,timeout,running}``.
+
+What the travel steps count: a vehicle's travel steps (:attr:`VehicleRecord.travel_steps`)
+are the env's ``episode_length`` in its latest info (else the steps it was seen acting), i.e.
+the env steps in which it acted, **the step in which it finished included** (a vehicle that
+arrives in its 300th action has 300; MetaDrive's ``info["episode_length"]`` counts the same
+way). A count of the steps before the finishing one is one lower per vehicle; COIN's official
+arrived-only figure is such a count, so ``avg_travel_steps_arrived`` = that figure + 1. In
+``avg_travel_steps`` only arrivals carry their own count (a non-arrival is ``horizon``
+exactly), so it exceeds a finishing-step-excluded count by arrivals / finished vehicles (less
+than one step). Vehicles still running when recording stops (never done; none once an episode
+has ended) are left out of both travel-step means (they still count in the rates'
+denominator). Over episodes, :func:`aggregate` averages the per-episode values, as for every
+metric.
 """
 
 from __future__ import annotations
@@ -52,6 +72,7 @@ from coin_app.sim import schema
 
 ALL_KEY = "__all__"
 OUTCOMES = ("arrived", "out_of_road", "crashed", "timeout", "running")
+# the six metrics of COIN's Table 5.1 (avg_travel_steps: the paper's definition, see the module doc)
 METRIC_KEYS = ("success_rate", "collision_rate", "out_of_road_rate", "efficiency", "safety", "avg_travel_steps")
 
 
@@ -89,9 +110,14 @@ class VehicleRecord:
 
 
 class EpisodeRecorder:
-    """Accumulates one episode's per-agent infos and done flags into per-vehicle records."""
+    """Accumulates one episode's per-agent infos and done flags into per-vehicle records.
 
-    def __init__(self) -> None:
+    ``horizon``: each vehicle's own step limit (``max_agent_steps``), at which a vehicle that did
+    not arrive counts in ``avg_travel_steps``; without it that metric is NaN.
+    """
+
+    def __init__(self, horizon: int | None = None) -> None:
+        self.horizon = horizon
         self.vehicles: dict[str, VehicleRecord] = {}
         self.env_steps = 0
         self._reward_from_info: set[str] = set()
@@ -171,11 +197,14 @@ class EpisodeRecorder:
         return episode_metrics(self)
 
 
-def episode_metrics(recorder: EpisodeRecorder | Iterable[VehicleRecord], env_steps: int | None = None) -> dict[str, float]:
-    """The six COIN metrics plus counts of one episode, from a recorder or its vehicle records."""
+def episode_metrics(
+    recorder: EpisodeRecorder | Iterable[VehicleRecord], env_steps: int | None = None, horizon: int | None = None
+) -> dict[str, float]:
+    """The six COIN metrics plus counts of one episode, from a recorder or its vehicle records (``horizon``: the recorder's)."""
     if isinstance(recorder, EpisodeRecorder):
         recs = list(recorder.vehicles.values())
         env_steps = recorder.env_steps if env_steps is None else env_steps
+        horizon = recorder.horizon if horizon is None else horizon
     else:
         recs = list(recorder)
     n = len(recs)
@@ -188,13 +217,17 @@ def episode_metrics(recorder: EpisodeRecorder | Iterable[VehicleRecord], env_ste
     n_arr, n_crash, n_oor = int(arrived.sum()), int(crashed.sum()), int(off_road.sum())
     flagged = arrived | crashed | off_road
     rate = (lambda k: k / n) if n else (lambda k: math.nan)
+    n_done = int(done.sum())
+    # the paper's travel steps: finished vehicles, each non-arrival at the horizon
+    paper_travel = float(np.where(arrived, travel, horizon)[done].mean()) if n_done and horizon is not None else math.nan
     out: dict[str, float] = {
         "success_rate": rate(n_arr),
         "collision_rate": rate(n_crash),
         "out_of_road_rate": rate(n_oor),
         "efficiency": float(n_arr - n_crash - n_oor),
         "safety": float(-(n_crash + n_oor)),
-        "avg_travel_steps": float(travel[arrived].mean()) if n_arr else math.nan,
+        "avg_travel_steps": paper_travel,
+        "avg_travel_steps_arrived": float(travel[arrived].mean()) if n_arr else math.nan,
         "num_vehicles": n,
         "episode_return": float(returns.mean()) if n else math.nan,
         "env_steps": int(env_steps) if env_steps is not None else max((r.last_step for r in recs), default=0),
@@ -215,12 +248,13 @@ def metrics_from_infos(
     terminations: Sequence[Mapping[str, bool]] | None = None,
     truncations: Sequence[Mapping[str, bool]] | None = None,
     reset_infos: Mapping[str, Mapping[str, Any]] | None = None,
+    horizon: int | None = None,
 ) -> dict[str, float]:
-    """Episode metrics from the list of per-step ``infos`` (one per ``env.step``; optional done dicts)."""
+    """Episode metrics from the list of per-step ``infos`` (one per ``env.step``; optional done dicts; ``horizon`` as the recorder's)."""
     for name, seq in (("terminations", terminations), ("truncations", truncations)):
         if seq is not None and len(seq) != len(step_infos):
             raise ValueError(f"{name} has {len(seq)} entries but step_infos has {len(step_infos)}; give one dict per env step")
-    rec = EpisodeRecorder()
+    rec = EpisodeRecorder(horizon)
     rec.reset(reset_infos)
     for t, infos in enumerate(step_infos):
         term = terminations[t] if terminations is not None else None
@@ -232,7 +266,7 @@ def metrics_from_infos(
 def aggregate(metrics: Sequence[Mapping[str, float]], ddof: int = 0) -> dict[str, dict[str, float]]:
     """Mean, std and count of every numeric metric over episodes: ``{key: {"mean", "std", "n"}}``.
 
-    NaN values (e.g. ``avg_travel_steps`` of an episode without arrivals) are skipped;
+    NaN values (e.g. ``avg_travel_steps_arrived`` of an episode without arrivals) are skipped;
     ``n`` is the number of non-NaN values. ``ddof=0`` is numpy's population std.
     """
     if not metrics:

@@ -37,7 +37,7 @@ from coin_app.evaluation.metrics import METRIC_KEYS
 from coin_app.sim.config import DEFAULT_NUM_AGENTS
 from coin_app.sim.scenarios import config_from_dict
 
-EPISODE_METRICS = (*METRIC_KEYS, "episode_return", "num_vehicles")
+EPISODE_METRICS = (*METRIC_KEYS, "avg_travel_steps_arrived", "episode_return", "num_vehicles")
 KEYS = ("method", "variant", "trained_seed", "test_seed", "scenario", "agent_count", "trained_agent_count")
 RESULT_COLUMNS = (*KEYS, *EPISODE_METRICS, "episode_length", "wall_time_s", "trained_env_steps", "checkpoint")
 

@@ -5,8 +5,10 @@ paper's Table 5.1 and Section 5.2; ``docs/decisions.md`` §5.2):
 
 * A method's figure pools every episode of every trained seed at the training agent count
   (8 seeds x 20 test seeds = 160 episodes in the paper): the mean and the sample std
-  (``ddof=1``) over those episodes. ``avg_travel_steps`` is undefined in an episode without
-  arrivals; its mean is over the episodes that have one (``n`` counts them).
+  (``ddof=1``) over those episodes. ``avg_travel_steps`` is the paper's (a vehicle that did not
+  arrive counts as the horizon; :mod:`coin_app.evaluation.metrics`), lower is better; undefined
+  only in an episode without a finished vehicle, its mean is over the episodes that have one
+  (``n`` counts them).
 * Best and second best per (scenario, metric) are ranked on the value as displayed (rounded),
   in the metric's direction (:data:`METRICS`); ties share the mark, as a table reader sees them.
 * Paired t-tests (``scipy.stats.ttest_rel``, two-sided) compare the chosen method with each

@@ -25,7 +25,6 @@ bfloat16 (``learner.py``).
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import torch
@@ -48,13 +47,18 @@ from ray.rllib.utils.metrics import (
 )
 
 from coin_app.adapters.rllib_env import ENV_IDS, env_config_of, register_envs
+from coin_app.algorithms.checks import value_errors
 from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
-from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES
-from coin_app.algorithms.cig_td3.learner import PRECISIONS, CigTd3TorchLearner
-from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
+from coin_app.algorithms.cig_td3.learner import CigTd3TorchLearner
 from coin_app.algorithms.cig_td3.rl_module import CigTd3TorchRLModule
 from coin_app.algorithms.cig_td3.transitions import episodes_to_transitions
-from coin_app.algorithms.common import SHARED_MODULE_ID, backend_errors, policy_mapping_fn, scenario_config_of
+from coin_app.algorithms.common import (
+    SHARED_MODULE_ID,
+    ProgressReporting,
+    backend_errors,
+    policy_mapping_fn,
+    scenario_config_of,
+)
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig
@@ -62,7 +66,6 @@ from coin_app.sim.road_map import load_map
 from coin_app.sim.scenarios import scenario_name
 from coin_app.sim.simulator import MAX_RESPAWN_PER_STEP
 
-UPDATE_ORDERS = ("critic_first", "joint")
 ITD3_PRECISION = "fp32"  # ITD3's default precision (CIG-TD3's is bf16: docs/learning_curves_precision)
 
 # name -> (default, meaning); the single source of the documentation and of training() kwargs
@@ -171,63 +174,9 @@ class CigTd3Config(AlgorithmConfig):
     def validate(self) -> None:
         """Refuse bad values and invalid ablation combinations before any work starts."""
         super().validate()
-        errors = []
-        if self.local_module not in LOCAL_MODULES:
-            errors.append(f"local_module={self.local_module!r}; allowed: {' | '.join(LOCAL_MODULES)}")
-        if self.global_module not in GLOBAL_MODULES:
-            errors.append(f"global_module={self.global_module!r}; allowed: {' | '.join(GLOBAL_MODULES)}")
-        if not (self.graph == "full" or (isinstance(self.graph, (int, float)) and not isinstance(self.graph, bool) and self.graph > 0)):
-            errors.append(f"graph={self.graph!r}; allowed: 'full' or a radius in metres > 0")
-        for name in ("actor_lr", "critic_lr", "central_critic_lr", "tau", "updates_per_env_step"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:
-                errors.append(f"{name}={v!r}; allowed: a number > 0")
-        for name in (
-            "exploration_noise",
-            "target_noise",
-            "target_noise_clip",
-            "global_weight",
-            "vae_weight",
-            "kl_beta",
-            "actor_preact_penalty",
-            "actor_preact_threshold",
-        ):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
-                errors.append(f"{name}={v!r}; allowed: a number >= 0")
-        for name in (
-            "policy_delay",
-            "hidden",
-            "actor_layers",
-            "latent_dim",
-            "node_width",
-            "gat_heads",
-            "replay_capacity",
-            "eval_episodes",
-            "learner_threads",
-        ):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                errors.append(f"{name}={v!r}; allowed: an integer >= 1")
-        if not isinstance(self.eval_every, int) or self.eval_every < 0:
-            errors.append(f"eval_every={self.eval_every!r}; allowed: an integer >= 0 (0 = off)")
-        for name in ("warmup_steps", "actor_start_steps", "exploration_noise_decay_steps"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-                errors.append(f"{name}={v!r}; allowed: an integer >= 0")
-        noise0 = self.exploration_noise_initial
-        if noise0 is not None and (
-            not isinstance(noise0, (int, float)) or isinstance(noise0, bool) or not math.isfinite(noise0) or noise0 < 0
-        ):
-            errors.append(f"exploration_noise_initial={noise0!r}; allowed: None or a finite number >= 0")
-        if self.gat_init not in GAT_INITS:
-            errors.append(f"gat_init={self.gat_init!r}; allowed: {' | '.join(GAT_INITS)}")
-        if self.update_order not in UPDATE_ORDERS:
-            errors.append(f"update_order={self.update_order!r}; allowed: {' | '.join(UPDATE_ORDERS)}")
-        if self.precision not in PRECISIONS:
-            errors.append(f"precision={self.precision!r}; allowed: {' | '.join(PRECISIONS)}")
-        if not self.tau <= 1:
-            errors.append(f"tau={self.tau!r}; allowed: 0 < tau <= 1")
+        errors = value_errors({key: getattr(self, key) for key in HYPERPARAMETERS})  # types, finiteness, ranges, choices
+        if errors:  # the combinations below assume well-typed values
+            raise ValueError("invalid CIG-TD3 config: " + "; ".join(errors))
         # ablation combinations
         if not self.global_critic:
             if self.counterfactual_baseline:
@@ -290,7 +239,7 @@ class CigTd3Config(AlgorithmConfig):
 REPLAY_STATE_KEY = "cig_td3_replay"
 
 
-class CigTd3(Algorithm):
+class CigTd3(ProgressReporting, Algorithm):
     """Counterfactual individual-global TD3 (COIN) with a shared policy for all agents."""
 
     @classmethod
@@ -322,6 +271,7 @@ class CigTd3(Algorithm):
         """One sample -> replay -> update(s) -> sync cycle."""
         cfg = self.config
         self._sync_env_steps()
+        self.report_progress("sampling", 0, 0)
         with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
             episodes, runner_results = synchronous_parallel_sample(
                 worker_set=self.env_runner_group,
@@ -341,7 +291,8 @@ class CigTd3(Algorithm):
         self._update_credit += env_steps * cfg.updates_per_env_step
         n_updates = int(self._update_credit)
         self._update_credit -= n_updates
-        for _ in range(n_updates):
+        for i in range(n_updates):
+            self.report_progress("updates", i, n_updates)
             with self.metrics.log_time((TIMERS, REPLAY_BUFFER_SAMPLE_TIMER)):
                 sample = self.replay.sample(batch_size)
             batch = MultiAgentBatch({SHARED_MODULE_ID: SampleBatch(sample)}, env_steps=batch_size)
@@ -356,6 +307,7 @@ class CigTd3(Algorithm):
                     },
                 )
             self.metrics.aggregate(results, key=LEARNER_RESULTS)
+        self.report_progress("updates", n_updates, n_updates)
         done_before, self._num_updates = self._num_updates, self._num_updates + n_updates
         if done_before // cfg.policy_delay != self._num_updates // cfg.policy_delay:  # the actor changed
             with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):

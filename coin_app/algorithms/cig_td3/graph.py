@@ -32,10 +32,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from coin_app.algorithms.choices import GAT_INITS, GLOBAL_MODULES  # noqa: F401 (re-exported)
 from coin_app.algorithms.cig_td3.pairwise import PairPacker
 
-GLOBAL_MODULES = ("gat", "gcn", "graphsage", "none")
-GAT_INITS = ("xavier", "default")
 XAVIER_GAIN = 1.414  # pyGAT's gain for W and a (the official COIN code's GAT, docs/decisions.md §2)
 
 __all__ = ["GAT_INITS", "GLOBAL_MODULES", "GATLayer", "Graph", "GraphModule", "MeanAggLayer", "build_graph", "radius_adjacency"]

@@ -31,9 +31,8 @@ from ray.rllib.core.learner.utils import update_target_network
 from ray.rllib.core.rl_module.apis import TargetNetworkAPI
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
+from coin_app.algorithms.choices import PRECISIONS  # noqa: F401 (re-exported)
 from coin_app.algorithms.cig_td3.losses import LossConfig, actor_loss, central_critic_loss, local_critic_loss, td_targets
-
-PRECISIONS = ("fp32", "bf16")
 
 
 def autocast(module: torch.nn.Module, precision: str) -> contextlib.AbstractContextManager:

@@ -33,9 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from coin_app.algorithms.choices import LOCAL_MODULES  # noqa: F401 (re-exported)
 from coin_app.algorithms.cig_td3.individual import mlp
-
-LOCAL_MODULES = ("cvae", "attention", "none")
 
 __all__ = ["LOCAL_MODULES", "PairAttention", "PairCVAE", "PairLinear", "PairPacker"]
 

@@ -30,8 +30,6 @@ from coin_app.algorithms.copo.learner import CoPOLearner
 from coin_app.algorithms.copo.rl_module import CoPOModule
 from coin_app.algorithms.ppo_family.config import (
     HYPERPARAMETERS,
-    check_choice,
-    check_number,
     checked,
     driving_scenario,
     learner_options,
@@ -39,7 +37,7 @@ from coin_app.algorithms.ppo_family.config import (
     ppo_base_config,
     ppo_settings,
 )
-from coin_app.algorithms.spec import LCF_MODES, AlgorithmSpec, Capabilities
+from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map
 
@@ -97,14 +95,9 @@ class CoPO(PPO):
 def build_copo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """CoPO: IPPO's settings plus LCFs in the envs, three value heads, the coordinated advantage and the LCF meta-gradient."""
     hp, opts = ppo_settings(algo_cfg, COPO_KEYS)
-    radius = check_number("neighbour_radius", opts["neighbour_radius"], lambda v: v > 0, "a number of metres > 0")
-    mean = check_number("initial_lcf_mean", opts["initial_lcf_mean"], lambda v: -1 < v < 1, "a number in (-1, 1)")
-    std = check_number("initial_lcf_std", opts["initial_lcf_std"], lambda v: 0 < v < 7, "a number in (0, 7) (std = exp(p), p <= 2)")
-    check_number("lcf_lr", opts["lcf_lr"], lambda v: v > 0, "a number > 0")
-    check_number("lcf_num_iters", opts["lcf_num_iters"], lambda v: v >= 0, "an integer >= 0", integer=True)
-    if opts["lcf_minibatch_size"] is not None:
-        check_number("lcf_minibatch_size", opts["lcf_minibatch_size"], lambda v: v >= 1, "None or an integer >= 1", integer=True)
-    check_choice("eval_lcf", opts["eval_lcf"], LCF_MODES)
+    radius, mean, std = opts["neighbour_radius"], opts["initial_lcf_mean"], opts["initial_lcf_std"]  # checked by ppo_settings
+    if radius is None:  # the PPO family's rule allows None (CPPO / MFPO: their own radius); CoPO has no default but 40
+        raise ValueError("bad value for 'neighbour_radius': None; allowed: a finite number > 0 (metres)")
     scenario = driving_scenario("CoPO", scenario)
     learner_config = {
         **learner_options(hp),

@@ -29,10 +29,9 @@ from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
 from coin_app.adapters.rllib_env import env_config_of
+from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
-from coin_app.algorithms.ppo_family.config import check_choice
-from coin_app.algorithms.ppo_family.precision import PRECISIONS
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.arena.config import ArenaConfig
@@ -83,10 +82,8 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
         raise ValueError(f"nav_ppo trains on the arena only, got {type(scenario).__name__}; allowed: an ArenaConfig")
     stage_of(algo_cfg)  # the stage's scenario mix is in ``scenario`` already (the spec's scenario_defaults)
     hp = {k: v for k, (v, _) in HYPERPARAMETERS.items() if k != "stage"} | {k: v for k, v in algo_cfg.items() if k != "stage"}
-    for key in ("hidden",):
-        if not (isinstance(hp[key], int) and not isinstance(hp[key], bool) and hp[key] >= 1):
-            raise ValueError(f"bad value for {key!r}: {hp[key]!r}; allowed: an integer >= 1")
-    precision = check_choice("precision", hp.pop("precision"), PRECISIONS)
+    check_values(hp)
+    precision = hp.pop("precision")
     model = DefaultModelConfig(fcnet_hiddens=[hp.pop("hidden")] * 2, fcnet_activation="tanh", vf_share_layers=False, head_fcnet_hiddens=[])
     config = (
         PPOConfig()

@@ -25,7 +25,7 @@ The helpers (``ppo_settings``, ``policy_model``, ``ppo_base_config``, ``learner_
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 from ray.rllib.algorithms.algorithm import Algorithm
@@ -34,10 +34,10 @@ from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
 from coin_app.adapters.rllib_env import env_config_of
+from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import backend_errors, shared_policy_config
 from coin_app.algorithms.ppo_family.centralized import CentralizedCriticPPOLearner, CentralizedCriticPPOModule, critic_input_dim
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
-from coin_app.algorithms.ppo_family.precision import PRECISIONS
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
@@ -85,8 +85,6 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
 OWN_KEYS = ("hidden", "num_env_runners", "rollout_fragment_length", "kl_signal", "timeout_bootstrap", "weight_init", "precision")
 # the HYPERPARAMETERS that go to PPOConfig.training as they are
 TRAINING_KEYS = tuple(k for k in HYPERPARAMETERS if k not in OWN_KEYS)
-KL_SIGNALS = ("epoch_mean", "last_minibatch")
-WEIGHT_INITS = ("normc", "torch")
 
 # the extra --set keys of CPPO and MFPO (neighbour_radius None = the algorithm's own radius)
 CENTRAL_KEYS: dict[str, tuple[Any, str]] = {
@@ -96,35 +94,14 @@ CENTRAL_KEYS: dict[str, tuple[Any, str]] = {
 CPPO_RADIUS, MFPO_RADIUS = 40.0, 10.0  # metres
 
 
-def check_number(name: str, value: Any, ok: Callable[[float], bool], allowed: str, integer: bool = False) -> Any:
-    """``value`` if it is a number (an integer if asked) that passes ``ok``; else a ValueError naming it."""
-    kinds = (int,) if integer else (int, float)
-    if not (isinstance(value, kinds) and not isinstance(value, bool) and ok(value)):
-        raise ValueError(f"bad value for {name!r}: {value!r}; allowed: {allowed}")
-    return value
-
-
 def ppo_settings(algo_cfg: Mapping[str, Any], extra: Mapping[str, tuple[Any, str]]) -> tuple[dict[str, Any], dict[str, Any]]:
     """(``HYPERPARAMETERS`` values, the algorithm's ``extra`` values) of ``algo_cfg`` over their defaults; checks the shared ones."""
     values = dict(algo_cfg)
     opts = {k: values.pop(k, default) for k, (default, _) in extra.items()}
     hp = {k: default for k, (default, _) in HYPERPARAMETERS.items()} | values
-    check_number("hidden", hp["hidden"], lambda v: v >= 1, "an integer >= 1", integer=True)
-    check_number("num_env_runners", hp["num_env_runners"], lambda v: v >= 0, "an integer >= 0", integer=True)
-    if hp["rollout_fragment_length"] != "auto":
-        check_number("rollout_fragment_length", hp["rollout_fragment_length"], lambda v: v >= 1, "'auto' or an integer >= 1", integer=True)
-    check_choice("kl_signal", hp["kl_signal"], KL_SIGNALS)
-    check_choice("weight_init", hp["weight_init"], WEIGHT_INITS)
-    check_choice("timeout_bootstrap", hp["timeout_bootstrap"], (False, True))
-    check_choice("precision", hp["precision"], PRECISIONS)
+    check_values(hp)
+    check_values(opts)
     return hp, opts
-
-
-def check_choice(name: str, value: Any, allowed: tuple[Any, ...]) -> Any:
-    """``value`` if it is one of ``allowed`` (booleans only match booleans); else a ValueError naming it."""
-    if not any(value == a and type(value) is type(a) for a in allowed):
-        raise ValueError(f"bad value for {name!r}: {value!r}; allowed: {', '.join(map(repr, allowed))}")
-    return value
 
 
 def policy_model(hidden: int, weight_init: str) -> dict[str, Any]:
@@ -182,8 +159,7 @@ def centralized_config(name: str, mode: str, radius: float, scenario: ScenarioCo
     """CPPO / MFPO: IPPO's policy with the value function on the ``mode`` critic input of the neighbours within the radius."""
     hp, opts = ppo_settings(algo_cfg, CENTRAL_KEYS)
     radius = radius if opts["neighbour_radius"] is None else opts["neighbour_radius"]
-    radius = check_number("neighbour_radius", radius, lambda v: v > 0, "a number of metres > 0")
-    k = check_number("num_neighbours", opts["num_neighbours"], lambda v: v >= 1, "an integer >= 1", integer=True)
+    k = opts["num_neighbours"]
     scenario = driving_scenario(name, scenario)
     learner_config = {
         **learner_options(hp),

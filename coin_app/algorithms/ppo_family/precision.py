@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 
-PRECISIONS = ("fp32", "bf16")
+from coin_app.algorithms.choices import PRECISIONS  # noqa: F401 (re-exported)
 
 
 def full_precision(x: torch.Tensor) -> torch.Tensor:

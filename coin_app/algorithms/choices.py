@@ -1,0 +1,13 @@
+"""The named choices of algorithm keys, in one dependency-free module (networks, configs and ``checks`` import it)."""
+
+from __future__ import annotations
+
+LOCAL_MODULES = ("cvae", "attention", "none")  # CIG-TD3's pairwise (local) module of the global critic
+GLOBAL_MODULES = ("gat", "gcn", "graphsage", "none")  # CIG-TD3's graph (global) module
+GAT_INITS = ("xavier", "default")  # the first GAT layer's initialization: the official code's Xavier (gain 1.414) or torch's
+UPDATE_ORDERS = ("critic_first", "joint")  # TD3 family: critics first, then the actor on the updated critics; or one joint step
+PRECISIONS = ("fp32", "bf16")  # the learner's update precision
+KL_SIGNALS = ("epoch_mean", "last_minibatch")  # PPO: which KL drives the adaptive KL coefficient
+WEIGHT_INITS = ("normc", "torch")  # PPO family: RLlib's normc initialization or torch's default
+LCF_MODES = ("sampled", "mean")  # how evaluation gives each vehicle its LCF (CoordinatedActorModule.evaluation_lcf)
+NAV_STAGES = ("long", "short")  # nav_ppo's training stages
