@@ -10,10 +10,12 @@ policy's time is printed apart). ``--scaling`` adds the step time from 10 to 48 
 (48 = the maps' spawn capacity, as in MetaDrive). Pin one core with ``taskset -c 0``.
 
 ``--backend metadrive`` times MetaDrive 0.4.3 (optional extra) through coin_app's dict env;
-``--backend both`` runs the native dict env in this process and MetaDrive in a child process
-(one engine per process), one after the other so they never share a core, with the same
-agent count, seeds and policies ("random": uniform actions; "forward": steering U(-0.3, 0.3),
-throttle U(0.2, 1), dense crashes and respawns), and prints the ratio native / MetaDrive.
+``--backend both`` runs the native dict env (with MetaDrive's car, the default, and with the
+fitted bicycle) in this process and MetaDrive in a child process (one engine per process), one
+after the other so they never share a core, with the same agent count, seeds and policies
+("random": uniform actions; "forward": steering U(-0.3, 0.3), throttle U(0.2, 1), dense crashes
+and respawns), and prints the ratio native (MetaDrive's car) / MetaDrive. ``--model bicycle``
+times the vectorized core with the fitted bicycle instead of MetaDrive's car.
 The native vectorized core (``--num-envs``) is faster still; its table is printed first
 unless the backend is metadrive.
 """
@@ -34,13 +36,15 @@ from coin_app.sim.heuristic import HeuristicDriver  # noqa: E402
 from coin_app.sim.simulator import DrivingSimulator  # noqa: E402
 
 
-def measure(scenario: str, num_agents: int, num_envs: int, policy: str, steps: int, seed: int = 0) -> tuple[float, float, float]:
+def measure(
+    scenario: str, num_agents: int, num_envs: int, policy: str, steps: int, seed: int = 0, model: str = "raycast"
+) -> tuple[float, float, float]:
     """(env agent-steps/s, env ms per batched step, policy ms per step) over ``steps`` steps.
 
     Only ``sim.step`` (and the auto-resets) count as env time; computing the actions is
     timed apart, so the heuristic rows measure the simulator under the heuristic's traffic.
     """
-    sim = DrivingSimulator(make_config(scenario, num_agents=num_agents), num_envs=num_envs)
+    sim = DrivingSimulator(make_config(scenario, num_agents=num_agents, dynamics={"model": model}), num_envs=num_envs)
     sim.reset(seed)
     rng = np.random.default_rng(seed)
     driver = HeuristicDriver(sim) if policy == "heuristic" else None
@@ -67,10 +71,14 @@ def measure(scenario: str, num_agents: int, num_envs: int, policy: str, steps: i
 
 
 def measure_dict_env(scenario: str, backend: str, policy: str, steps: int, seed: int = 0) -> tuple[float, float]:
-    """(agent-steps/s, mean acting agents) of one env of ``backend`` through the dict API, auto-resetting."""
+    """(agent-steps/s, mean acting agents) of one env of ``backend`` through the dict API, auto-resetting.
+
+    ``backend``: ``metadrive``, ``native`` (its default vehicle, MetaDrive's car) or ``native-bicycle``.
+    """
     from coin_app.backends.factory import make_driving_env
 
-    env = make_driving_env(make_config(scenario, backend=backend))
+    extra = {"dynamics": {"model": "bicycle"}} if backend == "native-bicycle" else {"backend": backend}
+    env = make_driving_env(make_config(scenario, **extra))
     rng = np.random.default_rng(seed)
     agent_steps = 0
     try:
@@ -112,7 +120,7 @@ def side_by_side(scenarios: list[str], steps: int, backends: tuple[str, ...]) ->
                 else:
                     row[b] = measure_dict_env(sc, b, pol, steps)
             cells = "".join(f"{row[b][0]:>20,.0f}{row[b][1]:>6.1f}" for b in backends)
-            ratio = f"{row['native'][0] / row['metadrive'][0]:7.1f}x" if len(row) == 2 else ""
+            ratio = f"{row['native'][0] / row['metadrive'][0]:7.1f}x" if {"native", "metadrive"} <= set(row) else ""
             print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{pol:>9}{cells}   {ratio}", flush=True)
 
 
@@ -124,19 +132,21 @@ def main() -> None:
     ap.add_argument("--scenarios", nargs="+", default=list(DEFAULT_NUM_AGENTS))
     ap.add_argument("--scaling", action="store_true", help="also time one env from 10 to 48 agents")
     ap.add_argument("--backend", default="native", choices=["native", "metadrive", "both"], help="metadrive needs the optional extra")
+    ap.add_argument("--model", default="raycast", choices=["raycast", "bicycle"], help="the native vehicle model of the core's table")
     args = ap.parse_args()
     if args.backend != "native":
-        backends = ("native", "metadrive") if args.backend == "both" else ("metadrive",)
+        backends = ("native", "native-bicycle", "metadrive") if args.backend == "both" else ("metadrive",)
         print(f"dict-API env, one env per backend, {args.steps} steps per row ('live' = mean acting agents):")
         side_by_side(args.scenarios, args.steps, backends)
         if args.backend == "metadrive":
             return
         print("\nnative vectorized core:")
+    print(f"vehicle model: {args.model}")
     print(f"{'scenario':<13}{'agents':>7}{'envs':>6}{'policy':>11}{'agent-steps/s':>15}{'env ms/step':>13}{'policy ms':>11}")
     for sc in args.scenarios:
         for ne in args.num_envs:
             for pol in ("random", "heuristic"):
-                rate, ms, pms = measure(sc, DEFAULT_NUM_AGENTS[sc], ne, pol, args.steps)
+                rate, ms, pms = measure(sc, DEFAULT_NUM_AGENTS[sc], ne, pol, args.steps, model=args.model)
                 print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{ne:>6}{pol:>11}{rate:>15,.0f}{ms:>13.2f}{pms:>11.2f}", flush=True)
     if args.scaling:
         print("\nenv step time vs agent count (heuristic traffic, intersection, one env and a batch of 32):")

@@ -190,10 +190,9 @@ def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, 
 
 
 def _dynamics_name(dynamics: DynamicsConfig) -> str:
-    """``fitted`` (the default), ``kinematic`` (the preset's) or ``custom``."""
-    if dynamics == DynamicsConfig():
-        return "fitted"
-    return "kinematic" if dynamics == DynamicsConfig.kinematic() else "custom"
+    """``raycast`` (MetaDrive's car, the default), ``fitted bicycle``, ``kinematic`` (the preset's) or ``custom``."""
+    names = {DynamicsConfig(): "raycast", DynamicsConfig(model="bicycle"): "fitted bicycle", DynamicsConfig.kinematic(): "kinematic"}
+    return names.get(dynamics, "custom")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:

@@ -721,7 +721,14 @@ def real_runner_data():
     torch.set_num_threads(1)
     register_env("coin-replay-logging-v0", lambda cfg: LoggingEnv(cfg))
     # the brief's tiny config; cars without brakes so that some crash or leave the road and respawn
-    no_brakes = {"brake_linear": 0.0, "brake_sat_intercept": 0.0, "brake_sat_slope": 0.0, "coast_decel": 0.0, "throttle_accel": 8.0}
+    no_brakes = {
+        "model": "bicycle",
+        "brake_linear": 0.0,
+        "brake_sat_intercept": 0.0,
+        "brake_sat_slope": 0.0,
+        "coast_decel": 0.0,
+        "throttle_accel": 8.0,
+    }  # fast, crashy fixture cars
     env_config = {"num_agents": 4, "horizon": 40, "max_agent_steps": 30, "delay_done": 2, "dynamics": no_brakes}
     config = (
         PPOConfig()

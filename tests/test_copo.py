@@ -39,7 +39,14 @@ from coin_app.cli import main
 from coin_app.sim.road_map import load_map
 from coin_app.training import build_config
 
-NO_BRAKES = {"brake_linear": 0.0, "brake_sat_intercept": 0.0, "brake_sat_slope": 0.0, "coast_decel": 0.0, "throttle_accel": 8.0}
+NO_BRAKES = {
+    "model": "bicycle",
+    "brake_linear": 0.0,
+    "brake_sat_intercept": 0.0,
+    "brake_sat_slope": 0.0,
+    "coast_decel": 0.0,
+    "throttle_accel": 8.0,
+}  # fast, crashy fixture cars
 RESPAWNING = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
 TINY = {
     **RESPAWNING,

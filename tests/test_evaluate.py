@@ -92,7 +92,7 @@ def test_evaluate_preset_metadrive_compat_on_an_exported_policy(tmp_path, capsys
     argv = ["evaluate", str(policy_file), "--seeds", "200000", "200001", "--set", "num_agents=2", "horizon=5", "max_agent_steps=5"]
     assert main([*argv, "--preset", "metadrive_compat", "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "settings (--preset metadrive_compat): lidar_range 40, crash_penalty 10, out_of_road_penalty 10, dynamics fitted" in text
+    assert "settings (--preset metadrive_compat): lidar_range 40, crash_penalty 10, out_of_road_penalty 10, dynamics raycast" in text
     episodes = json.loads(out.read_text())["episodes"]
     rows = {line.split()[0]: line.split() for line in text.splitlines() if line.startswith("  ")}
     vehicles = sum(e["num_vehicles"] for e in episodes)

@@ -18,16 +18,25 @@ DEFAULT_NUM_AGENTS = {"intersection": 30, "roundabout": 40, "bottleneck": 20}
 SPAWN_CAPACITY = 48  # MetaDrive's spawn slots per map (6 per lane of every spawn road)
 
 
+DYNAMICS_MODELS = ("raycast", "bicycle")
+PHYSICS_DT = 0.02  # s, MetaDrive's physics step (the raycast vehicle takes dt / PHYSICS_DT of them per env step)
+
+
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Vehicle model: a kinematic bicycle whose constants are fitted to MetaDrive's car.
+    """Vehicle model: MetaDrive's car as Bullet simulates it (``model="raycast"``), or a bicycle model.
 
-    ``curvature_per_steer=None`` gives the textbook bicycle curvature tan(delta)/L; the
-    fitted defaults come from ``maps/vehicle_dynamics_fit.json``. With
-    ``yaw_rate_alpha=1, beta_gain=0, scrub=0, brake_steer=0, lateral_grip=inf`` the model
-    is exactly the seed-2 paper's Eq. 1 in semi-implicit order.
+    ``model="raycast"`` (default) steps a port of Bullet's raycast vehicle with MetaDrive's own
+    constants (``coin_app/sim/vehicle.py``); it uses ``dt``, ``max_steer_deg`` and
+    ``max_speed_kmh`` of this config and ignores the bicycle constants. ``model="bicycle"`` is
+    the kinematic bicycle whose constants below were fitted to MetaDrive's car before the port
+    (``maps/vehicle_dynamics_fit.json``; ``curvature_per_steer=None`` gives the textbook
+    tan(delta)/L). With ``yaw_rate_alpha=1, beta_gain=0, scrub=0, brake_steer=0,
+    lateral_grip=inf`` the bicycle is exactly the seed-2 paper's Eq. 1 in semi-implicit order
+    (the ``kinematic`` preset).
     """
 
+    model: str = "raycast"  # "raycast" (MetaDrive's Bullet vehicle) | "bicycle"
     dt: float = 0.1  # s per env step (MetaDrive: 5 x 0.02 s)
     max_steer_deg: float = 40.0  # steering angle at |a0| = 1
     wheelbase: float = 2.46894  # m, front to rear axle
@@ -51,7 +60,9 @@ class DynamicsConfig:
     @classmethod
     def kinematic(cls) -> DynamicsConfig:
         """The plain seed-2 bicycle (Eq. 1) with MetaDrive's geometry and pedal mapping."""
-        return cls(curvature_per_steer=None, lateral_grip=math.inf, yaw_rate_alpha=1.0, scrub=0.0, brake_steer=0.0, beta_gain=0.0)
+        return cls(
+            model="bicycle", curvature_per_steer=None, lateral_grip=math.inf, yaw_rate_alpha=1.0, scrub=0.0, brake_steer=0.0, beta_gain=0.0
+        )
 
 
 @dataclass(frozen=True)
@@ -171,9 +182,10 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
             raise ValueError(f"unknown dynamics key(s) {bad}; allowed: {', '.join(sorted(dyn_allowed))}")
         dyn = DynamicsConfig(**dyn)
     _check("dynamics", dyn, isinstance(dyn, DynamicsConfig), "a DynamicsConfig or a dict of its fields")
+    _check("dynamics.model", dyn.model, dyn.model in DYNAMICS_MODELS, " | ".join(DYNAMICS_MODELS))
     for f in fields(DynamicsConfig):
         v = getattr(dyn, f.name)
-        if f.name == "curvature_per_steer" and v is None:
+        if (f.name == "curvature_per_steer" and v is None) or f.name == "model":
             continue
         _check(
             f"dynamics.{f.name}",
@@ -182,6 +194,9 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
             "a number >= 0",
         )
     _check("dynamics.dt", dyn.dt, dyn.dt > 0, "a number > 0")
+    if dyn.model == "raycast":  # whole physics steps of 0.02 s (MetaDrive's physics_world_step_size)
+        ok = abs(dyn.dt / PHYSICS_DT - round(dyn.dt / PHYSICS_DT)) < 1e-9
+        _check("dynamics.dt", dyn.dt, ok, f"a multiple of {PHYSICS_DT} s with model 'raycast'")
     values["dynamics"] = dyn
     for k in _POSITIVE_INT:
         v = values.get(k, getattr(ScenarioConfig, k, None))

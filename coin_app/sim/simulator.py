@@ -21,10 +21,11 @@ import numpy as np
 
 from coin_app.sim import schema
 from coin_app.sim.collision import boxes_overlap, footprint_samples
-from coin_app.sim.config import ScenarioConfig
-from coin_app.sim.dynamics import bicycle_step
+from coin_app.sim.config import PHYSICS_DT, ScenarioConfig
+from coin_app.sim.dynamics import bicycle_step, wrap_angle
 from coin_app.sim.road_map import GridIndex, load_map
 from coin_app.sim.sensors import ego_features, lidar_scan, line_detector, local_state
+from coin_app.sim.vehicle import RaycastVehicles
 
 EMPTY, ACTIVE, DYING = 0, 1, 2
 CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
@@ -116,6 +117,8 @@ class DrivingSimulator:
         self.heading_prev = np.zeros(n)
         self.speed = np.zeros(n)
         self.yaw_rate = np.zeros(n)
+        # the chassis states of MetaDrive's car (dynamics model "raycast"); None for the bicycle models
+        self.bodies = RaycastVehicles(n) if self.cfg.dynamics.model == "raycast" else None
         self.action = np.zeros((n, schema.ACT_DIM))
         self.route = np.zeros(n, dtype=np.int64)
         self.ref_idx = np.zeros(n, dtype=np.int64)
@@ -187,6 +190,8 @@ class DrivingSimulator:
         self.vel[slots] = 0.0
         self.speed[slots] = 0.0
         self.yaw_rate[slots] = 0.0
+        if self.bodies is not None:  # at rest at MetaDrive's spawn height, settling onto its suspension
+            self.bodies.place(slots, self.pos[slots], self.heading[slots])
         self.action[slots] = 0.0
         self.lane[slots] = lane
         self.ref_idx[slots] = 0
@@ -212,6 +217,8 @@ class DrivingSimulator:
         self.heading[slot] = self.heading_prev[slot] = heading
         self.speed[slot] = speed
         self.vel[slot] = speed * np.array([np.cos(heading), np.sin(heading)])
+        if self.bodies is not None:  # on its suspension, driving straight at ``speed``
+            self.bodies.place(sl, self.pos[sl], self.heading[sl], speed, settled=True)
         self._localize(sl)
 
     def remove(self, slot: int) -> None:
@@ -238,8 +245,16 @@ class DrivingSimulator:
         self.prev_pos[idx] = self.pos[idx]
         self.heading_prev[idx] = self.heading[idx]
         self.action[idx] = a
-        pos, hd, v, r = bicycle_step(cfg.dynamics, self.pos[idx], self.heading[idx], self.speed[idx], self.yaw_rate[idx], a)
-        self.vel[idx] = (pos - self.pos[idx]) / cfg.dynamics.dt
+        dyn = cfg.dynamics
+        if self.bodies is not None:  # MetaDrive's car: poses as Bullet reports them, the body's own velocities
+            pos, hd = self.bodies.step(idx, a, round(dyn.dt / PHYSICS_DT), dyn.max_speed_kmh, dyn.max_steer_deg)
+            hd = wrap_angle(hd)
+            self.vel[idx] = self.bodies.vel[idx, :2]
+            v = np.sqrt((self.vel[idx] ** 2).sum(1))
+            r = self.bodies.ang[idx, 2]
+        else:
+            pos, hd, v, r = bicycle_step(dyn, self.pos[idx], self.heading[idx], self.speed[idx], self.yaw_rate[idx], a)
+            self.vel[idx] = (pos - self.pos[idx]) / dyn.dt
         self.pos[idx], self.heading[idx], self.speed[idx], self.yaw_rate[idx] = pos, hd, v, r
 
         on_lane = self._localize(idx)
