@@ -15,6 +15,7 @@ from dataclasses import fields
 
 import numpy as np
 import pytest
+from fixtures import NO_BRAKES
 from ray.rllib.core.columns import Columns
 from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 
@@ -721,15 +722,7 @@ def real_runner_data():
     torch.set_num_threads(1)
     register_env("coin-replay-logging-v0", lambda cfg: LoggingEnv(cfg))
     # the brief's tiny config; cars without brakes so that some crash or leave the road and respawn
-    no_brakes = {
-        "model": "bicycle",
-        "brake_linear": 0.0,
-        "brake_sat_intercept": 0.0,
-        "brake_sat_slope": 0.0,
-        "coast_decel": 0.0,
-        "throttle_accel": 8.0,
-    }  # fast, crashy fixture cars
-    env_config = {"num_agents": 4, "horizon": 40, "max_agent_steps": 30, "delay_done": 2, "dynamics": no_brakes}
+    env_config = {"num_agents": 4, "horizon": 40, "max_agent_steps": 30, "delay_done": 2, "dynamics": NO_BRAKES}
     config = (
         PPOConfig()
         .environment("coin-replay-logging-v0", env_config=env_config)

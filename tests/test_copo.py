@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from fixtures import NO_BRAKES
 from ray.rllib.core.rl_module.rl_module import RLModule
 
 from coin_app.adapters.batched_runner import BatchedEnvRunner
@@ -39,14 +40,6 @@ from coin_app.cli import main
 from coin_app.sim.road_map import load_map
 from coin_app.training import build_config
 
-NO_BRAKES = {
-    "model": "bicycle",
-    "brake_linear": 0.0,
-    "brake_sat_intercept": 0.0,
-    "brake_sat_slope": 0.0,
-    "coast_decel": 0.0,
-    "throttle_accel": 8.0,
-}  # fast, crashy fixture cars
 RESPAWNING = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
 TINY = {
     **RESPAWNING,

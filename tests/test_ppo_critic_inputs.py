@@ -6,20 +6,13 @@ import numpy as np
 import pytest
 import ray
 import torch
+from fixtures import NO_BRAKES
 
 from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS, CriticInputs
 from coin_app.sim.road_map import load_map
 from coin_app.training import build_config
 
 # cars that leave the road fast (no brakes) so that vehicles respawn within the sample
-NO_BRAKES = {
-    "model": "bicycle",
-    "brake_linear": 0.0,
-    "brake_sat_intercept": 0.0,
-    "brake_sat_slope": 0.0,
-    "coast_decel": 0.0,
-    "throttle_accel": 8.0,
-}  # fast, crashy fixture cars
 SETTINGS = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
 SETTINGS |= {"train_batch_size_per_learner": 100, "rollout_fragment_length": 50}
 SETTINGS |= {"minibatch_size": 50, "num_epochs": 1, "hidden": 8}

@@ -6,6 +6,7 @@ import random
 import numpy as np
 import pytest
 import torch
+from fixtures import NO_BRAKES
 from ray.rllib.core.columns import Columns
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
@@ -15,14 +16,6 @@ from coin_app.algorithms.ppo_family.precision import MixedPrecisionLearner, full
 from coin_app.training import build_config
 
 torch.set_num_threads(1)
-NO_BRAKES = {
-    "model": "bicycle",
-    "brake_linear": 0.0,
-    "brake_sat_intercept": 0.0,
-    "brake_sat_slope": 0.0,
-    "coast_decel": 0.0,
-    "throttle_accel": 8.0,
-}  # fast, crashy fixture cars
 DRIVING = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
 DRIVING |= {"train_batch_size_per_learner": 100, "rollout_fragment_length": 50, "minibatch_size": 100, "num_epochs": 2, "hidden": 64}
 ARENA = {"train_batch_size_per_learner": 100, "minibatch_size": 100, "num_epochs": 2, "hidden": 64, "max_steps": 40}

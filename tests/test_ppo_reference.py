@@ -8,6 +8,7 @@ import zlib
 import numpy as np
 import pytest
 import torch
+from fixtures import NO_BRAKES
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
 from ray.rllib.evaluation.postprocessing import Postprocessing
@@ -30,14 +31,6 @@ from tuning.trainable import build_trial_config
 
 PPO_FAMILY = ("ippo", "cppo", "mfpo", "copo")
 TINY = {"num_agents": 3, "horizon": 40, "max_agent_steps": 40, "hidden": 16}
-NO_BRAKES = {
-    "model": "bicycle",
-    "brake_linear": 0.0,
-    "brake_sat_intercept": 0.0,
-    "brake_sat_slope": 0.0,
-    "coast_decel": 0.0,
-    "throttle_accel": 8.0,
-}  # fast, crashy fixture cars
 
 
 def trial(algo: str, scale: str) -> dict:

@@ -5,6 +5,7 @@ import math
 import pytest
 import ray
 import torch
+from fixtures import NO_BRAKES
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 
@@ -15,14 +16,6 @@ NUM_AGENTS = 4
 # Cars without brakes or rolling resistance: under a random initial policy some leave the
 # road or crash within a few steps and are replaced mid-episode (delay_done=0), so the
 # PPO run sees agents that appear during an episode, not only the initial ones.
-NO_BRAKES = {
-    "model": "bicycle",
-    "brake_linear": 0.0,
-    "brake_sat_intercept": 0.0,
-    "brake_sat_slope": 0.0,
-    "coast_decel": 0.0,
-    "throttle_accel": 8.0,
-}  # fast, crashy fixture cars
 RESPAWN_CONFIG = {"num_agents": NUM_AGENTS, "horizon": 30, "max_agent_steps": 30, "delay_done": 0, "dynamics": NO_BRAKES}
 # Normal cars barely move under a random policy, so all four time out together at step 20
 # while replacements spawn in that step: every episode ends through the adapter's "every

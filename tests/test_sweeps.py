@@ -3,6 +3,7 @@
 import importlib.util
 import json
 import os
+import random
 import re
 import signal
 import subprocess
@@ -319,7 +320,6 @@ FAULT_KILLS = int(os.environ.get("COIN_FAULT_KILLS", "0"))
 @pytest.mark.skipif(FAULT_KILLS < 1, reason="fault injection run: COIN_FAULT_KILLS=N kills the sweep driver at N random points")
 def test_sweep_killed_at_random_points_loses_nothing(tmp_path, capsys):
     """SIGKILL a sweep driver at seeded random moments (inside saves or not), resume after each, then check the whole."""
-    import random
 
     rng = random.Random(int(os.environ.get("COIN_FAULT_SEED", "0")))
     storage = tmp_path / "sweeps"

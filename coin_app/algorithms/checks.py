@@ -189,9 +189,10 @@ def check_value(key: str, value: Any) -> Any:
 
 
 def check_values(values: Mapping[str, Any]) -> None:
-    """Check every key of ``values`` (:func:`check_value`)."""
-    for key, value in values.items():
-        check_value(key, value)
+    """Check every key of ``values``; a ValueError with the first bad one's message (:func:`check_value`)."""
+    errors = value_errors(values)
+    if errors:
+        raise ValueError(errors[0])
 
 
 def value_errors(values: Mapping[str, Any]) -> list[str]:

@@ -27,7 +27,7 @@ chassis one physics step behind: the pose before the last integration of an env 
 
 Every constant is MetaDrive 0.4.3's for its ``DefaultVehicle`` (read from the running engine);
 nothing is fitted. Open-loop replay of recorded MetaDrive traces (``coin_app.sim.vehicle_replay``)
-stays within millimetres after 1 s and a few centimetres after 3 s. Frames: world x, y on the
+stays within 7 mm after 1 s and 5 cm after 3 s (benchmarks/vehicle_parity.py). Frames: world x, y on the
 ground, z up; chassis axes right (x), forward (y), up (z), as Bullet's vehicle in MetaDrive.
 """
 

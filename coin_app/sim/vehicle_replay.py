@@ -11,21 +11,19 @@ bicycle models start from position, heading, speed and yaw rate.
 Scripted manoeuvres have one window from their start; the heuristic routes one window every
 ``stride`` steps along the route. Everything is vectorized over windows.
 
-Usage: ``python -m coin_app.sim.vehicle_replay [--traces F] [--preset paper|kinematic] [--model raycast|bicycle]``
-prints the error of every trace after 1 s and 3 s and the worst case at or below 40 km/h.
+``benchmarks/vehicle_parity.py`` prints the error of every trace after 1 s and 3 s and the worst
+case at or below 40 km/h.
 """
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from coin_app.sim.config import DYNAMICS_MODELS, PHYSICS_DT, PRESETS, DynamicsConfig
+from coin_app.sim.config import PHYSICS_DT, DynamicsConfig
 from coin_app.sim.dynamics import bicycle_step, wrap_angle
 from coin_app.sim.vehicle import RaycastVehicles, chassis_basis, turn_matrices
 
@@ -150,43 +148,3 @@ def error_table(cfg: DynamicsConfig, traces: Traces, horizons: tuple[int, ...] =
                 row[f"{key}@{h}"] = float(getattr(e, key)[sel].max()) if sel.any() else float("nan")
         rows.append(row)
     return rows
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Print the native-vs-MetaDrive error of every recorded trace after 1 s and 3 s."""
-    ap = argparse.ArgumentParser(description="Open-loop replay of recorded MetaDrive traces in the native vehicle model")
-    ap.add_argument("--traces", default=None, help=f"traces .npz (default: the shipped maps/{TRACES_FILE})")
-    ap.add_argument("--preset", default="paper", help="dynamics of this scenario preset: " + " | ".join(PRESETS))
-    ap.add_argument("--model", default=None, help="override the preset's model: " + " | ".join(DYNAMICS_MODELS))
-    args = ap.parse_args(argv)
-    if args.preset not in PRESETS:
-        raise SystemExit(f"error: unknown preset {args.preset!r}; allowed: {', '.join(PRESETS)}")
-    if args.model is not None and args.model not in DYNAMICS_MODELS:
-        raise SystemExit(f"error: unknown model {args.model!r}; allowed: {', '.join(DYNAMICS_MODELS)}")
-    cfg = PRESETS[args.preset].get("dynamics", DynamicsConfig())
-    if args.model is not None:
-        cfg = dataclasses.replace(cfg, model=args.model)
-    print(f"native model: {cfg.model} (preset {args.preset}) against {len(load_traces(args.traces).names)} MetaDrive traces")
-    traces = load_traces(args.traces)
-    rows = error_table(cfg, traces)
-    print(f"{'trace':<38} {'pos 1s':>7} {'pos 3s':>7} {'km/h 1s':>8} {'km/h 3s':>8} {'rad 3s':>7}")
-    for r in rows:
-        print(
-            f"{r['trace']:<38} {r['position@10']:7.2f} {r['position@30']:7.2f} {r['speed_kmh@10']:8.2f} "
-            f"{r['speed_kmh@30']:8.2f} {r['heading@30']:7.3f}"
-        )
-    scripted = [r for r in rows if r["kind"] == "scripted" and r["start_kmh_max@10"] <= 40.0 + 1e-6]
-    for h, label in ((10, "1 s"), (30, "3 s")):
-        worst_pos = max(scripted, key=lambda r: r[f"position@{h}"])
-        worst_speed = max(scripted, key=lambda r: r[f"speed_kmh@{h}"])
-        print(
-            f"summary after {label} (scripted, <= 40 km/h): worst position {worst_pos[f'position@{h}']:.2f} m "
-            f"({worst_pos['trace']}), worst speed {worst_speed[f'speed_kmh@{h}']:.2f} km/h ({worst_speed['trace']}); "
-            f"within 0.3 m and 1 km/h: {sum(r[f'position@{h}'] <= 0.3 and r[f'speed_kmh@{h}'] <= 1.0 for r in scripted)}"
-            f"/{len(scripted)}"
-        )
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
