@@ -493,8 +493,10 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
     demo.set_defaults(func=cmd_demo)
 
-    tr = sub.add_parser("train", help="train an algorithm (cig_td3, itd3, ippo, cppo, mfpo, copo, nav_ppo) with checkpoints and --resume")
-    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | ippo | cppo | mfpo | copo | nav_ppo (arena)")
+    tr = sub.add_parser(
+        "train", help="train an algorithm (cig_td3, itd3, traco, ippo, cppo, mfpo, copo, nav_ppo) with checkpoints and --resume"
+    )
+    tr.add_argument("--algo", default="cig_td3", help="cig_td3 | itd3 | traco | ippo | cppo | mfpo | copo | nav_ppo (arena)")
     tr.add_argument("--scenario", default="intersection", help="intersection | roundabout | bottleneck | arena (nav_ppo)")
     tr.add_argument("--num-agents", type=int, default=None, help="vehicles (default: the scenario's)")
     tr.add_argument("--backend", default="native", help="native | metadrive (needs requirements-metadrive.txt)")
@@ -516,7 +518,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--quick",
         action="store_true",
         help="the algorithm's small settings that show learning within minutes (4 agents, horizon 300, small networks, "
-        "CIG-TD3/ITD3: warm-up 500); --set values override them",
+        "TD3 family: warm-up 500); --set values override them",
     )
     tr.add_argument(
         "--threads",

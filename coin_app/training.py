@@ -45,6 +45,8 @@ from coin_app.sim.seeds import check_training_seed, validation_seeds
 EVAL_RESULT_KEY = "coin_eval"  # the periodic evaluation's metrics in an iteration's result
 TENSORBOARD_DIR = "tensorboard"  # the iteration metrics of a train run as TensorBoard event files, in its --out
 RAY_LOG = "ray.log"  # Ray's and RLlib's log records and Python warnings of a train run, in its --out
+# the critic loss an iteration line shows, the first present: TD3 family (CIG-TD3/ITD3, TraCo), then the PPO family
+CRITIC_LOSS_KEYS = ("learner/local_critic_loss", "learner/domain_critic_loss", "learner/vf_loss")
 
 
 class RunProgress:
@@ -421,7 +423,7 @@ def train(
                 bar.advance(sampled)
                 it = int(result["training_iteration"])
                 elapsed = time.perf_counter() - t0
-                critic = m.get("learner/local_critic_loss", m.get("learner/vf_loss", np.nan))
+                critic = next((m[k] for k in CRITIC_LOSS_KEYS if k in m), np.nan)
                 bar.say(
                     f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
                     f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)

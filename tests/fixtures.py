@@ -10,3 +10,36 @@ NO_BRAKES = {
     "coast_decel": 0.0,
     "throttle_accel": 8.0,
 }
+
+
+# ----------------------------------------------------------------------------- TD3-family learner tests
+def params(net):
+    """Detached copies of a network's parameters."""
+    return [p.detach().clone() for p in net.parameters()]
+
+
+def same(a, b):
+    """Whether two parameter lists are bit-identical."""
+    import torch
+
+    return all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def module_of(learner):
+    """The shared RLModule of a learner, unwrapped."""
+    return learner.module["shared"].unwrapped()
+
+
+def learner_update(learner, batch, env_steps=0):
+    """One learner update on a dict of numpy columns (the shared module's batch); the results."""
+    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+    n = len(next(iter(batch.values())))
+    return learner.update(
+        batch=MultiAgentBatch({"shared": SampleBatch(batch)}, env_steps=n), timesteps={"num_env_steps_sampled_lifetime": env_steps}
+    )
+
+
+def scalar(value):
+    """A logged metric (a Stats object or a number) as a float."""
+    return float(value.peek()) if hasattr(value, "peek") else float(value)

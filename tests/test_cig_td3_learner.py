@@ -6,6 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from fixtures import learner_update, module_of, params, same
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
@@ -59,22 +60,7 @@ def random_batch(seed, n_others):
 
 
 def update(learner, cfg, seed):
-    batch = random_batch(seed, cfg.max_others)
-    return learner.update(
-        batch=MultiAgentBatch({"shared": SampleBatch(batch)}, env_steps=B), timesteps={"num_env_steps_sampled_lifetime": 0}
-    )
-
-
-def params(net):
-    return [p.detach().clone() for p in net.parameters()]
-
-
-def same(a, b):
-    return all(torch.equal(x, y) for x, y in zip(a, b))
-
-
-def module_of(learner):
-    return learner.module["shared"].unwrapped()
+    return learner_update(learner, random_batch(seed, cfg.max_others))
 
 
 def test_policy_delay_and_target_updates():

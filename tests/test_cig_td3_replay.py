@@ -232,7 +232,18 @@ def check_rows(out: dict[str, np.ndarray], truth: Truth, buf: JointStepReplayBuf
     B, N = out["obs"].shape[0], buf.max_others
     assert out["others_state"].shape == (B, N, STATE_DIM) and out["others_actions"].shape == (B, N, ACT_DIM)
     assert out["next_others_obs"].shape == (B, N, OBS_DIM) and out["next_others_state"].shape == (B, N, STATE_DIM)
-    for name in ("obs", "state", "actions", "rewards", "global_rewards", "new_obs", "new_state", "others_state", "others_actions"):
+    for name in (
+        "obs",
+        "state",
+        "actions",
+        "rewards",
+        "global_rewards",
+        "new_obs",
+        "new_state",
+        "others_state",
+        "others_actions",
+        "others_rewards",
+    ):
         assert out[name].dtype == np.float32, name
     for name in ("terminateds", "truncateds", "others_mask", "next_others_mask"):
         assert out[name].dtype == bool, name
@@ -253,16 +264,18 @@ def check_rows(out: dict[str, np.ndarray], truth: Truth, buf: JointStepReplayBuf
         # others that acted at t (ego excluded)
         m = out["others_mask"][i]
         got = {}
-        for s, act in zip(out["others_state"][i][m], out["others_actions"][i][m]):
+        for s, act, rew in zip(out["others_state"][i][m], out["others_actions"][i][m], out["others_rewards"][i][m]):
             oa = int(s[1])
             np.testing.assert_array_equal(s, state_of(q, oa, t))
             np.testing.assert_array_equal(act, action_of(q, oa, t))
+            assert rew == np.float32(reward_of(oa, t))
             assert oa not in got
             got[oa] = s
         want = truth.acting[(q, t)] - {a}
         assert a not in got
         assert (set(got) <= want) if subset else (set(got) == want), (q, a, t, sorted(got), sorted(want))
         assert not out["others_state"][i][~m].any() and not out["others_actions"][i][~m].any()  # padding is zero
+        assert not out["others_rewards"][i][~m].any()
         # every other agent with an observation at t+1 (continuing, terminated at t, spawned at t+1)
         m1 = out["next_others_mask"][i]
         got1 = set()

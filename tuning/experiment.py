@@ -29,7 +29,8 @@ SMOKE_CHUNK = {"rollout_fragment_length": 128}  # the PPO family's chunk at smok
 # batch of 1600 env steps and the chunk are the algorithms' own defaults, so this adds the workers;
 # each trial then asks Tune for 1 + 4 CPUs).
 PAPER_PPO = {"num_env_runners": 4}
-PPO_FAMILY = ("ippo", "cppo", "mfpo", "copo")
+# the driving algorithms that learn from fresh rollouts (IPPO, CPPO, MFPO, CoPO); the others replay (the TD3 family)
+PPO_FAMILY = tuple(n for n, s in registry.ALGORITHMS.items() if s.capabilities.on_policy and "intersection" in s.scenarios)
 
 
 @dataclass(frozen=True)
@@ -125,10 +126,10 @@ def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     Smoke scale: the quick scenario and small batches; paper scale: the PPO family's 4 env runners.
     """
     algo = config["algo"]
+    on_policy = algo in PPO_FAMILY  # the rest replay (the TD3 family)
     scale: dict[str, Any] = {}
     if config["scale"] == "smoke":
-        scale = registry.quick_settings(algo) | (SMOKE_TD3 if algo in ("cig_td3", "itd3") else SMOKE_PPO)
-        scale |= SMOKE_CHUNK if algo in PPO_FAMILY else {}
-    elif algo in PPO_FAMILY:
+        scale = registry.quick_settings(algo) | (SMOKE_PPO | SMOKE_CHUNK if on_policy else SMOKE_TD3)
+    elif on_policy:
         scale = dict(PAPER_PPO)
     return scale | config["variant_overrides"][config["variant"]] | config["overrides"]

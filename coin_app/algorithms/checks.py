@@ -24,12 +24,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from coin_app.algorithms.choices import (
+    DOMAIN_REWARDS,
     GAT_INITS,
     GLOBAL_MODULES,
     KL_SIGNALS,
     LCF_MODES,
     LOCAL_MODULES,
     NAV_STAGES,
+    NEIGHBOUR_FEATURES,
     PRECISIONS,
     UPDATE_ORDERS,
     WEIGHT_INITS,
@@ -154,6 +156,16 @@ RULES: dict[str, Rule] = {
     "update_order": choice(*UPDATE_ORDERS),
     "actor_preact_penalty": non_negative(),
     "actor_preact_threshold": non_negative(),
+    # TraCo's domain critic
+    "baseline_lr": positive("float", 1.0),
+    "domain_radius": positive(),
+    "domain_reward": choice(*DOMAIN_REWARDS),
+    "attention_heads": positive("int"),
+    "token_layers": positive("int"),
+    "neighbour_features": choice(*NEIGHBOUR_FEATURES),
+    "null_token": BOOL,
+    "individual_critic": BOOL,
+    "domain_weight": non_negative(),
     # the PPO family
     "lambda_": unit(),
     "clip_param": positive(),

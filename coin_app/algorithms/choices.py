@@ -11,3 +11,9 @@ KL_SIGNALS = ("epoch_mean", "last_minibatch")  # PPO: which KL drives the adapti
 WEIGHT_INITS = ("normc", "torch")  # PPO family: RLlib's normc initialization or torch's default
 LCF_MODES = ("sampled", "mean")  # how evaluation gives each vehicle its LCF (CoordinatedActorModule.evaluation_lcf)
 NAV_STAGES = ("long", "short")  # nav_ppo's training stages
+DOMAIN_REWARDS = ("mean", "neighbours", "own")  # TraCo's domain reward: mean over ego + domain, over the domain only, own
+NEIGHBOUR_FEATURES = (
+    "relative+absolute",
+    "absolute",
+    "relative",
+)  # TraCo's neighbour tokens: [s_j - s_i, s_j, a_j], [s_j, a_j], [s_j - s_i, a_j]

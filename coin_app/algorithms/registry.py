@@ -18,10 +18,11 @@ from coin_app.algorithms.copo.copo import COPO
 from coin_app.algorithms.nav_ppo.config import NAV_PPO
 from coin_app.algorithms.ppo_family.config import CPPO, IPPO, MFPO
 from coin_app.algorithms.spec import AlgorithmSpec
+from coin_app.algorithms.traco.traco import TRACO
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 
-ALGORITHMS: dict[str, AlgorithmSpec] = {spec.name: spec for spec in (CIG_TD3, ITD3, IPPO, CPPO, MFPO, COPO, NAV_PPO)}
+ALGORITHMS: dict[str, AlgorithmSpec] = {spec.name: spec for spec in (CIG_TD3, ITD3, TRACO, IPPO, CPPO, MFPO, COPO, NAV_PPO)}
 
 # A small bottleneck setting that learns within minutes on a laptop CPU (CI learning test,
 # benchmarks/learning_curves.py); each spec's ``quick`` adds its small-network settings.

@@ -753,6 +753,7 @@ class JointStepReplayBuffer:
         out[col.OTHERS_STATE] = np.take(self._pool_state, np.where(ok0, rows0, P), axis=0, mode="clip")
         out[col.OTHERS_ACTIONS] = np.take(self._tr_action, np.where(ok0, tr0 % C, C), axis=0, mode="clip")
         out[col.OTHERS_MASK] = ok0
+        out[col.OTHERS_REWARDS] = np.where(ok0, np.take(self._tr_reward, tr0 % C, mode="clip"), np.float32(0.0))
         # every other agent with an observation at t+1
         cols1 = shift + (shift >= (self._pool_owner[r1] % M)[:, None])
         rows1 = np.take_along_axis(self._step_rows[e1 % K], cols1, axis=1)

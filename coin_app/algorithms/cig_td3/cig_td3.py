@@ -25,7 +25,7 @@ bfloat16 (``learner.py``).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from ray.rllib.algorithms.algorithm import Algorithm
@@ -127,11 +127,14 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
 
 
 class CigTd3Config(AlgorithmConfig):
-    """Configuration of CIG-TD3 (and ITD3) on RLlib's new API stack."""
+    """Configuration of CIG-TD3 (and ITD3) on RLlib's new API stack; the base of every TD3-family config on the joint-step replay."""
+
+    HYPERPARAMETERS: ClassVar[dict[str, tuple[Any, str]]] = HYPERPARAMETERS  # this config's own keys (TraCo has its own)
+    LABEL: ClassVar[str] = "CIG-TD3"  # the name in error messages
 
     def __init__(self, algo_class: type | None = None):
         super().__init__(algo_class=algo_class or CigTd3)
-        for name, (default, _) in HYPERPARAMETERS.items():
+        for name, (default, _) in self.HYPERPARAMETERS.items():
             setattr(self, name, default)
         self.gamma = 0.99
         self.train_batch_size_per_learner = 256
@@ -141,8 +144,8 @@ class CigTd3Config(AlgorithmConfig):
         self.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)  # parameter sharing
 
     def training(self, **kwargs: Any) -> CigTd3Config:
-        """Set training options; CIG-TD3 keys are those of ``HYPERPARAMETERS``, the rest go to RLlib."""
-        own = {k: kwargs.pop(k) for k in list(kwargs) if k in HYPERPARAMETERS}
+        """Set training options; this algorithm's keys are those of ``HYPERPARAMETERS``, the rest go to RLlib."""
+        own = {k: kwargs.pop(k) for k in list(kwargs) if k in self.HYPERPARAMETERS}
         super().training(**kwargs)
         for name, value in own.items():
             if value is not NotProvided:
@@ -174,10 +177,25 @@ class CigTd3Config(AlgorithmConfig):
     def validate(self) -> None:
         """Refuse bad values and invalid ablation combinations before any work starts."""
         super().validate()
-        errors = value_errors({key: getattr(self, key) for key in HYPERPARAMETERS})  # types, finiteness, ranges, choices
+        errors = value_errors({key: getattr(self, key) for key in self.HYPERPARAMETERS})  # types, finiteness, ranges, choices
         if errors:  # the combinations below assume well-typed values
-            raise ValueError("invalid CIG-TD3 config: " + "; ".join(errors))
-        # ablation combinations
+            raise ValueError(f"invalid {self.LABEL} config: " + "; ".join(errors))
+        errors = self.combination_errors()
+        if self.num_learners > 1:
+            errors.append(
+                f"num_learners={self.num_learners}; allowed: 0 (local learner) or 1 (one remote learner: one replay, one learner)"
+            )
+        try:
+            self.scenario_config()
+        except ValueError as exc:
+            errors.append(str(exc))
+        errors += backend_errors(self)
+        if errors:
+            raise ValueError(f"invalid {self.LABEL} config: " + "; ".join(errors))
+
+    def combination_errors(self) -> list[str]:
+        """One line per invalid combination of well-typed keys (CIG-TD3's ablation switches)."""
+        errors = []
         if not self.global_critic:
             if self.counterfactual_baseline:
                 errors.append("counterfactual_baseline=True needs global_critic=True (ITD3 has no global critic; use .itd3())")
@@ -191,17 +209,7 @@ class CigTd3Config(AlgorithmConfig):
             errors.append(f"vae_weight={self.vae_weight} but local_module={self.local_module!r} has no CVAE; set vae_weight=0")
         if self.graph != "full" and self.global_module == "none":
             errors.append("a sparse graph radius needs a graph module (gat | gcn | graphsage), not global_module='none'")
-        if self.num_learners > 1:
-            errors.append(
-                f"num_learners={self.num_learners}; allowed: 0 (local learner) or 1 (one remote learner: one replay, one learner)"
-            )
-        try:
-            self.scenario_config()
-        except ValueError as exc:
-            errors.append(str(exc))
-        errors += backend_errors(self)
-        if errors:
-            raise ValueError("invalid CIG-TD3 config: " + "; ".join(errors))
+        return errors
 
     # ---------------------------------------------------------------- RLlib wiring
     def get_default_rl_module_spec(self) -> RLModuleSpec:
@@ -215,10 +223,7 @@ class CigTd3Config(AlgorithmConfig):
     @property
     def _model_config_auto_includes(self) -> dict[str, Any]:
         """Hyper-parameters the RLModule needs to build its networks and exploration."""
-        scenario = self.scenario_config() if isinstance(self.env, str) and self.env in ENV_IDS else None
-        return super()._model_config_auto_includes | {
-            "hidden": self.hidden,
-            "actor_layers": self.actor_layers,
+        return self.td3_model_config() | {
             "latent_dim": self.latent_dim,
             "node_width": self.node_width,
             "gat_heads": self.gat_heads,
@@ -228,6 +233,14 @@ class CigTd3Config(AlgorithmConfig):
             "local_module": self.local_module,
             "global_module": self.global_module,
             "graph_radius": None if self.graph == "full" else float(self.graph),
+        }
+
+    def td3_model_config(self) -> dict[str, Any]:
+        """The model-config entries of every TD3-family module: widths, map scale, exploration and warm-up."""
+        scenario = self.scenario_config() if isinstance(self.env, str) and self.env in ENV_IDS else None
+        return super()._model_config_auto_includes | {
+            "hidden": self.hidden,
+            "actor_layers": self.actor_layers,
             "position_scale": load_map(scenario.scenario).scale if scenario else 1.0,
             "exploration_noise": self.exploration_noise,
             "exploration_noise_initial": self.exploration_noise_initial,

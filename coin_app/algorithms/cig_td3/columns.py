@@ -24,6 +24,7 @@ GLOBAL_REWARDS = "global_rewards"  # r^G of env step t (the info of o_{t+1}), (B
 OTHERS_STATE = "others_state"  # s_{-i}, (B, N, S) float32, zero where masked
 OTHERS_ACTIONS = "others_actions"  # a_{-i}, (B, N, A) float32, zero where masked
 OTHERS_MASK = "others_mask"  # (B, N) bool
+OTHERS_REWARDS = "others_rewards"  # r_{-i} of env step t, (B, N) float32, zero where masked (TraCo's domain reward)
 
 # every other agent with an observation at env step t+1, padded to N
 NEXT_OTHERS_STATE = "next_others_state"  # s'_{-i}, (B, N, S) float32
@@ -36,5 +37,5 @@ EPISODE = "episode"  # episode key, (B,) int64 (transitions.episode_key)
 AGENT = "agent"  # agent key, (B,) int64 (transitions.agent_key)
 
 EGO = (OBS, STATE, ACTIONS, REWARDS, GLOBAL_REWARDS, TERMINATEDS, TRUNCATEDS, NEXT_OBS, NEXT_STATE)
-OTHERS = (OTHERS_STATE, OTHERS_ACTIONS, OTHERS_MASK, NEXT_OTHERS_STATE, NEXT_OTHERS_OBS, NEXT_OTHERS_MASK)
+OTHERS = (OTHERS_STATE, OTHERS_ACTIONS, OTHERS_MASK, OTHERS_REWARDS, NEXT_OTHERS_STATE, NEXT_OTHERS_OBS, NEXT_OTHERS_MASK)
 ORIGIN = (ENV_STEP, EPISODE, AGENT)

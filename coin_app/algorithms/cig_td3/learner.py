@@ -84,6 +84,10 @@ class CigTd3TorchLearner(TorchLearner):
         groups = [("actor", module.actor, config.actor_lr), ("local_critic", module.local_q, config.critic_lr)]
         if module.central is not None:
             groups.append(("central_critic", module.central, config.central_critic_lr))
+        self.register_adam(module_id, groups)
+
+    def register_adam(self, module_id: str, groups: list[tuple[str, torch.nn.Module, float]]) -> None:
+        """One Adam optimizer per (name, network, learning rate) of ``groups``."""
         for name, net, lr in groups:
             params = self.get_parameters(net)
             self.register_optimizer(
@@ -104,28 +108,17 @@ class CigTd3TorchLearner(TorchLearner):
         self.env_steps = int(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0))
 
     def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any], fwd_out: dict[str, Any]) -> torch.Tensor:
-        """All CIG-TD3 losses; the per-network gradients are taken here, one loss each."""
+        """All losses of this update; the per-network gradients are taken here, one loss each (critics, then the actor)."""
         module = self.module[module_id].unwrapped()
-        cfg = loss_config(config)
-        with autocast(module, config.precision):
-            y_local, y_global = td_targets(batch, module.actor_target, module.local_q_target, module.central_target, cfg)
-            loss_l, stats = local_critic_loss(module.local_q, batch, y_local)
-        grads: dict[str, Any] = {}
-        grads["local_critic"] = (loss_l, list(module.local_q.parameters()))
-        total = loss_l.detach()
-        self.metrics.log_value((module_id, "local_critic_loss"), loss_l.detach(), window=1)
-        if module.central is not None:
-            with autocast(module, config.precision):
-                loss_g, g_stats = central_critic_loss(module.central, batch, y_global, cfg)
-            grads["central_critic"] = (loss_g, list(module.central.parameters()))
-            total = total + loss_g.detach()
-            stats.update(g_stats)
-            self.metrics.log_value((module_id, "central_critic_loss"), loss_g.detach(), window=1)
+        grads, stats = self.critic_losses(module, config, batch)
+        total = sum(loss.detach() for loss, _ in grads.values())
+        for name, (loss, _) in grads.items():
+            self.metrics.log_value((module_id, f"{name}_loss"), loss.detach(), window=1)
         if self.actor_learns(config):
 
             def actor_objective() -> tuple[torch.Tensor, dict[str, Any]]:
                 with autocast(module, config.precision):
-                    return actor_loss(module.actor, module.local_q, module.central, batch, cfg)
+                    return self.actor_loss(module, config, batch)
 
             if config.update_order == "joint":  # every loss from the critics before this update
                 loss_pi, pi_stats = actor_objective()
@@ -137,6 +130,24 @@ class CigTd3TorchLearner(TorchLearner):
             self.metrics.log_value((module_id, key), value, window=1)
         self._grads[module_id] = grads
         return total
+
+    def critic_losses(self, module: Any, config: Any, batch: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+        """CIG-TD3's critic losses as {optimizer name: (loss, its network's parameters)} and their stats (Eqs. 7-11, 3)."""
+        cfg = loss_config(config)
+        with autocast(module, config.precision):
+            y_local, y_global = td_targets(batch, module.actor_target, module.local_q_target, module.central_target, cfg)
+            loss_l, stats = local_critic_loss(module.local_q, batch, y_local)
+        grads: dict[str, Any] = {"local_critic": (loss_l, list(module.local_q.parameters()))}
+        if module.central is not None:
+            with autocast(module, config.precision):
+                loss_g, g_stats = central_critic_loss(module.central, batch, y_global, cfg)
+            grads["central_critic"] = (loss_g, list(module.central.parameters()))
+            stats.update(g_stats)
+        return grads, stats
+
+    def actor_loss(self, module: Any, config: Any, batch: dict[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+        """CIG-TD3's actor loss (Eq. 12) and its stats."""
+        return actor_loss(module.actor, module.local_q, module.central, batch, loss_config(config))
 
     def _log_actor(self, module_id: str, loss: torch.Tensor, stats: dict[str, Any]) -> None:
         """Log the actor loss and its stats."""
@@ -197,11 +208,7 @@ class CigTd3TorchLearner(TorchLearner):
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state(self._device) if self._device.type == "cuda" else None,
             "targets": {
-                mid: {
-                    "actor_target": _cpu_state(m.unwrapped().actor_target),
-                    "local_q_target": _cpu_state(m.unwrapped().local_q_target),
-                    "central_target": None if m.unwrapped().central_target is None else _cpu_state(m.unwrapped().central_target),
-                }
+                mid: {name: None if net is None else _cpu_state(net) for name, net in m.unwrapped().target_networks().items()}
                 for mid, m in self.module.items()
             },
         }
@@ -217,8 +224,7 @@ class CigTd3TorchLearner(TorchLearner):
             if extra.get("cuda_rng") is not None and self._device.type == "cuda":
                 torch.cuda.set_rng_state(extra["cuda_rng"], self._device)
             for mid, targets in extra["targets"].items():
-                mod = self.module[mid].unwrapped()
-                mod.actor_target.load_state_dict(targets["actor_target"])
-                mod.local_q_target.load_state_dict(targets["local_q_target"])
-                if targets["central_target"] is not None:
-                    mod.central_target.load_state_dict(targets["central_target"])
+                nets = self.module[mid].unwrapped().target_networks()
+                for name, saved in targets.items():
+                    if saved is not None:
+                        nets[name].load_state_dict(saved)

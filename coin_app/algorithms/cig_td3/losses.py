@@ -158,11 +158,18 @@ def actor_loss(
             stats["actor_counterfactual_advantage"] = advantage.mean().detach()
         objective = objective + cfg.global_weight * advantage
         stats["actor_q_global"] = q_global.mean().detach()
+    return actor_objective_loss(objective, pre, stats, cfg.preact_penalty, cfg.preact_threshold)
+
+
+def actor_objective_loss(
+    objective: torch.Tensor, pre: torch.Tensor, stats: dict, penalty_weight: float, penalty_threshold: float
+) -> tuple[torch.Tensor, dict]:
+    """The actor loss -mean(objective) plus the optional pre-tanh penalty; ``stats`` gains the saturation share and mean |u|."""
     loss = -objective.mean()
     u = pre.detach().abs()
     stats.update(actor_saturation=(u > SATURATED_PREACT).float().mean(), actor_preact_abs=u.mean())
-    if cfg.preact_penalty > 0:
-        penalty = preact_penalty(pre, cfg.preact_penalty, cfg.preact_threshold)
+    if penalty_weight > 0:
+        penalty = preact_penalty(pre, penalty_weight, penalty_threshold)
         loss = loss + penalty
         stats["actor_preact_penalty"] = penalty.detach()
     return loss, stats

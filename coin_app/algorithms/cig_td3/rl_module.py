@@ -34,19 +34,11 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
 
     def setup(self) -> None:
         """Build the networks from the spaces and ``model_config``."""
-        mc = self.model_config
-        obs_dim = int(self.observation_space.shape[0])
-        act_dim = int(self.action_space.shape[0])
-        hidden = int(mc.get("hidden", 256))
-        self.actor = Actor(obs_dim, act_dim, (hidden,) * int(mc.get("actor_layers", 3)))
-        self.exploration_noise = float(mc.get("exploration_noise", 0.05))
-        noise0 = mc.get("exploration_noise_initial")
-        self.exploration_noise_initial = self.exploration_noise if noise0 is None else float(noise0)
-        self.exploration_noise_decay_steps = int(mc.get("exploration_noise_decay_steps", 0))
-        self.warmup_steps = int(mc.get("warmup_steps", 0))
+        obs_dim, act_dim, hidden = self.setup_actor()
         self.central = None
         if self.inference_only:
             return
+        mc = self.model_config
         self.local_q = TwinQ(obs_dim, act_dim, (hidden, hidden))
         if mc.get("global_critic", True):
             self.central = CentralCritic(
@@ -65,6 +57,20 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
                     position_scale=float(mc.get("position_scale", 1.0)),
                 )
             )
+
+    def setup_actor(self) -> tuple[int, int, int]:
+        """Build the actor and the exploration settings (all an env runner needs); returns (obs_dim, act_dim, hidden)."""
+        mc = self.model_config
+        obs_dim = int(self.observation_space.shape[0])
+        act_dim = int(self.action_space.shape[0])
+        hidden = int(mc.get("hidden", 256))
+        self.actor = Actor(obs_dim, act_dim, (hidden,) * int(mc.get("actor_layers", 3)))
+        self.exploration_noise = float(mc.get("exploration_noise", 0.05))
+        noise0 = mc.get("exploration_noise_initial")
+        self.exploration_noise_initial = self.exploration_noise if noise0 is None else float(noise0)
+        self.exploration_noise_decay_steps = int(mc.get("exploration_noise_decay_steps", 0))
+        self.warmup_steps = int(mc.get("warmup_steps", 0))
+        return obs_dim, act_dim, hidden
 
     # ------------------------------------------------------------------ forward passes
     def _forward_inference(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
@@ -126,6 +132,10 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
         if self.central is not None:
             pairs.append((self.central, self.central_target))
         return pairs
+
+    def target_networks(self) -> dict[str, torch.nn.Module | None]:
+        """Every target network by attribute name (None where the module has no such network): the learner checkpoints these."""
+        return {"actor_target": self.actor_target, "local_q_target": self.local_q_target, "central_target": self.central_target}
 
     def forward_target(self, batch: dict[str, Any]) -> dict[str, Any]:
         """Target-actor actions for ``batch[OBS]`` (the losses call the target nets directly)."""

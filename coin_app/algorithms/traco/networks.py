@@ -34,6 +34,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from coin_app.algorithms.choices import NEIGHBOUR_FEATURES
 from coin_app.algorithms.cig_td3.individual import mlp
 from coin_app.sim import schema
 
@@ -44,6 +45,7 @@ __all__ = [
     "CounterfactualBaseline",
     "DomainAttention",
     "DomainCritic",
+    "compact_domain",
     "counterfactual_advantage",
     "neighbourhood_mask",
 ]
@@ -51,9 +53,6 @@ __all__ = [
 DOMAIN_RADIUS = 40.0  # metres: COIN §5.2 ("a neighborhood range of 40 meters"), CoPO's neighbours_distance=40
 # Inference: COIN's released code replaces the ego's action by the constant -1 vector in its counterfactual V.
 DEFAULT_ACTION = (-1.0, -1.0)
-# Neighbour token inputs: "relative+absolute" = [s_j - s_i, s_j, a_j] (default, inferred); "absolute" = [s_j, a_j]
-# (COIN style, raw s_j); "relative" = [s_j - s_i, a_j].
-NEIGHBOUR_FEATURES = ("relative+absolute", "absolute", "relative")
 
 
 def neighbourhood_mask(state: Tensor, others_state: Tensor, others_mask: Tensor, radius: float, position_scale: float) -> Tensor:
@@ -64,6 +63,23 @@ def neighbourhood_mask(state: Tensor, others_state: Tensor, others_mask: Tensor,
         pos = others_state[..., :2].to(dtype) * position_scale  # (B, N, 2)
         d2 = (pos - ego.unsqueeze(1)).square().sum(-1)
         return others_mask.to(torch.bool) & (d2 < radius * radius)
+
+
+def compact_domain(domain: Tensor, *slots: Tensor) -> tuple[Tensor, ...]:
+    """The domain (B, N) and per-slot tensors (B, N, ...) cut to K = the largest domain in the batch (at least 1 slot).
+
+    Each row's domain slots move to the front in their original order (a stable sort), the rest
+    follow, and only the first K columns are kept: the attention is order-invariant and gives
+    slots outside the domain zero weight, so every output is unchanged (up to the float
+    summation order) while the token MLPs run on K instead of N slots.
+    """
+    k = max(1, int(domain.sum(-1).max()))
+    order = torch.argsort((~domain.to(torch.bool)).to(torch.uint8), dim=-1, stable=True)[:, :k]  # (B, K)
+    out = [torch.gather(domain, 1, order)]
+    for t in slots:
+        index = order.reshape(*order.shape, *([1] * (t.dim() - 2))).expand(-1, -1, *t.shape[2:])
+        out.append(torch.gather(t, 1, index))
+    return tuple(out)
 
 
 def _check_positive_int(name: str, value: object) -> None:
@@ -111,8 +127,11 @@ class DomainAttention(nn.Module):
         nbr_dim = (2 * state_dim if neighbour_features == "relative+absolute" else state_dim) + act_dim
         self.ego_mlp = mlp([obs_dim + act_dim] + [hidden] * token_layers, nn.ReLU)
         self.nbr_mlp = mlp([nbr_dim] + [hidden] * token_layers, nn.ReLU)
-        # Starts as the zero token (the spec's alternative to a learned one); learned when null_token=True.
-        self.null = nn.Parameter(torch.zeros(hidden), requires_grad=null_token)
+        # Starts as the zero token (the spec's alternative to a learned one); a parameter when null_token=True, else a fixed buffer.
+        if null_token:
+            self.null = nn.Parameter(torch.zeros(hidden))
+        else:
+            self.register_buffer("null", torch.zeros(hidden))
         self.query = nn.Linear(hidden, hidden)
         self.key = nn.Linear(hidden, hidden)
         self.value = nn.Linear(hidden, hidden)
@@ -147,9 +166,9 @@ class DomainAttention(nn.Module):
         k = self.key(tokens).view(b, n + 1, hh, d)
         v = self.value(tokens).view(b, n + 1, hh, d)
         keep = torch.cat([torch.ones(b, 1, dtype=torch.bool, device=nbr.device), nbr_mask.to(torch.bool)], 1)  # (B, 1+N)
-        logits = torch.einsum("bhd,bnhd->bhn", q, k) * self.scale
+        logits = (k.transpose(1, 2) @ q.unsqueeze(-1)).squeeze(-1) * self.scale  # (B, H, 1+N): q . k per head
         weights = torch.softmax(logits.masked_fill(~keep.unsqueeze(1), float("-inf")), dim=-1)  # exactly 0 outside
-        attn = torch.einsum("bhn,bnhd->bhd", weights, v).reshape(b, self.hidden)
+        attn = (weights.unsqueeze(2) @ v.transpose(1, 2)).reshape(b, self.hidden)  # (B, H, 1, D) -> (B, F)
         return self.norm(ego + self.out(attn)), weights
 
     def forward(
