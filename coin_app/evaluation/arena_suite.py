@@ -11,6 +11,19 @@ to ``max_steps`` (400 = 40 s, the A-GNN evaluation's horizon). Per case:
 * **step time**: the mean wall time of the policy call that computes every vehicle's action
   of a step in one batch, on one CPU thread (Table II).
 
+Two success protocols (``protocol``):
+
+* ``"arena"`` (the seed paper's, the default): the arena's success test above; a vehicle that
+  passes it parks, and the run ends when every vehicle has parked or at the step limit;
+* ``"agnn"`` (the A-GNN paper's own, Ma et al. 2023): no vehicle parks (the in-run test is off),
+  the run stops early once every vehicle has moved less than 0.05 m and turned less than 0.1 rad
+  in total over the last 10 states, and success is judged on the final state only: within
+  1.25 m and 0.2 rad of the target, no speed test, and no collision at any step.
+
+The A-GNN baseline (``"agnn"``, ``coin_app/inference/agnn.py``) reads the world state instead
+of the observations and runs in its own simulator's physics (dt 0.2 s, position-first order);
+its step limit keeps the same simulated time (400 steps of 0.1 s = 200 steps of 0.2 s = 40 s).
+
 Cases run in worker processes (one CPU thread each); each loads the policy from its source.
 """
 
@@ -19,6 +32,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -28,11 +42,17 @@ import pandas as pd
 import torch
 
 from coin_app.evaluation.policies import as_policy
+from coin_app.inference.agnn import AgnnArenaPolicy
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
 from coin_app.sim.arena.heuristic import heuristic_actions
 from coin_app.sim.arena.rendering import ArenaTrace, plot_arena_episode
+from coin_app.sim.dynamics import wrap_angle
+
+PROTOCOLS = ("arena", "agnn")
+# the A-GNN protocol's early stop (Ma et al. 2023): every vehicle moved < 0.05 m and turned < 0.1 rad in total over the last 10 states
+STILL_STATES, STILL_DISTANCE, STILL_ANGLE = 10, 0.05, 0.1
 
 # Table I: (our agent success, A-GNN success, our agent collision rate, A-GNN collision rate); None where the paper has "-"
 PAPER_TABLE_I: dict[tuple[int, int], tuple[float, float, float | None, float | None]] = {
@@ -60,6 +80,15 @@ PAPER_TABLE_I: dict[tuple[int, int], tuple[float, float, float | None, float | N
     (20, 0): (0.8297, 0.3161, 8.10e-4, 9.99e-3),
     (20, 4): (0.7925, 0.2563, 1.74e-3, 1.15e-2),
     (20, 8): (0.7567, 0.2153, 2.83e-3, 1.29e-2),
+}
+# the A-GNN paper's own success-to-goal rates (its supplementary Table II, its test sets of 4062 scenarios per case)
+AGNN_SUPP_TABLE_II: dict[tuple[int, int], float] = {
+    (1, 0): 1.0,
+    (1, 4): 0.7361,
+    (2, 0): 0.9984,
+    (2, 4): 0.6781,
+    (4, 0): 0.9807,
+    (6, 0): 0.9209,
 }
 # Table II: seconds per step (our agent, A-GNN), Ryzen 7 7800X3D, batched on one CPU
 PAPER_TABLE_II: dict[tuple[int, int], tuple[float, float]] = {
@@ -96,47 +125,96 @@ def parse_cases(spec: str) -> list[tuple[int, int]]:
     return cases
 
 
-def suite_config(max_steps: int = 400) -> ArenaConfig:
-    """The arena settings of the test suite (the A-GNN test generator: obstacles on the left)."""
-    return make_arena_config(generator="agnn", obstacle_side="left", max_steps=max_steps)
+def suite_config(max_steps: int = 400, physics: dict[str, Any] | None = None, protocol: str = "arena") -> ArenaConfig:
+    """The arena settings of the test suite (the A-GNN test generator: obstacles on the left).
+
+    ``max_steps`` counts steps of the arena's 0.1 s; ``physics`` (a policy's own ``dt`` and
+    ``update_order``) keeps the same simulated time. The ``"agnn"`` protocol switches the in-run
+    success test off (a speed tolerance of 0 m/s: no vehicle ever parks, as in the A-GNN simulator).
+    """
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"bad protocol {protocol!r}; allowed: {', '.join(PROTOCOLS)}")
+    overrides = dict(physics or {})
+    if "dt" in overrides and isinstance(max_steps, int) and max_steps >= 1:
+        max_steps = max(1, round(max_steps * ArenaConfig().dt / overrides["dt"]))
+    if protocol == "agnn":
+        overrides["success_speed"] = 0.0
+    return make_arena_config(generator="agnn", obstacle_side="left", max_steps=max_steps, **overrides)
 
 
-def load_arena_policy(source: str | Path) -> Callable[[np.ndarray], np.ndarray]:
-    """``"heuristic"`` (the scripted driver) or any policy source of ``as_policy`` (checkpoint, .npz, pair .json)."""
+def load_arena_policy(source: str | Path) -> Any:
+    """``"heuristic"`` (the scripted driver), ``"agnn"`` (the A-GNN baseline) or any policy source of ``as_policy``."""
     if str(source) == "heuristic":
         return heuristic_actions
-
+    if str(source) == "agnn":
+        return AgnnArenaPolicy()
     return as_policy(source)
 
 
-def run_scenario(policy: Callable[[np.ndarray], np.ndarray], env: ArenaEnv, layout: Any, trace: Any = None) -> dict[str, float]:
-    """One deterministic episode on ``layout``: the paper's metrics and the mean policy time per step (``trace`` records it)."""
+def policy_config(policy: Any, max_steps: int, protocol: str) -> ArenaConfig:
+    """The suite's arena settings for ``policy`` (in its own physics where it names one, as the A-GNN does)."""
+    return suite_config(max_steps, getattr(policy, "arena_overrides", None), protocol)
+
+
+def final_state_success(sim: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The A-GNN protocol's test (N,) of the final state: (within the distance and angle tolerances, that and never collided)."""
+    cfg = sim.config
+    reached = (sim.target_distance() <= cfg.success_distance) & (sim.heading_error() <= cfg.success_angle)
+    return reached, reached & ~sim.collided
+
+
+def run_scenario(policy: Any, env: ArenaEnv, layout: Any, trace: Any = None, protocol: str = "arena") -> dict[str, float]:
+    """One deterministic episode on ``layout``: the paper's metrics and the mean policy time per step (``trace`` records it).
+
+    ``policy`` maps the observations (N, 13) of the driving vehicles to their actions, or has
+    ``from_sim(sim)``: the actions of every vehicle from the world state (the A-GNN).
+    """
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"bad protocol {protocol!r}; allowed: {', '.join(PROTOCOLS)}")
     obs, _ = env.reset(options={"layout": layout})
+    sim = env.sim
     if trace is not None:
-        trace.start(env.sim)
+        trace.start(sim)
+    from_sim = getattr(policy, "from_sim", None)
+    moved: deque[np.ndarray] = deque(maxlen=STILL_STATES - 1)
+    turned: deque[np.ndarray] = deque(maxlen=STILL_STATES - 1)
     times = []
     while env.agents:
-        batch = np.stack([obs[a] for a in env.agents])
         t0 = time.perf_counter()
-        actions = np.asarray(policy(batch))
+        if from_sim is not None:
+            actions = np.asarray(from_sim(sim))[sim.driving]
+        else:
+            actions = np.asarray(policy(np.stack([obs[a] for a in env.agents])))
         times.append(time.perf_counter() - t0)
+        pos, heading = sim.pos.copy(), sim.heading.copy()
         obs, _, _, _, _ = env.step(dict(zip(env.agents, actions)))
         if trace is not None:
-            trace.record(env.sim.last_new_collisions)
-    return {**arena_metrics(env.sim), "step_time_s": float(np.mean(times)), "policy_calls": len(times)}
+            trace.record(sim.last_new_collisions)
+        if protocol == "agnn":
+            moved.append(np.linalg.norm(sim.pos - pos, axis=1))
+            turned.append(np.abs(wrap_angle(sim.heading - heading)))
+            if len(times) >= STILL_STATES and (np.sum(moved, 0) < STILL_DISTANCE).all() and (np.sum(turned, 0) < STILL_ANGLE).all():
+                break
+    out = {**arena_metrics(sim), "step_time_s": float(np.mean(times)), "policy_calls": len(times)}
+    if protocol == "agnn":
+        reached, success = final_state_success(sim)
+        out.update(success_to_goal_rate=float(success.mean()), success_rate_any=float(reached.mean()))
+    return out
 
 
-def plot_scenarios(source: str | Path, cases: list[tuple[int, int]], count: int, out: Path, max_steps: int = 400) -> list[Path]:
+def plot_scenarios(
+    source: str | Path, cases: list[tuple[int, int]], count: int, out: Path, max_steps: int = 400, protocol: str = "arena"
+) -> list[Path]:
     """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores)."""
 
     policy = load_arena_policy(source)
-    cfg = suite_config(max_steps)
+    cfg = policy_config(policy, max_steps, protocol)
     env = ArenaEnv(cfg)
     paths = []
     for n, m in cases:
         for k in range(count):
             trace = ArenaTrace()
-            res = run_scenario(policy, env, generate(heldout_rng(n, m, k), cfg, n, m), trace)
+            res = run_scenario(policy, env, generate(heldout_rng(n, m, k), cfg, n, m), trace, protocol)
             title = (
                 f"{n} vehicles, {m} obstacles, test scenario {k}: success {res['success_to_goal_rate']:.2f}, {res['collisions']} collisions"
             )
@@ -144,20 +222,20 @@ def plot_scenarios(source: str | Path, cases: list[tuple[int, int]], count: int,
     return paths
 
 
-def evaluate_case(job: tuple[str, tuple[int, int], list[int], int]) -> list[dict[str, Any]]:
+def evaluate_case(job: tuple[str, tuple[int, int], list[int], int, str]) -> list[dict[str, Any]]:
     """Rows (one per scenario) of test scenarios ``indices`` of one case (a worker job)."""
-    source, (n, m), indices, max_steps = job
+    source, (n, m), indices, max_steps, protocol = job
     try:
         torch.set_num_threads(1)
     except ImportError:
         pass
     policy = load_arena_policy(source)
-    cfg = suite_config(max_steps)
+    cfg = policy_config(policy, max_steps, protocol)
     env = ArenaEnv(cfg)
     rows = []
     for k in indices:
         layout = generate(heldout_rng(n, m, k), cfg, n, m)
-        rows.append({"case": f"{n}x{m}", "scenario": k, **run_scenario(policy, env, layout)})
+        rows.append({"case": f"{n}x{m}", "scenario": k, "protocol": protocol, **run_scenario(policy, env, layout, protocol=protocol)})
     return rows
 
 
@@ -168,18 +246,19 @@ def evaluate_suite(
     max_steps: int = 400,
     workers: int = 2,
     log: Callable[[str], None] = print,
+    protocol: str = "arena",
 ) -> list[dict[str, Any]]:
-    """Per-scenario rows of every case (deterministic: the same rows on every run)."""
+    """Per-scenario rows of every case under ``protocol`` (``PROTOCOLS``; deterministic: the same rows on every run)."""
 
     if scenarios_per_case < 1:
         raise ValueError(f"bad scenarios per case {scenarios_per_case}; allowed: an integer >= 1")
     if workers < 1:
         raise ValueError(f"bad workers {workers}; allowed: an integer >= 1")
-    suite_config(max_steps)  # a bad step limit fails here, before any work
+    suite_config(max_steps, protocol=protocol)  # a bad step limit or protocol fails here, before any work
     load_arena_policy(source)  # and so does a bad source
     chunk = max(1, min(scenarios_per_case, 25))
     jobs = [
-        (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps)
+        (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps, protocol)
         for case in cases
         for i in range(0, scenarios_per_case, chunk)
     ]
@@ -225,6 +304,7 @@ def summarize(rows: list[dict[str, Any]]) -> Any:
                 "step_time_s": float((g["step_time_s"] * g["policy_calls"]).sum() / g["policy_calls"].sum()),
                 "paper_success": paper[0],
                 "paper_agnn_success": paper[1],
+                "agnn_supp_success": AGNN_SUPP_TABLE_II.get((n, m), np.nan),
                 "paper_collision_rate": np.nan if paper[2] is None else paper[2],
                 "paper_agnn_collision_rate": np.nan if paper[3] is None else paper[3],
                 "paper_step_time_s": paper_time[0],
@@ -236,9 +316,9 @@ def summarize(rows: list[dict[str, Any]]) -> Any:
 def markdown_table(summary: Any) -> str:
     """The per-case summary as a Markdown table, ours next to the paper's Table I / II."""
     lines = [
-        "| vehicles | obstacles | scenarios | success (ours) | success (paper) | A-GNN (paper) "
+        "| vehicles | obstacles | scenarios | success (ours) | success (paper) | A-GNN (paper) | A-GNN (own paper) "
         "| collisions/m (ours) | collisions/m (paper) | step time ms (ours) | step time ms (paper) |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
 
     def f(x: float, fmt: str) -> str:
@@ -247,7 +327,8 @@ def markdown_table(summary: Any) -> str:
     for r in summary.to_dict("records"):
         lines.append(
             f"| {r['vehicles']} | {r['obstacles']} | {r['scenarios']} | {f(r['success_to_goal_rate'], '.3f')} | "
-            f"{f(r['paper_success'], '.3f')} | {f(r['paper_agnn_success'], '.3f')} | {f(r['collision_rate'], '.2e')} | "
+            f"{f(r['paper_success'], '.3f')} | {f(r['paper_agnn_success'], '.3f')} | {f(r['agnn_supp_success'], '.3f')} | "
+            f"{f(r['collision_rate'], '.2e')} | "
             f"{f(r['paper_collision_rate'], '.2e')} | {f(r['step_time_s'] * 1e3, '.3f')} | {f(r['paper_step_time_s'] * 1e3, '.3f')} |"
         )
     return "\n".join(lines) + "\n"

@@ -3,8 +3,9 @@
 Defaults are the seed-2 paper's where it gives numbers (Δt 0.1 s, success 1.25 m / 0.2 rad /
 0.05 m/s) and our choices elsewhere (``docs/decisions.md`` §8.1, after the A-GNN simulator):
 wheelbase 2.0 m, friction 0.99, pedal ±1 m/s², steering ±0.8 rad, 1.0 × 2.5 m vehicles,
-obstacles of radius 1–3 m, a ±25 m map, the semi-implicit update order. The reward coefficients
-(Eqs. 2–6) are left symbolic by the paper; ours keep one step's shaping near 1 (the distance
+obstacles of radius 1–3 m, a ±25 m map, the semi-implicit update order (``update_order``; the
+A-GNN baseline runs in its own simulator's, ``"position_first"`` with ``dt`` 0.2 s). The reward
+coefficients (Eqs. 2–6) are left symbolic by the paper; ours keep one step's shaping near 1 (the distance
 reward is at most 0.7, the angle reward half of it, the proximity penalty 0.2 per entity at 1 m
 clearance) and make the time penalty (2 per step at the 400-step limit) outgrow it, as the
 paper intends: hovering near the target until the limit, collecting distance and angle rewards,
@@ -53,6 +54,10 @@ class ArenaConfig:
     dt: float = 0.1
     wheelbase: float = 2.0
     friction: float = 0.99  # beta: v' = beta v + p dt
+    # "semi_implicit" (the paper's text): v, then heading with the new v, then position with both new;
+    # "position_first" (the A-GNN simulator, Ma et al. 2023): position with the old v and heading, then
+    # heading with the old v (wrapped), then v; run the A-GNN baseline with it and dt 0.2
+    update_order: str = "semi_implicit"
     max_pedal: float = 1.0  # m/s^2
     max_steer: float = 0.8  # rad
     # geometry
@@ -89,6 +94,7 @@ class ArenaConfig:
 
 
 GENERATORS = ("agnn", "short")
+UPDATE_ORDERS = ("semi_implicit", "position_first")
 OBSTACLE_SIDES = ("both", "left")
 
 
@@ -135,4 +141,6 @@ def make_arena_config(**overrides: Any) -> ArenaConfig:
         raise _bad("generator", cfg.generator, ", ".join(GENERATORS))
     if cfg.obstacle_side not in OBSTACLE_SIDES:
         raise _bad("obstacle_side", cfg.obstacle_side, ", ".join(OBSTACLE_SIDES))
+    if cfg.update_order not in UPDATE_ORDERS:
+        raise _bad("update_order", cfg.update_order, ", ".join(UPDATE_ORDERS))
     return cfg

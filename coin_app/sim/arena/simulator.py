@@ -1,6 +1,7 @@
 """The arena core: N vehicles with target poses among M circular obstacles, vectorized over vehicles.
 
-One ``step`` moves every vehicle still driving by the friction bicycle (``dynamics.py``),
+One ``step`` moves every vehicle still driving by the friction bicycle (``dynamics.py``, or
+:func:`position_first_step`, the A-GNN simulator's order, with ``update_order="position_first"``),
 finds contacts geometrically (1.0 × 2.5 m boxes against boxes and circles, ``collision.py``),
 computes the reward of Eqs. 2–6 (``reward.py``) and the observations (``observation.py``).
 A vehicle's run ends when it reaches the success state (it then stays parked where it
@@ -22,6 +23,28 @@ from coin_app.sim.arena.observation import observe
 from coin_app.sim.arena.reward import step_reward
 from coin_app.sim.collision import box_circle_overlap, boxes_overlap
 from coin_app.sim.dynamics import friction_bicycle_step, wrap_angle
+
+
+def position_first_step(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    pedal: np.ndarray,
+    steer: np.ndarray,
+    dt: float,
+    wheelbase: float,
+    friction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of the friction bicycle in the A-GNN simulator's order (Ma et al. 2023; the seed paper's "old order").
+
+    ``(x, y)' = (x, y) + v * dt * (cos psi, sin psi)`` with the old speed and heading;
+    ``psi' = psi + v * dt * tan(steer) / L`` with the old speed, wrapped to [-pi, pi);
+    ``v' = friction * v + pedal * dt``. The action reaches the position one step later than in
+    :func:`~coin_app.sim.dynamics.friction_bicycle_step`.
+    """
+    pos_new = pos + (speed * dt)[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    heading_new = wrap_angle(heading + speed * dt * np.tan(steer) / wheelbase)
+    return pos_new, heading_new, friction * speed + pedal * dt
 
 
 @dataclass
@@ -118,7 +141,8 @@ class ArenaSimulator:
         acted = self.driving.copy()
         a = np.clip(np.asarray(actions, float).reshape(self.num_vehicles, 2), -1.0, 1.0)
         steer, pedal = a[:, 0] * cfg.max_steer, a[:, 1] * cfg.max_pedal
-        pos, heading, speed = friction_bicycle_step(self.pos, self.heading, self.speed, pedal, steer, cfg.dt, cfg.wheelbase, cfg.friction)
+        step = position_first_step if cfg.update_order == "position_first" else friction_bicycle_step
+        pos, heading, speed = step(self.pos, self.heading, self.speed, pedal, steer, cfg.dt, cfg.wheelbase, cfg.friction)
         self.distance += np.where(acted, np.linalg.norm(pos - self.pos, axis=1), 0.0)
         self.pos = np.where(acted[:, None], pos, self.pos)
         self.heading = np.where(acted, heading, self.heading)
