@@ -4,7 +4,7 @@ Usage: python benchmarks/learning_curves.py [--algos cig_td3 itd3] [--steps 2000
                                             [--seeds 0 1 2] [--scenario intersection] [--set key=value ...]
                                             [--out runs/curves]
 
-``--algos`` takes any registered driving algorithm: cig_td3, itd3, ippo, cppo, mfpo, copo
+``--algos`` takes any registered driving algorithm: cig_td3, itd3, traco, ippo, cppo, mfpo, copo
 (e.g. ``--algos ippo cppo mfpo copo --steps 100000 --eval-every 10000`` for the PPO family,
 which samples 1600 env steps per update).
 

@@ -63,6 +63,8 @@ SHARED_KEYS = (
 HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     **{key: cig_td3.HYPERPARAMETERS[key] for key in SHARED_KEYS},
     "critic_lr": (3e-4, "Adam learning rate of the twin domain critic (and of the individual critic, if any)"),
+    "tau": (0.005, "soft target update rate of the actor and the domain critic (and of the individual critic, if any)"),
+    "hidden": (256, "width of the actor's layers, of the attention tokens and of the critic heads (COIN's TD3 hidden size)"),
     "baseline_lr": (3e-4, "Adam learning rate of the counterfactual baseline (inference: COIN's critic rate)"),
     "precision": (TRACO_PRECISION, "learner update precision: fp32 | bf16 (fp32 until a learning-curve comparison backs bf16)"),
     # TraCo's own choices; all but the radius are inferences (no TraCo code or full text is public)
