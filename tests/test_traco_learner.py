@@ -10,7 +10,8 @@ from test_cig_td3_learner import random_batch as cig_random_batch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3 import columns as col
-from coin_app.algorithms.traco.losses import TracoLossConfig, domain_rewards, domains, td_targets
+from coin_app.algorithms.traco.losses import TracoLossConfig, domain_batch, domain_rewards, domains, td_targets
+from coin_app.algorithms.traco.networks import DomainCritic
 from coin_app.algorithms.traco.traco import TracoConfig
 
 torch.set_num_threads(1)
@@ -193,9 +194,6 @@ def test_invalid_configs_are_refused(training, match):
 
 def test_compacting_the_domain_slots_changes_no_output():
     # the learner cuts the others to the largest domain in the batch; the critic must give the same values (order-invariant attention)
-    from coin_app.algorithms.traco.losses import domain_batch
-    from coin_app.algorithms.traco.networks import DomainCritic
-
     torch.manual_seed(0)
     batch = {k: torch.as_tensor(v) for k, v in random_batch(3, 14).items()}
     cfg = TracoLossConfig(domain_radius=40.0, position_scale=100.0)

@@ -95,3 +95,25 @@ def friction_bicycle_step(
     heading_new = wrap_angle(heading + v_new * np.tan(steer) * dt / wheelbase)
     pos_new = pos + (v_new * dt)[:, None] * np.stack([np.cos(heading_new), np.sin(heading_new)], axis=1)
     return pos_new, heading_new, v_new
+
+
+def position_first_step(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    pedal: np.ndarray,
+    steer: np.ndarray,
+    dt: float,
+    wheelbase: float,
+    friction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of the friction bicycle in the A-GNN simulator's order (Ma et al. 2023; the seed paper's "old order").
+
+    ``(x, y)' = (x, y) + v * dt * (cos psi, sin psi)`` with the old speed and heading;
+    ``psi' = psi + v * dt * tan(steer) / L`` with the old speed, wrapped to [-pi, pi);
+    ``v' = friction * v + pedal * dt``. The action reaches the position one step later than in
+    :func:`~coin_app.sim.dynamics.friction_bicycle_step`.
+    """
+    pos_new = pos + (speed * dt)[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    heading_new = wrap_angle(heading + speed * dt * np.tan(steer) / wheelbase)
+    return pos_new, heading_new, friction * speed + pedal * dt

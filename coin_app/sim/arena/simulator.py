@@ -22,29 +22,7 @@ from coin_app.sim.arena.generator import Layout
 from coin_app.sim.arena.observation import observe
 from coin_app.sim.arena.reward import step_reward
 from coin_app.sim.collision import box_circle_overlap, boxes_overlap
-from coin_app.sim.dynamics import friction_bicycle_step, wrap_angle
-
-
-def position_first_step(
-    pos: np.ndarray,
-    heading: np.ndarray,
-    speed: np.ndarray,
-    pedal: np.ndarray,
-    steer: np.ndarray,
-    dt: float,
-    wheelbase: float,
-    friction: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One step of the friction bicycle in the A-GNN simulator's order (Ma et al. 2023; the seed paper's "old order").
-
-    ``(x, y)' = (x, y) + v * dt * (cos psi, sin psi)`` with the old speed and heading;
-    ``psi' = psi + v * dt * tan(steer) / L`` with the old speed, wrapped to [-pi, pi);
-    ``v' = friction * v + pedal * dt``. The action reaches the position one step later than in
-    :func:`~coin_app.sim.dynamics.friction_bicycle_step`.
-    """
-    pos_new = pos + (speed * dt)[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
-    heading_new = wrap_angle(heading + speed * dt * np.tan(steer) / wheelbase)
-    return pos_new, heading_new, friction * speed + pedal * dt
+from coin_app.sim.dynamics import friction_bicycle_step, position_first_step, wrap_angle
 
 
 @dataclass
