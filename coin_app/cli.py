@@ -309,13 +309,20 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     return 0
 
 
+def sweep_scale(scale: str | None, smoke: bool) -> str:
+    """The scale asked for by ``--scale`` and ``--smoke`` (default paper); a ValueError when they disagree."""
+    if smoke and scale not in (None, "smoke"):
+        raise ValueError(f"--smoke with --scale {scale}; allowed: one of them (--smoke is --scale smoke)")
+    return "smoke" if smoke else scale or "paper"
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     """Run or resume a Tune sweep of one paper experiment; print where results went and each trial's figures."""
 
     summary = run_sweep(
         args.experiment,
         scenario=args.scenario,
-        scale="smoke" if args.smoke else "paper",
+        scale=sweep_scale(args.scale, args.smoke),
         methods=tuple(args.algos) if args.algos else None,
         seeds=tuple(args.seeds) if args.seeds else None,
         steps=args.steps,
@@ -365,6 +372,8 @@ def cmd_report(args: argparse.Namespace) -> int:
         alpha=args.alpha,
         tsne_samples=args.tsne_samples,
         tsne_episodes=args.tsne_episodes,
+        transfer=args.transfer,
+        transfer_test_seeds=args.transfer_test_seeds,
         command=getattr(args, "command_line", None),
     )
     summary = build_report([Path(p) for p in args.sources], Path(args.out), options)
@@ -592,13 +601,18 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("experiment", help="seeds, ablations or generalization (tuning/)")
     sw.add_argument("--scenario", default="intersection", help="intersection, roundabout or bottleneck")
     sw.add_argument("--algos", nargs="*", default=None, help="methods to sweep (default: the experiment's, cig_td3)")
-    sw.add_argument("--seeds", type=int, nargs="*", default=None, help="training seeds (default: 0..7, smoke: fewer)")
-    sw.add_argument("--steps", type=int, default=None, help="env steps per trial (default: 1,000,000; smoke: 1000)")
+    sw.add_argument("--seeds", type=int, nargs="*", default=None, help="training seeds (default: the scale's; paper: 0..7)")
+    sw.add_argument("--steps", type=int, default=None, help="env steps per trial (default: the scale's; paper: 1,000,000)")
     sw.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides for every trial")
-    sw.add_argument("--smoke", action="store_true", help="tiny scale: quick scenario, small networks, few seeds (tests, CI)")
+    sw.add_argument(
+        "--scale",
+        default=None,
+        help="paper (the paper's settings, a cluster), reduced (the one-machine protocol of docs/results) or smoke (tests, CI)",
+    )
+    sw.add_argument("--smoke", action="store_true", help="the same as --scale smoke")
     sw.add_argument("--address", default=None, help="Ray cluster to run on: auto, HOST:PORT or ray://HOST:PORT (default: a local Ray)")
     sw.add_argument("--storage", default=None, help="results root: a path or a URI such as s3://bucket/sweeps (default runs/sweeps)")
-    sw.add_argument("--name", default=None, help="experiment directory name (default <experiment>-<scenario>[-smoke])")
+    sw.add_argument("--name", default=None, help="experiment directory name (default <experiment>-<scenario>[-<scale>])")
     sw.add_argument("--max-concurrent", type=int, default=None, help="trials running at once (default: as many as fit)")
     sw.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
     sw.add_argument("--resume", action="store_true", help="continue the named sweep: finished trials stay, others resume")
@@ -624,6 +638,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--alpha", type=float, default=0.01, help="significance level before the Bonferroni correction")
     rp.add_argument("--tsne-samples", type=int, default=500, help="CVAE latent samples per scenario (paper: 1500)")
     rp.add_argument("--tsne-episodes", type=int, default=4, help="test episodes the latents are collected from")
+    rp.add_argument("--transfer", default=None, help="also evaluate every model on this backend (metadrive): the native -> MetaDrive gap")
+    rp.add_argument("--transfer-test-seeds", type=int, default=5, help="test episodes per model on the --transfer backend")
     rp.set_defaults(func=cmd_report)
 
     sb = sub.add_parser("submit", help="submit a coin_app command to a Ray cluster as a job (ray job submit); prints the job id")

@@ -138,6 +138,8 @@ def test_report_refuses_bad_options_before_any_work(tmp_path, capsys):
         ("--workers", "0", "bad --workers 0"),
         ("--alpha", "2", "bad --alpha 2.0"),
         ("--counts", "0", "bad --counts [0]"),
+        ("--transfer", "native", "bad --transfer 'native'; allowed: metadrive"),
+        ("--transfer-test-seeds", "0", "bad --transfer-test-seeds 0"),
     ]:
         assert main(["report", str(tmp_path), "--out", str(tmp_path / "o"), flag, value]) == 2
         assert message in capsys.readouterr().err
@@ -173,3 +175,28 @@ def test_report_lists_unreadable_trials_and_still_writes_everything_else(sweep_d
     assert not (out / "radar_intersection.png").exists() and "radar_intersection: not drawn (a radar compares methods" in printed
     page = html.unescape((out / "report.html").read_text())
     assert "Not evaluated or unreadable" in page and str(progress) in page
+
+
+def test_report_transfer_pairs_each_model_with_its_own_native_episodes_on_metadrive(sweep_dir, tmp_path, capsys):
+    pytest.importorskip("metadrive", reason="the optional MetaDrive extra is not installed")
+    out = tmp_path / "report"
+    argv = ["report", str(sweep_dir), "--out", str(out), "--test-seeds", "3", "--transfer", "metadrive", "--transfer-test-seeds", "2"]
+    assert main([*argv, "--tsne-samples", "40", "--tsne-episodes", "1"]) == 0
+    assert "on the metadrive backend" in capsys.readouterr().out
+    native, moved = pd.read_csv(out / "results.csv"), pd.read_csv(out / "transfer_results.csv")
+    assert set(native["backend"]) == {"native"} and set(moved["backend"]) == {"metadrive"}
+    # every model at its training count (4 agents) on the first 2 of the native test seeds
+    assert (
+        len(moved) == 2 * 2
+        and set(moved["agent_count"]) == {4}
+        and set(moved["test_seed"]) == set(sorted(native["test_seed"].unique())[:2])
+    )
+    table = pd.read_csv(out / "table_transfer.csv")
+    for method in ("cig_td3", "ippo"):
+        row = table[(table["label"] == method) & (table["metric"] == "success_rate")].iloc[0]
+        shared = native[(native["method"] == method) & (native["agent_count"] == 4) & native["test_seed"].isin(moved["test_seed"])]
+        assert row["n"] == 2 and row["native"] == pytest.approx(shared["success_rate"].mean())
+        assert row["transfer"] == pytest.approx(moved[moved["method"] == method]["success_rate"].mean())
+        assert row["gap"] == pytest.approx(row["transfer"] - row["native"])
+    assert "native / metadrive (gap)" in (out / "table_transfer.md").read_text()
+    assert "Transfer: native vs metadrive" in html.unescape((out / "report.html").read_text())

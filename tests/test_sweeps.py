@@ -148,6 +148,9 @@ def test_bad_sweeps_are_refused_before_any_work(tmp_path, capsys):
         (["sweep", "seeds", "--smoke", "--address", "127.0.0.1:1"], "cannot reach a Ray cluster at 127.0.0.1:1"),
         (["sweep", "seeds", "--smoke", "--address", "nohost"], "bad --address 'nohost'"),
         (["sweep", "seeds", "--smoke", "--resume"], "nothing to resume"),
+        (["sweep", "seeds", "--scale", "huge"], "unknown scale 'huge'; allowed: paper, reduced, smoke"),
+        (["sweep", "ablations", "--scale", "reduced"], "experiment 'ablations' has no reduced scale; allowed: paper, smoke"),
+        (["sweep", "seeds", "--smoke", "--scale", "paper"], "--smoke with --scale paper; allowed: one of them"),
     ]
     for argv, message in cases:
         assert main([*argv, "--storage", str(storage)]) == 2, argv
@@ -159,6 +162,21 @@ def test_bad_sweeps_are_refused_before_any_work(tmp_path, capsys):
     assert main(["sweep", "seeds", "--smoke", "--storage", str(storage)]) == 2
     assert "already exists; continue it with --resume" in capsys.readouterr().err
     assert [p.name for p in existing.iterdir()] == ["keep.txt"] and (existing / "keep.txt").read_text() == "old results"
+
+
+def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings():
+    space = get_experiment("seeds").param_space("intersection", "reduced", methods=("cig_td3", "itd3", "traco", "ippo", "copo"))
+    trials = validate_trials(space)  # every trial of the protocol builds
+    assert len(trials) == 5 * 5 and {t["seed"] for t in trials} == set(range(5)) and {t["steps"] for t in trials} == {40_000}
+    by_algo = {t["algo"]: t for t in trials if t["seed"] == 0}
+    for algo in ("cig_td3", "traco", "ippo"):  # the learning curves' settings: 4 agents, small networks
+        assert trial_overrides(by_algo[algo]) == registry.quick_settings(algo)
+    cfg = build_trial_config(by_algo["traco"])
+    assert (cfg.updates_per_env_step, cfg.train_batch_size_per_learner, cfg.env_config["scenario_config"].num_agents) == (1.0, 128, 4)
+    assert trial_name(by_algo["copo"]) == "copo-s0" and trial_resources(by_algo["copo"]).bundles == [{"CPU": 1}]
+    # the user's --set still comes last
+    tweaked = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", ("itd3",), (0,), overrides={"hidden": 32}))
+    assert trial_overrides(tweaked[0]) == registry.quick_settings("itd3") | {"hidden": 32}
 
 
 def test_address_probe_accepts_a_listening_port():
@@ -198,6 +216,19 @@ def test_trial_files_caught_mid_write_are_handled_and_corrupt_ones_named(tmp_pat
     (exp / "a" / "result.json").write_text('{"env_steps": 50}\n{"env_st\n{"env_steps": 100}\n')
     with pytest.raises(ValueError, match=r"a/result\.json line 2 is not valid JSON"):
         load_trials(exp)
+
+
+def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(local_ray, tmp_path, capsys):
+    storage = tmp_path / "sweeps"
+    argv = ["sweep", "seeds", "--scale", "reduced", "--algos", "cig_td3", "copo", "--seeds", "3", "--steps", "600"]
+    assert main([*argv, "--storage", str(storage)]) == 0
+    assert "seeds on intersection (reduced scale): 2 trials" in capsys.readouterr().out
+    exp_dir = storage / "seeds-intersection-reduced"
+    assert json.loads((exp_dir / "coin_sweep.json").read_text())["scale"] == "reduced"
+    for t in load_trials(exp_dir):
+        assert t.finished and t.last["env_steps"] >= 600 and t.config["seed"] == 3
+        meta = json.loads((t.final_checkpoint / "coin_app.json").read_text())
+        assert meta["overrides"] == registry.quick_settings(t.config["algo"]) and meta["seed"] == 3
 
 
 def test_ablations_smoke_sweep_end_to_end(local_ray, tmp_path, capsys):

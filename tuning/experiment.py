@@ -18,7 +18,7 @@ from ray import tune
 
 from coin_app.algorithms import registry
 
-SCALES = ("paper", "smoke")
+SCALES = ("paper", "reduced", "smoke")
 
 # Smoke scale: the quick scenario and small networks of the learning tests, and batch sizes so a
 # trial is a few iterations of a few seconds each (tests and CI).
@@ -31,6 +31,14 @@ SMOKE_CHUNK = {"rollout_fragment_length": 128}  # the PPO family's chunk at smok
 PAPER_PPO = {"num_env_runners": 4}
 # the driving algorithms that learn from fresh rollouts (IPPO, CPPO, MFPO, CoPO); the others replay (the TD3 family)
 PPO_FAMILY = tuple(n for n, s in registry.ALGORITHMS.items() if s.capabilities.on_policy and "intersection" in s.scenarios)
+
+
+# Reduced scale: COIN's comparison sized for one small machine (the protocol and its evidence are in
+# docs/results/README.md): the quick scenario (4 agents) and small networks of the learning curves
+# (registry.quick_settings: for the TD3 family one update of 128 transitions per env step, the freeze
+# guard), plus each family's settings below.
+REDUCED_TD3: dict[str, Any] = {}
+REDUCED_PPO: dict[str, Any] = {}  # the reference settings: 1,600 env steps per update, sampled in the trial's process
 
 
 @dataclass(frozen=True)
@@ -55,15 +63,21 @@ class Experiment:
     scenarios: tuple[str, ...]
     paper: Scale
     smoke: Scale
+    reduced: Scale | None = None  # the one-machine protocol (None: this experiment has no reduced scale)
     variants: dict[str, dict[str, Any]] = field(default_factory=lambda: {"default": {}})
     smoke_variants: tuple[str, ...] | None = None  # a subset of variants at smoke scale (None = all)
     allowed_methods: tuple[str, ...] | None = None  # methods the variants apply to (None = every registry algorithm)
 
     def scale(self, name: str) -> Scale:
-        """The scale called ``name`` (paper or smoke)."""
+        """The scale called ``name`` (paper, reduced or smoke)."""
+        scales = {"paper": self.paper, "reduced": self.reduced, "smoke": self.smoke}
+        allowed = ", ".join(n for n in SCALES if scales[n] is not None)
         if name not in SCALES:
-            raise ValueError(f"unknown scale {name!r}; allowed: {', '.join(SCALES)}")
-        return self.paper if name == "paper" else self.smoke
+            raise ValueError(f"unknown scale {name!r}; allowed: {allowed}")
+        found = scales[name]
+        if found is None:
+            raise ValueError(f"experiment {self.name!r} has no {name} scale; allowed: {allowed}")
+        return found
 
     def variant_names(self, scale: str) -> tuple[str, ...]:
         """The variants swept at ``scale``."""
@@ -123,13 +137,16 @@ def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:
 def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     """The registry overrides of one trial: the scale's settings, then the variant's, then the user's ``--set``.
 
-    Smoke scale: the quick scenario and small batches; paper scale: the PPO family's 4 env runners.
+    Smoke scale: the quick scenario and small batches; reduced scale: the quick scenario with each
+    family's reduced settings; paper scale: the PPO family's 4 env runners.
     """
     algo = config["algo"]
     on_policy = algo in PPO_FAMILY  # the rest replay (the TD3 family)
     scale: dict[str, Any] = {}
     if config["scale"] == "smoke":
         scale = registry.quick_settings(algo) | (SMOKE_PPO | SMOKE_CHUNK if on_policy else SMOKE_TD3)
+    elif config["scale"] == "reduced":
+        scale = registry.quick_settings(algo) | (REDUCED_PPO if on_policy else REDUCED_TD3)
     elif on_policy:
         scale = dict(PAPER_PPO)
     return scale | config["variant_overrides"][config["variant"]] | config["overrides"]

@@ -1,4 +1,8 @@
-"""The main comparison (Table 5.1): every method trained with 8 seeds on one scenario, 1M env steps each."""
+"""The main comparison (Table 5.1): every method trained with 8 seeds on one scenario, 1M env steps each.
+
+The reduced scale (``--scale reduced``) is the same comparison on one small machine: 5 seeds on the
+4-agent scenario (``tuning.experiment.REDUCED_TD3`` / ``REDUCED_PPO``; docs/results/README.md).
+"""
 
 from tuning.experiment import Experiment, Scale
 
@@ -8,5 +12,6 @@ SEEDS = Experiment(
     methods=("cig_td3",),
     scenarios=("intersection", "roundabout", "bottleneck"),
     paper=Scale(seeds=tuple(range(8)), steps=1_000_000, checkpoint_every=100, keep=2),
+    reduced=Scale(seeds=tuple(range(5)), steps=40_000, checkpoint_every=20, keep=1),
     smoke=Scale(seeds=(0, 1), steps=1000, checkpoint_every=1, keep=1),
 )

@@ -131,7 +131,7 @@ def run_sweep(
     if steps is not None and steps < 1:
         raise ValueError(f"bad --steps {steps}; allowed: an integer >= 1")
     root = storage_root(storage)
-    name = name or f"{experiment}-{scenario}" + ("-smoke" if scale == "smoke" else "")
+    name = name or f"{experiment}-{scenario}" + ("" if scale == "paper" else f"-{scale}")
     path = experiment_path(root, name)
     local = "://" not in root
     gpus = 0.0  # GPUs each trial reserves (fresh sweeps with learner settings)

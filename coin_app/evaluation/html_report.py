@@ -72,8 +72,9 @@ def write_html(
     stats: pd.DataFrame,
     figures: dict[str, Any],
     context: dict[str, Any],
+    transfer: pd.DataFrame | None = None,
 ) -> Path:
-    """Write the report page; returns its path."""
+    """Write the report page (with the native -> other-backend gap when ``transfer`` is given); returns its path."""
     opts = context["options"]
     fails = context["failures"]
     parts = [
@@ -105,6 +106,14 @@ def write_html(
         ]
     else:
         parts.append(f"<h2>Paired t-tests</h2><p class='note'>No baseline shares a scenario with {escape(opts['method'])}: no tests.</p>")
+    if transfer is not None:
+        backend = escape(str(opts.get("transfer")))
+        parts += [
+            f"<h2>Transfer: native vs {backend}</h2>",
+            f"<p>The same models on the same test seeds at the training agent count, on the native simulator and on {backend}; "
+            f"gap = {backend} - native (rates as fractions).</p>",
+            transfer.to_html(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-"),
+        ]
     parts.append("<h2>Figures</h2>")
     for name, value in figures.items():
         parts.append(f"<h3>{escape(name)}</h3>{_image(value)}")

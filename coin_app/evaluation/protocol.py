@@ -3,13 +3,14 @@
 Every trained model (a :class:`EvalRun`: method, variant, trained seed, checkpoint) is run with
 its deterministic actor on the fixed test seeds (``TEST_SEED_BASE + k``, disjoint from the
 training and validation seeds), on its training scenario or on other ``scenarios``, at its
-training agent count and at any other ``counts``. One task is one run: it loads the checkpoint once
+training agent count and at any other ``counts``, on the native simulator or, with ``backend``,
+on another backend (MetaDrive: the transfer evaluation). One task is one run: it loads the checkpoint once
 and evaluates every (scenario, count) of the grid, all test seeds of one cell in one batched
 simulator. Tasks run in ``workers`` spawned processes (one torch thread each) or, with
 ``workers=1``, in this process.
 
 The result is one row per episode (:data:`RESULT_COLUMNS`): method, variant, trained seed,
-test seed, scenario, agent count, the training agent count, every metric of
+test seed, scenario, agent count, the training agent count, the backend, every metric of
 :func:`~coin_app.evaluation.metrics.episode_metrics` in :data:`EPISODE_METRICS`, the episode
 length in env steps, the wall time (the batched cell's wall time divided by its episodes),
 the trained env steps and the checkpoint path. A checkpoint that is missing or cannot be
@@ -34,12 +35,12 @@ import torch
 from coin_app.algorithms.checkpoints import load_checkpoint_policy, read_metadata, scenario_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import METRIC_KEYS
-from coin_app.sim.config import DEFAULT_NUM_AGENTS
+from coin_app.sim.config import BACKENDS, DEFAULT_NUM_AGENTS
 from coin_app.sim.scenarios import config_from_dict
 
 EPISODE_METRICS = (*METRIC_KEYS, "avg_travel_steps_arrived", "episode_return", "num_vehicles")
 KEYS = ("method", "variant", "trained_seed", "test_seed", "scenario", "agent_count", "trained_agent_count")
-RESULT_COLUMNS = (*KEYS, *EPISODE_METRICS, "episode_length", "wall_time_s", "trained_env_steps", "checkpoint")
+RESULT_COLUMNS = (*KEYS, "backend", *EPISODE_METRICS, "episode_length", "wall_time_s", "trained_env_steps", "checkpoint")
 
 
 @dataclass(frozen=True)
@@ -86,10 +87,12 @@ def evaluate_run(
     test_seeds: Sequence[int],
     counts: Sequence[int] | None = None,
     scenarios: Sequence[str] | None = None,
+    backend: str | None = None,
 ) -> list[dict[str, Any]]:
     """Per-episode rows of one run over the (scenario, count) grid; raises if its checkpoint cannot be loaded.
 
-    ``counts`` are agent counts evaluated in addition to the training count (always evaluated).
+    ``counts`` are agent counts evaluated in addition to the training count (always evaluated);
+    ``backend`` replaces the training backend (None: the checkpoint's own).
     """
 
     meta = read_metadata(Path(run.checkpoint))
@@ -99,7 +102,8 @@ def evaluate_run(
     rows = []
     for scenario in scenarios or [trained.scenario]:
         for count in sorted({*(counts or ()), trained.num_agents}):
-            config = config_from_dict(scenario, {**meta.get("env_config", {}), "num_agents": int(count)})
+            env = {**meta.get("env_config", {}), "num_agents": int(count), **({"backend": backend} if backend else {})}
+            config = config_from_dict(scenario, env)
             t0 = time.perf_counter()
             episodes = evaluate_policy(policy, config, test_seeds)
             wall = (time.perf_counter() - t0) / len(episodes)
@@ -113,6 +117,7 @@ def evaluate_run(
                         "scenario": config.scenario,
                         "agent_count": int(count),
                         "trained_agent_count": trained.num_agents,
+                        "backend": config.backend,
                         **{k: float(m[k]) for k in EPISODE_METRICS},
                         "episode_length": int(m["env_steps"]),
                         "wall_time_s": wall,
@@ -123,10 +128,12 @@ def evaluate_run(
     return rows
 
 
-def _task(run: EvalRun, test_seeds: list[int], counts: list[int] | None, scenarios: list[str] | None) -> tuple[list[dict], str | None]:
+def _task(
+    run: EvalRun, test_seeds: list[int], counts: list[int] | None, scenarios: list[str] | None, backend: str | None
+) -> tuple[list[dict], str | None]:
     """One run in a worker: (rows, None) or ([], error message)."""
     try:
-        return evaluate_run(run, test_seeds, counts, scenarios), None
+        return evaluate_run(run, test_seeds, counts, scenarios, backend), None
     except Exception as exc:  # noqa: BLE001 - a broken checkpoint is reported, the others still run
         return [], f"{type(exc).__name__}: {exc}"
 
@@ -143,18 +150,22 @@ def run_evaluation(
     scenarios: Sequence[str] | None = None,
     workers: int = 1,
     log: Callable[[str], None] = print,
+    backend: str | None = None,
 ) -> Evaluation:
-    """Evaluate every run on the test seeds x scenarios x agent counts grid; one row per episode."""
+    """Evaluate every run on the test seeds x scenarios x agent counts grid (on ``backend``); one row per episode."""
 
     seeds = [int(s) for s in test_seeds]
     check_grid(seeds, None if counts is None else list(counts), None if scenarios is None else list(scenarios))
     if workers < 1:
         raise ValueError(f"bad workers {workers}; allowed: an integer >= 1")
+    if backend not in (None, *BACKENDS):
+        raise ValueError(f"bad backend {backend!r}; allowed: {', '.join(BACKENDS)}")
     counts = None if counts is None else [int(c) for c in counts]
     scenarios = None if scenarios is None else list(scenarios)
     grid = f"agent counts {counts} and the training count" if counts else "the training agent count"
     where = f"scenarios {scenarios}" if scenarios else "the training scenario"
-    log(f"evaluating {len(runs)} runs on {where} at {grid}, {len(seeds)} test seeds, {min(workers, max(len(runs), 1))} workers")
+    on = f" on the {backend} backend" if backend else ""
+    log(f"evaluating {len(runs)} runs{on} on {where} at {grid}, {len(seeds)} test seeds, {min(workers, max(len(runs), 1))} workers")
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
     failures: list[dict[str, Any]] = []
@@ -170,10 +181,10 @@ def run_evaluation(
 
     if workers == 1 or len(runs) <= 1:
         for i, run in enumerate(runs, 1):
-            collect(i, run, *_task(run, seeds, counts, scenarios))
+            collect(i, run, *_task(run, seeds, counts, scenarios, backend))
     else:
         with ProcessPoolExecutor(max_workers=min(workers, len(runs)), mp_context=get_context("spawn"), initializer=_init_worker) as pool:
-            futures = {pool.submit(_task, run, seeds, counts, scenarios): run for run in runs}
+            futures = {pool.submit(_task, run, seeds, counts, scenarios, backend): run for run in runs}
             for i, fut in enumerate(as_completed(futures), 1):
                 run = futures[fut]
                 try:
@@ -195,6 +206,8 @@ def read_results(path: Path) -> pd.DataFrame:
     missing = [c for c in (*KEYS, "success_rate", "safety", "efficiency") if c not in table.columns]
     if missing:
         raise ValueError(f"{path} is not a coin_app results table: missing columns {missing}")
+    if "backend" not in table.columns:  # tables written before the transfer evaluation: all native
+        table.insert(list(table.columns).index("trained_agent_count") + 1, "backend", "native")
     return table
 
 

@@ -10,7 +10,9 @@ every output without changes here. Outputs in ``out``:
 ``results.csv`` + ``evaluation.json`` (per-episode table, settings, failures), ``table_main``
 and ``table_ablation`` ``.{md,csv,tex}``, ``stats.csv``, ``radar_<scenario>.png``,
 ``generalization_<scenario>.png``, ``learning_curves_<scenario>.png``,
-``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``marl_eval.json`` and
+``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``marl_eval.json``, with
+``transfer`` the same models on another backend (``transfer_results.csv``, ``table_transfer``
+``.{md,csv}``: :mod:`coin_app.evaluation.transfer`) and
 ``report.html`` (everything above in one self-contained page, with command, versions and
 configs). A figure that cannot be drawn from the data (no progress files, no CVAE model) is
 named in the page with the reason instead.
@@ -37,6 +39,8 @@ from coin_app.evaluation.latents import collect_latents
 from coin_app.evaluation.marl_eval import run_label, write_marl_eval
 from coin_app.evaluation.protocol import EvalRun, Evaluation, read_results, run_evaluation, write_results
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings
+from coin_app.evaluation.transfer import transfer_table, write_transfer
+from coin_app.sim.config import BACKENDS
 from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.rendering import EpisodeTrace, plot_trajectories
 from coin_app.sim.seeds import eval_test_seeds
@@ -55,6 +59,8 @@ class ReportOptions:
     alpha: float = 0.01  # family-wise significance level before Bonferroni
     tsne_samples: int = 500  # latent samples per scenario (the paper: 1500)
     tsne_episodes: int = 4  # test episodes the latents are drawn from
+    transfer: str | None = None  # another backend every model is also evaluated on (metadrive), at its training count
+    transfer_test_seeds: int = 5  # test episodes per model on that backend (the first of the native test seeds)
     command: str | None = None  # the command line, recorded in the page
 
     def check(self) -> None:
@@ -71,6 +77,11 @@ class ReportOptions:
             raise ValueError(f"bad --tsne-episodes {self.tsne_episodes}; allowed: an integer >= 1")
         if self.counts is not None and (not self.counts or any(c < 1 for c in self.counts)):
             raise ValueError(f"bad --counts {list(self.counts)}; allowed: one or more integers >= 1")
+        others = [b for b in BACKENDS if b != "native"]
+        if self.transfer is not None and self.transfer not in others:
+            raise ValueError(f"bad --transfer {self.transfer!r}; allowed: {', '.join(others)}")
+        if self.transfer_test_seeds < 1:
+            raise ValueError(f"bad --transfer-test-seeds {self.transfer_test_seeds}; allowed: an integer >= 1")
 
 
 @dataclass
@@ -264,6 +275,12 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
     stats = statistics.paired_tests(main, options.method, alpha=options.alpha)
     stats.to_csv(out / "stats.csv", index=False)
     files += [out / "stats.csv", write_marl_eval(table, out / "marl_eval.json")]
+    transfer = None
+    if options.transfer:
+        transfer_rows, transfer_failures = evaluate_transfer(table, options, out, log)
+        failures += transfer_failures
+        transfer = transfer_table(table, transfer_rows)
+        files += [out / "transfer_results.csv", *write_transfer(transfer, out, options.transfer)]
 
     figures: dict[str, Any] = {}
     unreadable: list[dict[str, Any]] = []  # files read after the evaluation that could not be read (named, not fatal)
@@ -310,7 +327,7 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
         "evaluation": eval_settings,
         "failures": failures + unreadable,
     }
-    html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context)
+    html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context, transfer)
     summary = {
         "out": str(out),
         "episodes": len(table),
@@ -323,6 +340,18 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
         "wall_s": round(time.perf_counter() - t0, 1),
     }
     return summary
+
+
+def evaluate_transfer(table: pd.DataFrame, options: ReportOptions, out: Path, log: Log) -> tuple[pd.DataFrame, list[dict[str, Any]]]:
+    """Every model of ``table`` on ``options.transfer`` at its training count; the episodes (also in ``out``) and failures."""
+    trained = statistics.at_training_count(table).drop_duplicates("checkpoint")
+    runs = [
+        EvalRun(r.method, r.variant, int(r.trained_seed), r.checkpoint, None if pd.isna(r.trained_env_steps) else int(r.trained_env_steps))
+        for r in trained.itertuples()
+    ]
+    ev = run_evaluation(runs, eval_test_seeds(options.transfer_test_seeds), workers=options.workers, log=log, backend=options.transfer)
+    ev.table.to_csv(out / "transfer_results.csv", index=False)
+    return ev.table, [{**f, "backend": options.transfer} for f in ev.failures]
 
 
 def _curves(curves: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:

@@ -87,12 +87,16 @@ class CigTd3TorchLearner(TorchLearner):
         self.register_adam(module_id, groups)
 
     def register_adam(self, module_id: str, groups: list[tuple[str, torch.nn.Module, float]]) -> None:
-        """One Adam optimizer per (name, network, learning rate) of ``groups``."""
+        """One Adam optimizer per (name, network, learning rate) of ``groups``.
+
+        The fused kernel (CPU and CUDA) steps all of a network's tensors at once: the same update
+        as the per-tensor loop up to float rounding, and several times faster for these small
+        networks, whose per-tensor overhead dominated the optimizer step.
+        """
         for name, net, lr in groups:
             params = self.get_parameters(net)
-            self.register_optimizer(
-                module_id=module_id, optimizer_name=name, optimizer=torch.optim.Adam(params), params=params, lr_or_lr_schedule=lr
-            )
+            optimizer = torch.optim.Adam(params, fused=True)
+            self.register_optimizer(module_id=module_id, optimizer_name=name, optimizer=optimizer, params=params, lr_or_lr_schedule=lr)
 
     def is_policy_step(self, config: Any) -> bool:
         """Whether the current update also updates the actor and the targets."""
