@@ -389,7 +389,8 @@ def cmd_report(args: argparse.Namespace) -> int:
         if value.startswith("not drawn"):
             print(f"    {name}: {value}")
     for f in summary["failures"]:
-        print(f"  NOT EVALUATED {f.get('trial') or f.get('checkpoint')}: {f['error']}")
+        where = f" on {f['backend']}" if f.get("backend") else ""
+        print(f"  NOT EVALUATED{where} {f.get('trial') or f.get('checkpoint')}: {f['error']}")
     for f in summary.get("unreadable", []):
         print(f"  UNREADABLE {f['path']}: {f['error']} (left out of the learning curves)")
     return 1 if summary["failures"] or summary.get("unreadable") else 0

@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from fixtures import learner_update, module_of, params, same
+from fixtures import learner_update, module_of, params, same, scalar
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
@@ -129,6 +129,32 @@ def test_learner_state_round_trip_continues_identically():
     assert [val(r) for r in cont] == [val(r) for r in again]
     assert same(params(module_of(learner).actor), params(module_of(restored).actor))
     assert same(params(module_of(learner).central_target), params(module_of(restored).central_target))
+
+
+def _param_groups(state):
+    """Every optimizer param group saved in a learner state (nested dicts)."""
+    if isinstance(state, dict):
+        if "param_groups" in state:
+            yield from state["param_groups"]
+        for v in state.values():
+            yield from _param_groups(v)
+
+
+def test_a_checkpoint_saved_before_the_fused_adam_resumes_with_it():
+    cfg, learner = build_learner(policy_delay=2)
+    for step in range(3):
+        update(learner, cfg, step)
+    state = copy.deepcopy(learner.get_state())
+    groups = list(_param_groups(state))
+    assert len(groups) == 3 and all(g["fused"] is True for g in groups)  # actor, local and central critics
+    cont = [scalar(update(learner, cfg, step)["shared"]["total_loss"]) for step in range(3, 7)]
+    for g in groups:  # as torch.optim.Adam's default (the per-tensor loop) saved it
+        g["fused"], g["foreach"] = None, None
+    _, restored = build_learner(policy_delay=2)
+    restored.set_state(state)
+    assert all(g["fused"] is True for opt in restored._named_optimizers.values() for g in opt.param_groups)
+    # the per-tensor loop rounds differently, so only the fused step continues bit for bit
+    assert [scalar(update(restored, cfg, step)["shared"]["total_loss"]) for step in range(3, 7)] == cont
 
 
 @pytest.mark.parametrize(

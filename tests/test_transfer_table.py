@@ -60,3 +60,21 @@ def test_results_tables_written_before_the_backend_column_read_as_native(tmp_pat
     table = read_results(path)
     assert list(table["backend"]) == ["native"]
     assert list(table.columns).index("backend") == list(table.columns).index("trained_agent_count") + 1
+
+
+def test_a_transfer_table_is_refused_as_a_source_of_native_results(tmp_path):
+    moved = _rows("metadrive", "cig_td3", "a", [10], [1.0], [100.0])
+    moved[["efficiency", "safety"]] = 0.5
+    path = tmp_path / "transfer_results.csv"
+    moved.to_csv(path, index=False)
+    with pytest.raises(ValueError, match="holds metadrive episodes \\(a transfer table\\); allowed: a results table of native episodes"):
+        read_results(path)
+
+
+def test_transfer_to_metadrive_without_the_package_is_refused_before_any_work(monkeypatch):
+    from coin_app.evaluation import report
+
+    monkeypatch.setattr(report, "metadrive_available", lambda: False)
+    with pytest.raises(ValueError, match="--transfer metadrive needs the metadrive-simulator package, which is not installed"):
+        report.ReportOptions(transfer="metadrive").check()
+    report.ReportOptions().check()  # no transfer: nothing to install

@@ -208,6 +208,9 @@ def read_results(path: Path) -> pd.DataFrame:
         raise ValueError(f"{path} is not a coin_app results table: missing columns {missing}")
     if "backend" not in table.columns:  # tables written before the transfer evaluation: all native
         table.insert(list(table.columns).index("trained_agent_count") + 1, "backend", "native")
+    others = sorted(set(table["backend"]) - {"native"})
+    if others:
+        raise ValueError(f"{path} holds {', '.join(others)} episodes (a transfer table); allowed: a results table of native episodes")
     return table
 
 

@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 
 from coin_app.algorithms.checkpoints import load_checkpoint_policy, scenario_of
+from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation import plots, statistics, tables
 from coin_app.evaluation.embedding import kmeans, tsne
 from coin_app.evaluation.evaluate import run_episode
@@ -82,6 +83,8 @@ class ReportOptions:
             raise ValueError(f"bad --transfer {self.transfer!r}; allowed: {', '.join(others)}")
         if self.transfer_test_seeds < 1:
             raise ValueError(f"bad --transfer-test-seeds {self.transfer_test_seeds}; allowed: an integer >= 1")
+        if self.transfer == "metadrive" and not metadrive_available():
+            raise ValueError(f"--transfer metadrive needs the metadrive-simulator package, which is not installed; {INSTALL_HINT}")
 
 
 @dataclass
@@ -343,13 +346,18 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
 
 
 def evaluate_transfer(table: pd.DataFrame, options: ReportOptions, out: Path, log: Log) -> tuple[pd.DataFrame, list[dict[str, Any]]]:
-    """Every model of ``table`` on ``options.transfer`` at its training count; the episodes (also in ``out``) and failures."""
-    trained = statistics.at_training_count(table).drop_duplicates("checkpoint")
+    """The main table's models on ``options.transfer`` at their training count; the episodes (also in ``out``) and failures.
+
+    The test seeds are the first ``transfer_test_seeds`` of the native ones, so every episode has its native partner.
+    """
+    trained = statistics.main_rows(statistics.at_training_count(table)).drop_duplicates("checkpoint")
+    steps = trained["trained_env_steps"] if "trained_env_steps" in trained else pd.Series(np.nan, index=trained.index)
     runs = [
-        EvalRun(r.method, r.variant, int(r.trained_seed), r.checkpoint, None if pd.isna(r.trained_env_steps) else int(r.trained_env_steps))
-        for r in trained.itertuples()
+        EvalRun(r.method, r.variant, int(r.trained_seed), r.checkpoint, None if pd.isna(n) else int(n))
+        for r, n in zip(trained.itertuples(), steps)
     ]
-    ev = run_evaluation(runs, eval_test_seeds(options.transfer_test_seeds), workers=options.workers, log=log, backend=options.transfer)
+    seeds = sorted(int(s) for s in table["test_seed"].unique())[: options.transfer_test_seeds]
+    ev = run_evaluation(runs, seeds, workers=options.workers, log=log, backend=options.transfer)
     ev.table.to_csv(out / "transfer_results.csv", index=False)
     return ev.table, [{**f, "backend": options.transfer} for f in ev.failures]
 

@@ -33,7 +33,8 @@ def transfer_table(native: pd.DataFrame, other: pd.DataFrame, metrics: Sequence[
         for metric in metrics:
             pair = g[[metric, f"{metric}_transfer"]].dropna()  # travel steps: undefined where no vehicle arrived
             a, b = pair[metric].mean(), pair[f"{metric}_transfer"].mean()
-            out.append({"scenario": scenario, "label": label, "metric": metric, "native": a, "transfer": b, "gap": b - a, "n": len(pair)})
+            row = {"scenario": scenario, "label": label, "metric": metric, "native": a, "transfer": b, "gap": b - a}
+            out.append(row | {"n": len(pair)})
     return pd.DataFrame(out, columns=list(COLUMNS))
 
 
@@ -51,7 +52,7 @@ def to_markdown(table: pd.DataFrame, backend: str) -> str:
         for label, rows in g.groupby("label", sort=False):
             by = rows.set_index("metric")
             cells = [
-                f"{displayed(m, by.at[m, 'native']):g} / {displayed(m, by.at[m, 'transfer']):g} ({displayed(m, by.at[m, 'gap']):+g})"
+                f"{displayed(m, by.at[m, 'native']):g} / {displayed(m, by.at[m, 'transfer']):g} ({displayed(m, by.at[m, 'gap']) + 0.0:+g})"
                 if by.at[m, "n"]
                 else "-"
                 for m in metrics

@@ -221,6 +221,9 @@ class CigTd3TorchLearner(TorchLearner):
     def set_state(self, state: dict[str, Any]) -> None:
         """Restore learner state saved by :meth:`get_state`."""
         super().set_state(state)
+        for optimizer in self._named_optimizers.values():  # a checkpoint from before the fused step brings fused=None
+            for group in optimizer.param_groups:
+                group["fused"], group["foreach"] = True, None
         extra = state.get("cig_td3")
         if extra:
             self.num_updates = int(extra["num_updates"])
