@@ -95,7 +95,9 @@ def first_step(name, precision, episodes, spaces):
 def test_bf16_losses_and_gradients_agree_with_fp32(sampled):
     name, episodes, spaces = sampled
     (l32, g32), (l16, g16) = first_step(name, "fp32", episodes, spaces), first_step(name, "bf16", episodes, spaces)
-    assert l16 != l32 and not torch.equal(g16["policy"], g32["policy"])  # bf16 really changed the arithmetic
+    # bf16 really changed the arithmetic: something differs. IPPO's total loss can round to the same float32 value
+    # (relative error ~7e-7, one ulp at its size: it did once in CI), so the loss alone does not tell.
+    assert l16 != l32 or any(not torch.equal(g16[k], g32[k]) for k in ("policy", "value"))
     cosines = {k: float(torch.nn.functional.cosine_similarity(g32[k], g16[k], dim=0)) for k in ("policy", "value")}
     print(f"{name}: loss fp32 {l32:.6g} bf16 {l16:.6g} rel {abs(l16 - l32) / abs(l32):.2e} cosines {cosines}")
     assert l16 == pytest.approx(l32, rel=LOSS_RTOL)
