@@ -1,27 +1,35 @@
 """Time of one CIG-TD3 (and ITD3) learner update on this CPU, fp32 and bf16, with a breakdown, and of a training loop.
 
-Usage: python benchmarks/learner_update.py [--updates 10] [--threads 1] [--precision both] [--loop-steps 300]
+Usage: python benchmarks/learner_update.py [--size paper] [--updates 10] [--threads 1] [--precision both]
+                                           [--loop-steps 300] [--rllib-step]
 
-The update runs on a synthetic batch shaped like the intersection's (30 agents: 38 padded
-"other" slots, about 29 of them present at t and 30 at t+1), B = 256, all modules on (CVAE,
-GAT, counterfactual baseline, twin critics, targets). One figure is the mean over a whole
+``--size paper`` (default): the update runs on a synthetic batch shaped like the intersection's
+(30 agents: 38 padded "other" slots, about 29 of them present at t and 30 at t+1), B = 256, the
+paper's network sizes, all modules on (CVAE, GAT, counterfactual baseline, twin critics,
+targets). ``--size quick``: the quick settings of the learning curves and of the reduced-scale
+protocol (``registry.quick_settings``: 4 agents, so 3 of the padded slots present, B = 128,
+hidden 64, latent 8, node width 16, policy delay 2). One figure is the mean over a whole
 policy-delay cycle (4 critic-only updates + 1 update with the actor step and target
 updates). The breakdown times each loss's forward + backward separately. ``--precision``
 ``both`` (default) times the fp32 and the bf16 learner (``precision="bf16"``: loss forward
 passes under bfloat16 autocast) side by side on the same batch and initial weights, one delay
 cycle of each in turn (so a change in the machine's load hits both alike), and prints the
 ratio bf16 / fp32. ``--loop-steps`` also times a full ``algo.train()`` loop (sampling, replay,
-updates, weight sync) on the intersection and prints env-steps/s.
+updates, weight sync) on the intersection and prints env-steps/s. ``--rllib-step`` also times
+the fp32 learner with RLlib's own ``TorchLearner.apply_gradients`` (two finiteness checks, each a
+host sync, per gradient tensor) in turn with the others, and prints the ratio.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+import types
 
 import numpy as np
 import ray
 import torch
+from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
@@ -29,7 +37,9 @@ from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.cig_td3.learner import PRECISIONS, autocast, loss_config
 from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, local_critic_loss, td_targets
+from coin_app.algorithms.registry import quick_settings
 from coin_app.sim import schema
+from coin_app.training import build_config
 
 
 def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -59,18 +69,23 @@ def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.G
     }
 
 
-def time_updates(cfgs: dict[str, CigTd3Config], updates: int) -> dict[str, tuple[float, dict[str, float]]]:
+RLLIB_STEP = "fp32, RLlib's gradient step"  # the label of the --rllib-step comparison
+
+
+def time_updates(cfgs: dict[str, CigTd3Config], updates: int, present: int) -> dict[str, tuple[float, dict[str, float]]]:
     """Per precision: (mean seconds per learner update over whole delay cycles, breakdown in seconds).
 
     The learners of ``cfgs`` (same seed, so the same initial weights) run one delay cycle each in
-    turn on the same batch.
+    turn on the same batch, whose rows have ``present`` other agents at t (one more at t+1).
     """
-    env = CoinMultiAgentEnv({"scenario": "intersection"})
     first = next(iter(cfgs.values()))
-    batch_np = synthetic_batch(first.train_batch_size_per_learner, first.max_others, env.config.obs_dim, 29, np.random.default_rng(0))
+    env = CoinMultiAgentEnv(first.env_config)
+    batch_np = synthetic_batch(first.train_batch_size_per_learner, first.max_others, env.config.obs_dim, present, np.random.default_rng(0))
     batch = MultiAgentBatch({"shared": SampleBatch(batch_np)}, env_steps=first.train_batch_size_per_learner)
     ts = {"num_env_steps_sampled_lifetime": 0}
     learners = {name: cfg.build_learner(env=env) for name, cfg in cfgs.items()}
+    if RLLIB_STEP in learners:  # RLlib's own TorchLearner.apply_gradients (two finiteness checks per tensor)
+        learners[RLLIB_STEP].apply_gradients = types.MethodType(TorchLearner.apply_gradients, learners[RLLIB_STEP])
     for learner in learners.values():
         learner.update(batch=batch, timesteps=ts)  # warm-up
     cycles = max(1, updates // first.policy_delay)
@@ -125,33 +140,56 @@ def time_loop(cfg: CigTd3Config, steps: int) -> float:
     return float(r["env_runners"]["num_env_steps_sampled"]) / dt
 
 
+SIZES = ("paper", "quick")
+
+
+def base_config(size: str, threads: int) -> tuple[CigTd3Config, int]:
+    """The CIG-TD3 config timed at ``size`` and the number of other agents present per batch row."""
+    if size == "paper":
+        env_config = {"scenario": "intersection"}
+        cfg = CigTd3Config().environment("coin-intersection-v0", env_config=env_config).debugging(seed=0)
+        return cfg.training(learner_threads=threads), 29
+    settings = {**quick_settings("cig_td3"), "learner_threads": threads}
+    cfg = build_config("cig_td3", "intersection", settings, 0)
+    return cfg, cfg.scenario_config().num_agents - 1
+
+
 def main() -> None:
     """Print the update times per precision, their ratio, the breakdown and the loop throughput."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", choices=SIZES, default="paper", help="paper: 30 agents, paper sizes; quick: the reduced-scale settings")
     ap.add_argument("--updates", type=int, default=10)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--precision", choices=(*PRECISIONS, "both"), default="both", help="learner precision(s) to time")
     ap.add_argument("--loop-steps", type=int, default=0, help="also time a training loop of this many env steps (0 = skip)")
+    ap.add_argument("--rllib-step", action="store_true", help="also time fp32 with RLlib's own gradient step, side by side")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     register_envs()
     precisions = PRECISIONS if args.precision == "both" else (args.precision,)
-    base = CigTd3Config().environment("coin-intersection-v0").debugging(seed=0).training(learner_threads=args.threads)
-    print(f"B=256, intersection (30 agents, {base.max_others} other slots, 29 present), torch threads {args.threads}")
+    base, present = base_config(args.size, args.threads)
+    print(
+        f"{args.size} size: B={base.train_batch_size_per_learner}, intersection ({base.scenario_config().num_agents} agents, "
+        f"{base.max_others} other slots, {present} present), torch threads {args.threads}"
+    )
     for name, algo_cfg in (("CIG-TD3 (all modules)", base), ("ITD3", base.copy(copy_frozen=False).itd3())):
         cfgs = {p: algo_cfg.copy(copy_frozen=False).training(precision=p) for p in precisions}
+        if args.rllib_step:
+            cfgs[RLLIB_STEP] = algo_cfg.copy(copy_frozen=False).training(precision="fp32")
         for cfg in cfgs.values():
             cfg.validate()
-        timed = time_updates(cfgs, args.updates)
+        timed = time_updates(cfgs, args.updates, present)
         print(f"\n{name}:")
         for precision, (per, parts) in timed.items():
             print(f"  {precision}: {per * 1000:.0f} ms per update (mean over delay cycles)")
             for k, v in parts.items():
                 print(f"    {k:<36}{v * 1000:8.1f} ms")
-        if len(timed) == 2:
+        if "bf16" in timed and "fp32" in timed:
             print(f"  bf16 / fp32 update time: {timed['bf16'][0] / timed['fp32'][0]:.2f}")
+        if RLLIB_STEP in timed and "fp32" in timed:
+            print(f"  fp32 update time, this learner's gradient step / RLlib's: {timed['fp32'][0] / timed[RLLIB_STEP][0]:.2f}")
         if args.loop_steps:
-            for precision, cfg in cfgs.items():
+            for precision, cfg in ((p, c) for p, c in cfgs.items() if p != RLLIB_STEP):
                 print(f"  training loop, {precision}: {time_loop(cfg, args.loop_steps):.1f} env steps/s (1 update per env step)")
 
 

@@ -299,3 +299,60 @@ def test_exploration_noise_decays_linearly_after_the_warm_up():
     assert [m.noise_std(t) for t in (100, 600, 1100, 5000)] == pytest.approx([0.3, 0.175, 0.05, 0.05])
     _, constant = build_learner(exploration_noise=0.05)
     assert module_of(constant).noise_std(10) == 0.05
+
+
+def test_learning_rates_decay_linearly_on_the_env_step_schedule():
+    rates = {"actor": 1e-3, "local_critic": 2e-3, "central_critic": 3e-3}
+    cfg, learner = build_learner(
+        actor_lr=rates["actor"],
+        critic_lr=rates["local_critic"],
+        central_critic_lr=rates["central_critic"],
+        lr_decay_start=100,
+        lr_decay_steps=200,
+        lr_final_fraction=0.1,
+    )
+    # constant to 100 env steps, then linear to 10 % at 300, constant after (hand-computed fractions)
+    for env_steps, fraction in ((50, 1.0), (100, 1.0), (200, 0.55), (300, 0.1), (1000, 0.1)):
+        learner_update(learner, random_batch(env_steps, cfg.max_others), env_steps=env_steps)
+        for name, lr in rates.items():
+            (group,) = learner.get_optimizer("shared", name).param_groups
+            assert group["lr"] == pytest.approx(lr * fraction, rel=1e-6), (name, env_steps)
+
+
+def test_without_a_decay_the_learning_rates_stay_constant():
+    cfg, learner = build_learner(actor_lr=1e-3, lr_final_fraction=0.1)  # lr_decay_steps=0: the fraction is unused
+    for env_steps in (0, 10_000, 1_000_000):
+        learner_update(learner, random_batch(1, cfg.max_others), env_steps=env_steps)
+        assert learner.get_optimizer("shared", "actor").param_groups[0]["lr"] == pytest.approx(1e-3)
+
+
+@pytest.mark.parametrize("poison", [None, float("nan"), float("inf")])
+def test_gradient_step_matches_rllibs_with_finite_and_non_finite_gradients(poison):
+    from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+
+    ours, theirs = build_learner()[1], build_learner()[1]  # same seed: the same initial weights
+    gen = torch.Generator().manual_seed(3)
+    grads = [torch.randn(p.shape, generator=gen) for p in ours._params.values()]
+    if poison is not None:  # one entry of one tensor: RLlib zeroes it (nan_to_num), warns and steps
+        grads[0].view(-1)[0] = poison
+    ours.apply_gradients({ref: g.clone() for ref, g in zip(ours._params, grads, strict=True)})
+    TorchLearner.apply_gradients(theirs, {ref: g.clone() for ref, g in zip(theirs._params, grads, strict=True)})
+    a, b = module_of(ours), module_of(theirs)
+    for net in ("actor", "local_q", "central"):
+        for p, q in zip(params(getattr(a, net)), params(getattr(b, net)), strict=True):
+            assert torch.equal(p, q) and torch.isfinite(p).all()
+
+
+def test_soft_update_is_taus_blend_of_every_state_tensor():
+    from coin_app.algorithms.cig_td3.learner import soft_update
+
+    main, target = torch.nn.BatchNorm1d(3), torch.nn.BatchNorm1d(3)  # parameters, float and integer buffers
+    with torch.no_grad():
+        for t in (*main.parameters(), main.running_mean, main.running_var):
+            t.uniform_(-1, 1)
+    main.num_batches_tracked.fill_(7)
+    old = {k: v.clone() for k, v in target.state_dict().items()}
+    soft_update(main, target, 0.25)
+    for k, v in target.state_dict().items():
+        expected = main.state_dict()[k] if k == "num_batches_tracked" else 0.25 * main.state_dict()[k] + 0.75 * old[k]
+        assert torch.allclose(v.float(), expected.float(), atol=1e-7), k

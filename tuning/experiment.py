@@ -37,7 +37,8 @@ PPO_FAMILY = tuple(n for n, s in registry.ALGORITHMS.items() if s.capabilities.o
 # docs/results/README.md): the quick scenario (4 agents) and small networks of the learning curves
 # (registry.quick_settings: for the TD3 family one update of 128 transitions per env step, the freeze
 # guard), plus each family's settings below.
-REDUCED_TD3: dict[str, Any] = {}
+# fp32: at these sizes a bf16 update takes 3.3x the fp32 time for CIG-TD3 (benchmarks/learner_update.py --size quick).
+REDUCED_TD3: dict[str, Any] = {"precision": "fp32"}
 REDUCED_PPO: dict[str, Any] = {}  # the reference settings: 1,600 env steps per update, sampled in the trial's process
 
 

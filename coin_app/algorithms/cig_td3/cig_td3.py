@@ -109,6 +109,10 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         "exploration std right after the warm-up, decaying linearly to exploration_noise (None = constant)",
     ),
     "exploration_noise_decay_steps": (0, "env steps of that decay after the warm-up"),
+    # an optional late decay of every Adam learning rate (off = constant rates, the paper)
+    "lr_decay_start": (0, "env steps at which the learning rates start to decay linearly"),
+    "lr_decay_steps": (0, "env steps of that decay (0 = constant learning rates, the paper)"),
+    "lr_final_fraction": (1.0, "fraction of each learning rate reached at the decay's end and kept after it"),
     "learner_threads": (1, "torch threads for updates in the learner's process (more only if a benchmark shows it helps)"),
     "precision": (
         "bf16",
