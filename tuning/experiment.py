@@ -39,6 +39,9 @@ PPO_FAMILY = tuple(n for n, s in registry.ALGORITHMS.items() if s.capabilities.o
 # guard), plus each family's settings below.
 # fp32: at these sizes a bf16 update takes 3.3x the fp32 time for CIG-TD3 (benchmarks/learner_update.py --size quick).
 REDUCED_TD3: dict[str, Any] = {"precision": "fp32"}
+# The TD3 family's learning rates decay linearly to this fraction over the second half of each trial's budget
+# (reduced_decay): with constant rates the policies learned, then froze or crashed late (docs/results/README.md).
+REDUCED_LR_FINAL_FRACTION = 0.1
 REDUCED_PPO: dict[str, Any] = {}  # the reference settings: 1,600 env steps per update, sampled in the trial's process
 
 
@@ -135,11 +138,18 @@ def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:
     return [fixed | dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
 
 
+def reduced_decay(steps: int) -> dict[str, Any]:
+    """The reduced scale's learning-rate decay for a trial of ``steps`` env steps: constant, then linear over the second half."""
+    start = steps // 2
+    return {"lr_decay_start": start, "lr_decay_steps": max(1, steps - start), "lr_final_fraction": REDUCED_LR_FINAL_FRACTION}
+
+
 def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     """The registry overrides of one trial: the scale's settings, then the variant's, then the user's ``--set``.
 
     Smoke scale: the quick scenario and small batches; reduced scale: the quick scenario with each
-    family's reduced settings; paper scale: the PPO family's 4 env runners.
+    family's reduced settings (the TD3 family's rates decaying over the second half of the budget);
+    paper scale: the PPO family's 4 env runners.
     """
     algo = config["algo"]
     on_policy = algo in PPO_FAMILY  # the rest replay (the TD3 family)
@@ -147,7 +157,7 @@ def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     if config["scale"] == "smoke":
         scale = registry.quick_settings(algo) | (SMOKE_PPO | SMOKE_CHUNK if on_policy else SMOKE_TD3)
     elif config["scale"] == "reduced":
-        scale = registry.quick_settings(algo) | (REDUCED_PPO if on_policy else REDUCED_TD3)
+        scale = registry.quick_settings(algo) | (REDUCED_PPO if on_policy else REDUCED_TD3 | reduced_decay(int(config["steps"])))
     elif on_policy:
         scale = dict(PAPER_PPO)
     return scale | config["variant_overrides"][config["variant"]] | config["overrides"]
