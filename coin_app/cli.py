@@ -22,7 +22,17 @@ from cluster import jobs
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoints import export_actor, load_module, read_metadata
 from coin_app.algorithms.registry import parse_overrides, quick_settings
-from coin_app.evaluation.arena_suite import PROTOCOLS, evaluate_suite, markdown_table, parse_cases, plot_scenarios, summarize
+from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
+from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, policy_labels, write_arena_html, write_side_by_side
+from coin_app.evaluation.arena_suite import (
+    PROTOCOLS,
+    evaluate_suite,
+    load_arena_policy,
+    markdown_table,
+    parse_cases,
+    plot_scenarios,
+    summarize,
+)
 from coin_app.evaluation.evaluate import evaluate_policy, record
 from coin_app.evaluation.metrics import METRIC_KEYS, EpisodeRecorder, aggregate
 from coin_app.evaluation.policies import as_policy
@@ -282,30 +292,53 @@ def cmd_pair(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate_arena(args: argparse.Namespace) -> int:
-    """Run the seed-2 evaluation suite (Tables I and II) on a policy; writes per-scenario rows and the case table."""
+    """Run the seed-2 evaluation suite (Tables I and II) on one or more policies; per-policy case tables, one side-by-side table."""
 
     cases = parse_cases(args.cases)
+    labels = policy_labels(args.policy)
+    if args.scenarios_per_case < 1:
+        raise ValueError(f"bad --scenarios-per-case {args.scenarios_per_case}; allowed: an integer >= 1")
+    for source in args.policy:
+        load_arena_policy(source)  # a bad source fails now, before any policy is evaluated
     out = Path(args.out)
+    folders = {label: "." if len(labels) == 1 else label for label in labels}  # one policy: its files in --out itself
     print(
-        f"evaluate-arena: {args.policy}, {len(cases)} cases x {args.scenarios_per_case} scenarios, up to {args.max_steps} steps, "
-        f"{args.protocol} protocol -> {out}"
+        f"evaluate-arena: {', '.join(args.policy)}; {len(cases)} cases x {args.scenarios_per_case} scenarios, up to {args.max_steps} "
+        f"steps, {args.protocol} protocol -> {out}"
     )
     t0 = time.perf_counter()
-    rows = evaluate_suite(args.policy, cases, args.scenarios_per_case, args.max_steps, args.workers, protocol=args.protocol)
-    out.mkdir(parents=True, exist_ok=True)
-
-    pd.DataFrame(rows).to_csv(out / "arena_scenarios.csv", index=False)
-    summary = summarize(rows)
-    summary.to_csv(out / "arena_cases.csv", index=False)
-    table = markdown_table(summary)
-    header = f"Policy: `{args.policy}`; {args.scenarios_per_case} test scenarios per case; {args.protocol} protocol.\n\n"
-    (out / "arena_table.md").write_text(header + table)
-    print(f"\n{len(rows)} scenarios in {time.perf_counter() - t0:.0f} s")
-    print(table)
-    print(f"  per-scenario rows: {out / 'arena_scenarios.csv'}\n  case table: {out / 'arena_table.md'} (and arena_cases.csv)")
-    if args.plots:
-        plots = plot_scenarios(args.policy, cases, args.plots, out / "plots", args.max_steps, args.protocol)
-        print(f"  trajectory plots: {len(plots)} in {out / 'plots'}")
+    summaries = {}
+    for source, label in zip(args.policy, labels):
+        if len(labels) > 1:
+            print(f"\n{label} ({source})")
+        rows = evaluate_suite(source, cases, args.scenarios_per_case, args.max_steps, args.workers, protocol=args.protocol)
+        where = out / folders[label]
+        where.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame(rows).to_csv(where / "arena_scenarios.csv", index=False)
+        summaries[label] = summary = summarize(rows)
+        summary.to_csv(where / "arena_cases.csv", index=False)
+        header = f"Policy: `{source}`; {args.scenarios_per_case} test scenarios per case; {args.protocol} protocol.\n\n"
+        (where / "arena_table.md").write_text(header + markdown_table(summary))
+        if args.plots:
+            plots = plot_scenarios(source, cases, args.plots, where / "plots", args.max_steps, args.protocol)
+            print(f"  trajectory plots: {len(plots)} in {where / 'plots'}")
+    settings = {
+        "policies": list(args.policy),
+        "folders": folders,
+        "cases": [f"{n}x{m}" for n, m in cases],
+        "scenarios_per_case": args.scenarios_per_case,
+        "max_steps": args.max_steps,
+        "protocol": args.protocol,
+        "command": getattr(args, "command_line", None),
+    }
+    table, markdown = write_side_by_side(out, summaries, settings)
+    page = write_arena_html(out / ARENA_PAGE, [load_arena_eval(out)], settings["command"])
+    print(f"\n{len(labels)} policies x {len(cases)} cases x {args.scenarios_per_case} scenarios in {time.perf_counter() - t0:.0f} s")
+    print(markdown_table(summaries[labels[0]]) if len(labels) == 1 else markdown)
+    for label in labels:
+        where = out / folders[label]
+        print(f"  {label}: per-scenario rows {where / 'arena_scenarios.csv'}, case table {where / 'arena_table.md'}")
+    print(f"  side by side: {out / 'arena_side_by_side.md'} (and .csv); page: {page}")
     return 0
 
 
@@ -376,7 +409,16 @@ def cmd_report(args: argparse.Namespace) -> int:
         transfer_test_seeds=args.transfer_test_seeds,
         command=getattr(args, "command_line", None),
     )
-    summary = build_report([Path(p) for p in args.sources], Path(args.out), options)
+    arena = [Path(p) for p in args.sources if is_arena_eval(p)]  # evaluate-arena outputs: the arena page
+    sweeps = [Path(p) for p in args.sources if not is_arena_eval(p)]
+    if arena:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        page = write_arena_html(out / ARENA_PAGE, [load_arena_eval(p) for p in arena], options.command)
+        print(f"arena report: {len(arena)} evaluate-arena run(s) -> {page}")
+        if not sweeps:
+            return 0
+    summary = build_report(sweeps, Path(args.out), options)
     print(
         f"\nreport summary: {summary['episodes']} test episodes of {summary['models']} models "
         f"in {summary['wall_s']:.0f} s -> {summary['out']}"
@@ -577,9 +619,11 @@ def build_parser() -> argparse.ArgumentParser:
     pa.add_argument("--out", required=True, help="pair file to write (.json)")
     pa.set_defaults(func=cmd_pair)
 
-    ea = sub.add_parser("evaluate-arena", help="the seed-2 paper's 24-case arena test suite (Tables I and II) for a policy")
+    ea = sub.add_parser("evaluate-arena", help="the seed-2 paper's 24-case arena test suite (Tables I and II) for policies, side by side")
     ea.add_argument(
-        "policy", help="heuristic | agnn (the A-GNN baseline's released weights) | checkpoint directory | exported .npz | pair .json"
+        "policy",
+        nargs="+",
+        help="one or more of: heuristic | agnn (the A-GNN baseline's released weights) | checkpoint directory | exported .npz | pair .json",
     )
     ea.add_argument("--cases", default="all", help="all (the paper's 24) or e.g. 4x3,20x8")
     ea.add_argument("--scenarios-per-case", type=int, default=100, help="fixed test scenarios per case (the paper: 4062)")
@@ -628,7 +672,11 @@ def build_parser() -> argparse.ArgumentParser:
     ge.set_defaults(func=cmd_generalize)
 
     rp = sub.add_parser("report", help="evaluate sweeps on the test seeds; tables, t-tests, figures, marl-eval JSON, report.html")
-    rp.add_argument("sources", nargs="+", help="sweep directories, directories of sweeps, or results.csv files of earlier reports")
+    rp.add_argument(
+        "sources",
+        nargs="+",
+        help="sweep directories, directories of sweeps, results.csv files of earlier reports, or evaluate-arena output directories",
+    )
     rp.add_argument("--out", required=True, help="output directory")
     rp.add_argument("--method", default="cig_td3", help="the method tested against every baseline (default cig_td3)")
     rp.add_argument(

@@ -41,7 +41,8 @@ def versions() -> dict[str, str]:
     return out
 
 
-def _image(value: Any) -> str:
+def image_html(value: Any) -> str:
+    """An <img> embedding the PNG at ``value``, or a note with ``value``'s text when it is not a file."""
     if isinstance(value, Path) and value.is_file():
         data = base64.b64encode(value.read_bytes()).decode("ascii")
         return f'<img alt="{escape(value.name)}" src="data:image/png;base64,{data}">'
@@ -116,7 +117,7 @@ def write_html(
         ]
     parts.append("<h2>Figures</h2>")
     for name, value in figures.items():
-        parts.append(f"<h3>{escape(name)}</h3>{_image(value)}")
+        parts.append(f"<h3>{escape(name)}</h3>{image_html(value)}")
     parts += [
         "<h2>Provenance</h2><h3>Versions</h3>",
         "<table>" + "".join(f"<tr><td>{escape(k)}</td><td>{escape(v)}</td></tr>" for k, v in versions().items()) + "</table>",
