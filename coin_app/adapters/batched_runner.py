@@ -176,6 +176,11 @@ class BatchedEnvRunner(EnvRunner, Checkpointable):
         if self.vector_env is not None:
             self.vector_env.set_lcf_distribution(mean, std)
 
+    def set_start_difficulty(self, difficulty: float) -> None:
+        """The arena curriculum's start spread for scenarios generated from now on (``ArenaConfig.start_difficulty``)."""
+        if self.vector_env is not None:
+            self.vector_env.set_start_difficulty(difficulty)
+
     def stop(self) -> None:
         """Release the vector env."""
         if self.vector_env is not None:

@@ -141,6 +141,14 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         self.outcomes["agent_steps"] += len(infos)
         self.outcomes["speed_sum"] += float(np.hypot(velocity[:, 0], velocity[:, 1]).sum()) * self.config.max_speed
 
+    def set_start_difficulty(self, difficulty: float) -> None:
+        """The arena curriculum's start spread for scenarios generated from now on (``ArenaConfig.start_difficulty``)."""
+        setter = getattr(self.driving_env, "set_start_difficulty", None)
+        if setter is None:
+            raise ValueError(f"start_difficulty is an arena setting; this env runs {type(self.config).__name__}")
+        setter(difficulty)
+        self.config = self.driving_env.config
+
     def set_lcf_distribution(self, mean: float, std: float) -> None:
         """Draw the LCFs of agents spawned from now on from N(mean, std) (an env with LCFs only)."""
         if self.lcf is None:

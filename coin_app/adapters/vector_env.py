@@ -92,6 +92,10 @@ class VectorEnv:
         """Refused: only a driving scenario with CoPO's LCFs has a distribution to move."""
         raise RuntimeError("this env has no local coordination factors (env_config has no 'lcf')")
 
+    def set_start_difficulty(self, difficulty: float) -> None:
+        """The arena's curriculum: the start spread of scenarios generated from now on (other scenarios have none)."""
+        raise ValueError(f"start_difficulty is an arena setting; this vector env steps {type(self).__name__}")
+
     def close(self) -> None:
         """Nothing to release."""
 
@@ -244,6 +248,11 @@ class ArenaVectorEnv(VectorEnv):
         self.num_envs, self.slots_per_env = num_envs, config.vehicle_pool
         self.observation_space, self.action_space = vector_spaces(config)
         self._init_slots(config.obs_dim)
+
+    def set_start_difficulty(self, difficulty: float) -> None:
+        """The start spread (``ArenaConfig.start_difficulty``) of every env's scenarios generated from now on."""
+        for env in self.envs:
+            env.set_start_difficulty(difficulty)
 
     def reset(self, seed: int | None = None) -> dict[int, dict[str, Any]]:
         """Start new episodes in every env (env ``e`` seeded ``seed + e``); the infos of the vehicles born."""

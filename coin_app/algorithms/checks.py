@@ -192,6 +192,9 @@ RULES: dict[str, Rule] = {
     "eval_lcf": choice(*LCF_MODES),
     # nav_ppo
     "stage": choice(*NAV_STAGES),
+    "log_std_init": Rule("float", -5.0, 2.0),
+    "curriculum_steps": non_negative("int"),
+    "curriculum_start": unit(lo_open=True),
 }
 
 

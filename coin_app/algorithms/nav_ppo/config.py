@@ -21,17 +21,20 @@ The learner is RLlib's PPO learner with the PPO family's ``precision`` option (`
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from ray.rllib.algorithms.ppo import PPOConfig
-from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
+from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
 
+from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.checks import check_values
-from coin_app.algorithms.common import shared_policy_config
+from coin_app.algorithms.common import coin_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
+from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.arena.config import ArenaConfig
@@ -55,6 +58,13 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "num_epochs": (10, "SGD passes over each batch"),
     "hidden": (256, "width of the two tanh layers of the separate policy and value networks (paper: 256)"),
     "num_env_runners": (0, "remote env runners (0 = sample in the training process)"),
+    "log_std_init": (0.0, "added to the policy's initial log std outputs: the initial action std is about e^x (0: the default init)"),
+    "curriculum_steps": (
+        0,
+        "stage=short: env steps over which the start spread (start_difficulty) rises linearly from curriculum_start to 1 "
+        "(0 = no curriculum, the paper)",
+    ),
+    "curriculum_start": (0.2, "stage=short: the start spread (start_difficulty) at env step 0 of a curriculum"),
     "precision": (
         "fp32",
         "learner update precision: 'fp32', or 'bf16' = each minibatch's forward pass and loss under torch.autocast bfloat16 "
@@ -76,21 +86,63 @@ def stage_scenario(algo_cfg: Mapping[str, Any]) -> dict[str, Any]:
     return dict(STAGES[stage_of(algo_cfg)])
 
 
+def curriculum_difficulty(env_steps: int, steps: int, start: float) -> float:
+    """The short stage's start spread after ``env_steps``: ``start`` rising linearly to 1 over ``steps`` (1 when ``steps`` is 0)."""
+    if steps <= 0:
+        return 1.0
+    return min(1.0, start + (1.0 - start) * env_steps / steps)
+
+
+def _set_start_difficulty(env_runner: Any, difficulty: float) -> int:
+    """Set the start spread on every arena env of an env runner (the batched runner's vector env included); returns how many."""
+    if isinstance(env_runner, BatchedEnvRunner):
+        if env_runner.vector_env is None:
+            return 0
+        env_runner.set_start_difficulty(difficulty)
+        return env_runner.vector_env.num_envs
+    envs = coin_envs(env_runner)
+    for env in envs:
+        env.set_start_difficulty(difficulty)
+    return len(envs)
+
+
+class NavPPO(PPO):
+    """RLlib PPO whose training step first moves the short stage's curriculum to the lifetime env-step count."""
+
+    def training_step(self) -> None:
+        """Set every env runner's start spread for this iteration's samples (a resumed run continues its curriculum), then PPO's step."""
+        cfg = self.config.learner_config_dict
+        if cfg.get("curriculum_steps", 0) > 0:
+            done = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
+            difficulty = curriculum_difficulty(done, cfg["curriculum_steps"], cfg["curriculum_start"])
+            self.env_runner_group.foreach_env_runner(lambda runner: _set_start_difficulty(runner, difficulty), local_env_runner=True)
+            self.metrics.log_value("start_difficulty", difficulty, window=1)
+        return super().training_step()
+
+
 def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """RLlib PPO-Clip on the arena for one stage (see module doc)."""
     if not isinstance(scenario, ArenaConfig):
         raise ValueError(f"nav_ppo trains on the arena only, got {type(scenario).__name__}; allowed: an ArenaConfig")
-    stage_of(algo_cfg)  # the stage's scenario mix is in ``scenario`` already (the spec's scenario_defaults)
+    stage = stage_of(algo_cfg)  # the stage's scenario mix is in ``scenario`` already (the spec's scenario_defaults)
     hp = {k: v for k, (v, _) in HYPERPARAMETERS.items() if k != "stage"} | {k: v for k, v in algo_cfg.items() if k != "stage"}
     check_values(hp)
     precision = hp.pop("precision")
-    model = DefaultModelConfig(fcnet_hiddens=[hp.pop("hidden")] * 2, fcnet_activation="tanh", vf_share_layers=False, head_fcnet_hiddens=[])
+    curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
+    if curriculum["curriculum_steps"] > 0:
+        if stage != "short" or scenario.generator != "short":
+            raise ValueError(
+                f"curriculum_steps={curriculum['curriculum_steps']} narrows the short stage's starts; "
+                f"allowed with stage=short (generator 'short'), got stage={stage!r}, generator {scenario.generator!r}"
+            )
+        scenario = dataclasses.replace(scenario, start_difficulty=curriculum["curriculum_start"])  # the first iteration's spread
+    model = policy_model(hp.pop("hidden"), "torch") | {"log_std_init": hp.pop("log_std_init")}
     config = (
-        PPOConfig()
+        PPOConfig(algo_class=NavPPO)
         .environment("coin-arena-v0", env_config=env_config_of(scenario))
         .env_runners(num_env_runners=hp.pop("num_env_runners"))
         .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
-        .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision})
+        .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision, **curriculum})
         .rl_module(model_config=model, rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
         .debugging(seed=seed)
         .evaluation(evaluation_interval=None)

@@ -12,7 +12,9 @@ paper's PPO baselines started from (``docs/decisions.md`` §7.2): every linear l
 and each output unit's incoming weights are a Gaussian vector scaled to norm 1 in hidden layers
 and to norm 0.01 in output layers (the policy's (mean, log std) head and every value head), so
 the initial Gaussian means are within ``0.01 ||h||`` of 0 and the log stds near 0. A missing key
-or ``"torch"`` keeps PyTorch's default (nav_ppo, modules saved before the key).
+or ``"torch"`` keeps PyTorch's default (nav_ppo, modules saved before the key). ``model_config["log_std_init"]``
+(nav_ppo) is then added to the bias of the head's log-std outputs, so the initial action std is about
+``e^log_std_init`` (0 or missing: unchanged).
 
 Outputs are fp32 whatever the autocast (``precision.py``): under a bf16 learner update the
 layers compute in bf16, and ``forward_train``'s Gaussian inputs and ``compute_values``' values
@@ -73,6 +75,11 @@ class PPOActorModule(DefaultPPOTorchRLModule):
         self.setup_heads()
         if self.model_config.get("weight_init", "torch") == "normc":
             normc_init(self)
+        shift = float(self.model_config.get("log_std_init", 0.0))
+        if shift:  # the policy head's log-std outputs start near ``shift`` (nav_ppo's option): an initial std of about e^shift
+            head = self.pi.net.mlp[-1]
+            with torch.no_grad():
+                head.bias[head.out_features // 2 :] += shift
 
     def setup_heads(self) -> None:
         """Build a subclass's extra networks (before the initialization); none here."""

@@ -75,6 +75,9 @@ class ArenaConfig:
     generator: str = "agnn"
     obstacle_side: str = "both"  # "left": the A-GNN test sets' one-sided placement; "both": either side
     short_start_radius: tuple[float, float] = (1.0, 7.5)  # "short" generator: start distance to target (m)
+    # "short" generator's spread d in (0, 1]: start distance U(lo, lo + d (hi - lo)), start heading within d * pi of the
+    # target's; 1 = the full spread (uniform heading); nav_ppo's curriculum raises it during training (curriculum_steps)
+    start_difficulty: float = 1.0
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     @property
@@ -129,6 +132,8 @@ def make_arena_config(**overrides: Any) -> ArenaConfig:
             raise _bad(name, getattr(cfg, name), "a number > 0")
     if not 0 < cfg.friction <= 1:
         raise _bad("friction", cfg.friction, "a number in (0, 1]")
+    if not 0 < cfg.start_difficulty <= 1:
+        raise _bad("start_difficulty", cfg.start_difficulty, "a number in (0, 1]")
     for name in ("obstacle_radius", "short_start_radius"):
         lo, hi = getattr(cfg, name)
         if not 0 < lo <= hi:

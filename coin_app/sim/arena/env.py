@@ -41,6 +41,10 @@ class ArenaEnv:
         """Name of the scenario."""
         return "arena"
 
+    def set_start_difficulty(self, difficulty: float) -> None:
+        """The ``start_difficulty`` of the scenarios generated from now on (a curriculum's step; see ``ArenaConfig``)."""
+        self.config = make_arena_config(**{**vars(self.config), "start_difficulty": float(difficulty)})
+
     def draw_layout(self) -> Layout:
         """The next generated scenario (vehicle and obstacle counts drawn from the config's ranges)."""
         cfg = self.config

@@ -21,7 +21,9 @@ widen by 3 m, as in the A-GNN code. Obstacles may overlap each other (as there).
 
 The ``"short"`` generator (short-range training) keeps the targets but starts each vehicle
 U(1, 7.5) m from its target in a random direction (starts ≥ 5 m apart) with a random heading;
-obstacles are then placed along these short paths by the same rule.
+obstacles are then placed along these short paths by the same rule. With ``start_difficulty``
+d < 1 (nav_ppo's curriculum) the same draws are narrowed: the distance to U(1, 1 + 6.5 d) m and
+the start heading to within d·π of the target heading; d = 1 gives the draws above unchanged.
 
 Seeds: training scenarios draw from ``training_rng(seed)`` and the fixed test sets from
 ``heldout_rng(vehicles, obstacles, index)``; the two streams can never coincide (different
@@ -36,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.dynamics import wrap_angle
 
 MIN_SEPARATION = 5.0  # m between starts, and between targets
 OBSTACLE_CLEARANCE = 5.0  # m between an obstacle's surface and any start or target
@@ -109,8 +112,9 @@ def _vehicles(rng: np.random.Generator, n: int, cfg: ArenaConfig) -> tuple[np.nd
 
 
 def _short_starts(rng: np.random.Generator, targets: np.ndarray, cfg: ArenaConfig) -> np.ndarray:
-    """Starts U(lo, hi) m from each target in a random direction, ≥ 5 m apart."""
+    """Starts U(lo, lo + d (hi - lo)) m from each target in a random direction, ≥ 5 m apart (d: ``start_difficulty``)."""
     lo, hi = cfg.short_start_radius
+    hi = lo + cfg.start_difficulty * (hi - lo)
 
     def draw(r: np.random.Generator, i: int, w: float) -> np.ndarray:
         angle = r.uniform(-np.pi, np.pi)
@@ -158,6 +162,8 @@ def generate(rng: np.random.Generator, cfg: ArenaConfig, num_vehicles: int | Non
         starts = _short_starts(rng, targets, cfg)
     start_heading = rng.uniform(-np.pi, np.pi, n)
     target_heading = rng.uniform(-np.pi, np.pi, n)
+    if cfg.generator == "short" and cfg.start_difficulty < 1.0:  # the same draws, the start turned toward the target heading
+        start_heading = wrap_angle(target_heading + cfg.start_difficulty * wrap_angle(start_heading - target_heading))
     obstacles = _obstacles(rng, m, starts, targets, cfg)
     return Layout(
         starts=np.column_stack([starts, start_heading]),

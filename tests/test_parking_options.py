@@ -1,0 +1,98 @@
+"""The short stage's training options: the start-spread curriculum and the initial action std (issue 23)."""
+
+import numpy as np
+import pytest
+import torch
+from ray.rllib.core.columns import Columns
+
+from coin_app.algorithms.nav_ppo.config import curriculum_difficulty
+from coin_app.sim.arena.config import make_arena_config
+from coin_app.sim.arena.env import ArenaEnv
+from coin_app.sim.arena.generator import generate, training_rng
+from coin_app.sim.dynamics import wrap_angle
+from coin_app.training import build_config, fresh_module
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_start_difficulty_narrows_the_same_draws(seed):
+    lo = 1.0
+    full = generate(training_rng(seed), make_arena_config(generator="short", num_vehicles=1, num_obstacles=0))
+    narrow = generate(training_rng(seed), make_arena_config(generator="short", num_vehicles=1, num_obstacles=0, start_difficulty=0.3))
+    np.testing.assert_allclose(narrow.targets, full.targets)  # the targets are drawn before the starts: unchanged
+    d_full = np.linalg.norm(full.starts[:, :2] - full.targets[:, :2], axis=1)
+    d_narrow = np.linalg.norm(narrow.starts[:, :2] - narrow.targets[:, :2], axis=1)
+    np.testing.assert_allclose(d_narrow, lo + 0.3 * (d_full - lo), atol=1e-9)  # U(lo, lo + d (hi - lo)) from the same u
+    e_full = wrap_angle(full.starts[:, 2] - full.targets[:, 2])
+    np.testing.assert_allclose(wrap_angle(narrow.starts[:, 2] - narrow.targets[:, 2]), 0.3 * e_full, atol=1e-9)
+    # the same direction from the target
+    u_full = (full.starts[:, :2] - full.targets[:, :2]) / d_full[:, None]
+    np.testing.assert_allclose((narrow.starts[:, :2] - narrow.targets[:, :2]) / d_narrow[:, None], u_full, atol=1e-9)
+
+
+def test_start_difficulty_one_is_the_unchanged_generator_and_bad_values_are_refused():
+    a = generate(training_rng(7), make_arena_config(generator="short", num_vehicles=4, num_obstacles=3))
+    b = generate(training_rng(7), make_arena_config(generator="short", num_vehicles=4, num_obstacles=3, start_difficulty=1.0))
+    for x, y in ((a.starts, b.starts), (a.targets, b.targets), (a.obstacles, b.obstacles)):
+        np.testing.assert_array_equal(x, y)
+    env = ArenaEnv(make_arena_config(generator="short", num_vehicles=2))
+    env.set_start_difficulty(0.5)
+    assert env.config.start_difficulty == 0.5
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match=r"bad arena value start_difficulty=.*; allowed: a number in \(0, 1\]"):
+            env.set_start_difficulty(bad)
+
+
+def test_curriculum_rises_linearly_and_stops_at_one():
+    assert [curriculum_difficulty(s, 1000, 0.2) for s in (0, 250, 500, 1000, 5000)] == pytest.approx([0.2, 0.4, 0.6, 1.0, 1.0])
+    assert curriculum_difficulty(10, 0, 0.2) == 1.0  # no curriculum: the full spread
+
+
+def test_curriculum_settings_are_checked_before_any_work():
+    cfg = build_config("nav_ppo", "arena", {"stage": "short", "curriculum_steps": 1000, "curriculum_start": 0.25}, 0)
+    assert cfg.env_config["scenario_config"].start_difficulty == 0.25  # the first iteration samples at the start spread
+    assert cfg.learner_config_dict["curriculum_steps"] == 1000
+    with pytest.raises(ValueError, match="curriculum_steps=1000 narrows the short stage's starts; allowed with stage=short"):
+        build_config("nav_ppo", "arena", {"stage": "long", "curriculum_steps": 1000}, 0)
+    with pytest.raises(ValueError, match=r"bad value for 'curriculum_start': 0; allowed"):
+        build_config("nav_ppo", "arena", {"stage": "short", "curriculum_steps": 1000, "curriculum_start": 0}, 0)
+    with pytest.raises(ValueError, match=r"bad value for 'log_std_init': 9; allowed"):
+        build_config("nav_ppo", "arena", {"log_std_init": 9}, 0)
+
+
+def test_log_std_init_shifts_only_the_initial_log_std():
+    obs = torch.as_tensor(np.random.default_rng(0).normal(size=(16, 13)), dtype=torch.float32)
+    outs = {}
+    for shift in (0.0, -1.5):
+        torch.manual_seed(3)
+        module = fresh_module("nav_ppo", "arena", {"hidden": 16, "log_std_init": shift}, seed=3)
+        with torch.no_grad():
+            outs[shift] = module.forward_inference({Columns.OBS: obs})[Columns.ACTION_DIST_INPUTS]
+    np.testing.assert_allclose(outs[-1.5][:, :2], outs[0.0][:, :2], atol=1e-6)  # the means are untouched
+    np.testing.assert_allclose(outs[-1.5][:, 2:] - outs[0.0][:, 2:], -1.5, atol=1e-5)  # std e^-1.5 ~ 0.22 times the default
+
+
+def test_a_curriculum_run_moves_every_env_to_the_scheduled_spread(ray_session):
+    overrides = {
+        "stage": "short",
+        "curriculum_steps": 800,
+        "curriculum_start": 0.2,
+        "train_batch_size_per_learner": 400,
+        "minibatch_size": 200,
+        "num_epochs": 1,
+        "hidden": 16,
+        "max_steps": 60,
+    }
+    from coin_app.training import with_env_runner
+
+    cfg = build_config("nav_ppo", "arena", overrides, 0)
+    cfg = with_env_runner(cfg, "batched", 2, True, cfg.env_config["scenario_config"])
+    algo = cfg.build_algo()
+    try:
+        seen = []
+        for _ in range(3):
+            algo.train()
+            seen.append([env.config.start_difficulty for env in algo.env_runner.vector_env.envs])
+    finally:
+        algo.stop()
+    # set before each iteration from the env steps sampled so far: 0, 400, 800 of 800
+    assert seen == [[0.2, 0.2], [pytest.approx(0.6), pytest.approx(0.6)], [1.0, 1.0]]
