@@ -331,7 +331,7 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
         "protocol": args.protocol,
         "command": getattr(args, "command_line", None),
     }
-    table, markdown = write_side_by_side(out, summaries, settings)
+    _, markdown = write_side_by_side(out, summaries, settings)
     page = write_arena_html(out / ARENA_PAGE, [load_arena_eval(out)], settings["command"])
     print(f"\n{len(labels)} policies x {len(cases)} cases x {args.scenarios_per_case} scenarios in {time.perf_counter() - t0:.0f} s")
     print(markdown_table(summaries[labels[0]]) if len(labels) == 1 else markdown)

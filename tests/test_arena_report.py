@@ -41,6 +41,7 @@ def test_side_by_side_keeps_each_policys_figures_and_refuses_other_cases():
                 "paper_collision_rate": np.nan,
                 "paper_agnn_collision_rate": np.nan,
                 "paper_step_time_s": 2e-4,
+                "paper_agnn_step_time_s": np.nan,
             }
         )
 
@@ -68,6 +69,7 @@ def test_evaluate_arena_puts_policies_side_by_side_and_report_rebuilds_the_page(
     assert list(table["paper success"]) == [PAPER_TABLE_I[(1, 0)][0], PAPER_TABLE_I[(2, 0)][0]]
     assert list(table["paper A-GNN success"]) == [PAPER_TABLE_I[(1, 0)][1], PAPER_TABLE_I[(2, 0)][1]]
     assert table.loc[1, "paper step ms"] == pytest.approx(PAPER_TABLE_II[(2, 0)][0] * 1e3)
+    assert table.loc[1, "paper A-GNN step ms"] == pytest.approx(PAPER_TABLE_II[(2, 0)][1] * 1e3)
     assert "| 1x0 | 1.000 | 0.00e+00 |" in (out / "arena_side_by_side.md").read_text() and "| 1x0 | 1.000 |" in printed
     settings = json.loads((out / "arena_eval.json").read_text())
     assert settings["labels"] == ["heuristic", "agnn"] and settings["protocol"] == "arena" and settings["cases"] == ["1x0", "2x0"]

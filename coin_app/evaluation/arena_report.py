@@ -38,6 +38,7 @@ PAPER_COLUMNS = (
     ("paper collisions/m", "paper_collision_rate", 1.0, ".2e"),
     ("paper A-GNN collisions/m", "paper_agnn_collision_rate", 1.0, ".2e"),
     ("paper step ms", "paper_step_time_s", 1e3, ".3f"),
+    ("paper A-GNN step ms", "paper_agnn_step_time_s", 1e3, ".3f"),
 )
 
 

@@ -308,6 +308,7 @@ def summarize(rows: list[dict[str, Any]]) -> Any:
                 "paper_collision_rate": np.nan if paper[2] is None else paper[2],
                 "paper_agnn_collision_rate": np.nan if paper[3] is None else paper[3],
                 "paper_step_time_s": paper_time[0],
+                "paper_agnn_step_time_s": paper_time[1],
             }
         )
     return pd.DataFrame(out)

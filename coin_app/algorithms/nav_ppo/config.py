@@ -109,7 +109,7 @@ def _set_start_difficulty(env_runner: Any, difficulty: float) -> int:
 class NavPPO(PPO):
     """RLlib PPO whose training step first moves the short stage's curriculum to the lifetime env-step count."""
 
-    def training_step(self) -> None:
+    def training_step(self) -> Any:
         """Set every env runner's start spread for this iteration's samples (a resumed run continues its curriculum), then PPO's step."""
         cfg = self.config.learner_config_dict
         if cfg.get("curriculum_steps", 0) > 0:
