@@ -10,7 +10,7 @@ from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.generator import generate, training_rng
 from coin_app.sim.dynamics import wrap_angle
-from coin_app.training import build_config, fresh_module
+from coin_app.training import build_config, fresh_module, with_env_runner
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
@@ -82,8 +82,6 @@ def test_a_curriculum_run_moves_every_env_to_the_scheduled_spread(ray_session):
         "hidden": 16,
         "max_steps": 60,
     }
-    from coin_app.training import with_env_runner
-
     cfg = build_config("nav_ppo", "arena", overrides, 0)
     cfg = with_env_runner(cfg, "batched", 2, True, cfg.env_config["scenario_config"])
     algo = cfg.build_algo()

@@ -13,6 +13,7 @@ from typing import Any
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.callbacks.callbacks import RLlibCallback
 
+from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import ADAPTER_KEYS, ENV_IDS, OUTCOMES, SCENARIO_CONFIG_KEY, CoinMultiAgentEnv
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
@@ -69,6 +70,19 @@ def coin_envs(env_runner: Any) -> list[CoinMultiAgentEnv]:
     env = getattr(env_runner, "env", None)
     subs = getattr(env, "envs", [env]) if env is not None else []
     return [e.unwrapped for e in subs if isinstance(e.unwrapped, CoinMultiAgentEnv)]
+
+
+def set_on_envs(env_runner: Any, method: str, *args: Any) -> int:
+    """Call ``method(*args)`` on every coin env of an env runner (the batched runner's vector env at once); returns how many envs."""
+    if isinstance(env_runner, BatchedEnvRunner):
+        if env_runner.vector_env is None:
+            return 0
+        getattr(env_runner, method)(*args)
+        return env_runner.vector_env.num_envs
+    envs = coin_envs(env_runner)
+    for env in envs:
+        getattr(env, method)(*args)
+    return len(envs)
 
 
 class AgentOutcomes(RLlibCallback):

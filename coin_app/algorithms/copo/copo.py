@@ -23,9 +23,8 @@ from typing import Any
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import env_config_of
-from coin_app.algorithms.common import SHARED_MODULE_ID, coin_envs, shared_policy_config
+from coin_app.algorithms.common import SHARED_MODULE_ID, set_on_envs, shared_policy_config
 from coin_app.algorithms.copo.learner import CoPOLearner
 from coin_app.algorithms.copo.rl_module import CoPOModule
 from coin_app.algorithms.ppo_family.config import (
@@ -57,19 +56,6 @@ COPO_KEYS: dict[str, tuple[Any, str]] = {
 }
 
 
-def _set_lcf(env_runner: Any, mean: float, std: float) -> int:
-    """Set the LCF distribution on every coin env of an env runner (the batched runner's vector env included); returns how many."""
-    if isinstance(env_runner, BatchedEnvRunner):
-        if env_runner.vector_env is None:
-            return 0
-        env_runner.set_lcf_distribution(mean, std)
-        return env_runner.vector_env.num_envs
-    envs = coin_envs(env_runner)
-    for env in envs:
-        env.set_lcf_distribution(mean, std)
-    return len(envs)
-
-
 class CoPO(PPO):
     """RLlib PPO whose training step also keeps the env runners' LCF distribution in sync with the learner."""
 
@@ -81,7 +67,9 @@ class CoPO(PPO):
     def push_lcf_distribution(self) -> tuple[float, float]:
         """Set the learner's LCF distribution on every env runner's envs; returns it."""
         mean, std = self.lcf_distribution()
-        self.env_runner_group.foreach_env_runner(lambda runner: _set_lcf(runner, mean, std), local_env_runner=True)
+        self.env_runner_group.foreach_env_runner(
+            lambda runner: set_on_envs(runner, "set_lcf_distribution", mean, std), local_env_runner=True
+        )
         return mean, std
 
     def training_step(self) -> None:

@@ -29,10 +29,9 @@ from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.checks import check_values
-from coin_app.algorithms.common import coin_envs, shared_policy_config
+from coin_app.algorithms.common import set_on_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
 from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
@@ -93,19 +92,6 @@ def curriculum_difficulty(env_steps: int, steps: int, start: float) -> float:
     return min(1.0, start + (1.0 - start) * env_steps / steps)
 
 
-def _set_start_difficulty(env_runner: Any, difficulty: float) -> int:
-    """Set the start spread on every arena env of an env runner (the batched runner's vector env included); returns how many."""
-    if isinstance(env_runner, BatchedEnvRunner):
-        if env_runner.vector_env is None:
-            return 0
-        env_runner.set_start_difficulty(difficulty)
-        return env_runner.vector_env.num_envs
-    envs = coin_envs(env_runner)
-    for env in envs:
-        env.set_start_difficulty(difficulty)
-    return len(envs)
-
-
 class NavPPO(PPO):
     """RLlib PPO whose training step first moves the short stage's curriculum to the lifetime env-step count."""
 
@@ -115,7 +101,9 @@ class NavPPO(PPO):
         if cfg.get("curriculum_steps", 0) > 0:
             done = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
             difficulty = curriculum_difficulty(done, cfg["curriculum_steps"], cfg["curriculum_start"])
-            self.env_runner_group.foreach_env_runner(lambda runner: _set_start_difficulty(runner, difficulty), local_env_runner=True)
+            self.env_runner_group.foreach_env_runner(
+                lambda runner: set_on_envs(runner, "set_start_difficulty", difficulty), local_env_runner=True
+            )
             self.metrics.log_value("start_difficulty", difficulty, window=1)
         return super().training_step()
 
