@@ -15,18 +15,29 @@ from coin_app.training import build_config, fresh_module, with_env_runner
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_start_difficulty_narrows_the_same_draws(seed):
-    lo = 1.0
+    lo, hi = 1.0, 7.5
+    near = 1.0 + 0.7 * (2 * 1.25 - 1.0)  # the near end moved 70 % of the way out to twice the success distance
     full = generate(training_rng(seed), make_arena_config(generator="short", num_vehicles=1, num_obstacles=0))
     narrow = generate(training_rng(seed), make_arena_config(generator="short", num_vehicles=1, num_obstacles=0, start_difficulty=0.3))
     np.testing.assert_allclose(narrow.targets, full.targets)  # the targets are drawn before the starts: unchanged
     d_full = np.linalg.norm(full.starts[:, :2] - full.targets[:, :2], axis=1)
     d_narrow = np.linalg.norm(narrow.starts[:, :2] - narrow.targets[:, :2], axis=1)
-    np.testing.assert_allclose(d_narrow, lo + 0.3 * (d_full - lo), atol=1e-9)  # U(lo, lo + d (hi - lo)) from the same u
+    u = (d_full - lo) / (hi - lo)  # the uniform draw behind the full spread's distance
+    np.testing.assert_allclose(d_narrow, near + 0.3 * (hi - near) * u, atol=1e-9)  # U(near, near + d (hi - near)) from the same u
     e_full = wrap_angle(full.starts[:, 2] - full.targets[:, 2])
     np.testing.assert_allclose(wrap_angle(narrow.starts[:, 2] - narrow.targets[:, 2]), 0.3 * e_full, atol=1e-9)
     # the same direction from the target
     u_full = (full.starts[:, :2] - full.targets[:, :2]) / d_full[:, None]
     np.testing.assert_allclose((narrow.starts[:, :2] - narrow.targets[:, :2]) / d_narrow[:, None], u_full, atol=1e-9)
+
+
+def test_low_spreads_never_start_inside_the_success_region():
+    cfg = make_arena_config(generator="short", num_vehicles=4, num_obstacles=0, start_difficulty=0.05)
+    rng = training_rng(11)
+    dist = np.concatenate([np.linalg.norm((lay.starts - lay.targets)[:, :2], axis=1) for lay in (generate(rng, cfg) for _ in range(200))])
+    # U(a, b) with a = 1 + 0.95 * 1.5 = 2.425 m and b = a + 0.05 * (7.5 - a) = 2.67875 m; a crowded draw may only widen b
+    assert dist.min() >= 2.425 - 1e-9 and dist.min() > cfg.success_distance
+    assert np.median(dist) == pytest.approx((2.425 + 2.67875) / 2, abs=0.02)
 
 
 def test_start_difficulty_one_is_the_unchanged_generator_and_bad_values_are_refused():

@@ -75,8 +75,9 @@ class ArenaConfig:
     generator: str = "agnn"
     obstacle_side: str = "both"  # "left": the A-GNN test sets' one-sided placement; "both": either side
     short_start_radius: tuple[float, float] = (1.0, 7.5)  # "short" generator: start distance to target (m)
-    # "short" generator's spread d in (0, 1]: start distance U(lo, lo + d (hi - lo)), start heading within d * pi of the
-    # target's; 1 = the full spread (uniform heading); nav_ppo's curriculum raises it during training (curriculum_steps)
+    # "short" generator's spread d in (0, 1]: start distance U(a, a + d (hi - a)) with a moving from lo out to twice the
+    # success distance as d falls (generator._short_starts), start heading within d * pi of the target's; 1 = the full
+    # spread (uniform heading); nav_ppo's curriculum raises it during training (curriculum_steps)
     start_difficulty: float = 1.0
     reward: RewardConfig = field(default_factory=RewardConfig)
 

@@ -22,8 +22,10 @@ widen by 3 m, as in the A-GNN code. Obstacles may overlap each other (as there).
 The ``"short"`` generator (short-range training) keeps the targets but starts each vehicle
 U(1, 7.5) m from its target in a random direction (starts ≥ 5 m apart) with a random heading;
 obstacles are then placed along these short paths by the same rule. With ``start_difficulty``
-d < 1 (nav_ppo's curriculum) the same draws are narrowed: the distance to U(1, 1 + 6.5 d) m and
-the start heading to within d·π of the target heading; d = 1 gives the draws above unchanged.
+d < 1 (nav_ppo's curriculum) the same draws are narrowed: the distance to U(a, a + d (7.5 - a)) m
+with a = 1 + (1 - d)(2.5 - 1) (the near end moves out to twice the 1.25 m success distance as d
+falls, so an easy start is never already parked) and the start heading to within d·π of the
+target heading; d = 1 gives the draws above unchanged.
 
 Seeds: training scenarios draw from ``training_rng(seed)`` and the fixed test sets from
 ``heldout_rng(vehicles, obstacles, index)``; the two streams can never coincide (different
@@ -43,6 +45,7 @@ from coin_app.sim.dynamics import wrap_angle
 MIN_SEPARATION = 5.0  # m between starts, and between targets
 OBSTACLE_CLEARANCE = 5.0  # m between an obstacle's surface and any start or target
 WIDEN_EVERY, WIDEN_BY = 100, 3.0
+CURRICULUM_NEAR_FACTOR = 2.0  # the curriculum's nearest start, in success distances, at the lowest spread
 TRAIN_STREAM, TEST_STREAM = 0x5EED_7A1, 0x7E57_5E7
 # the 24 (vehicles, obstacles) cases of the paper's Table I
 PAPER_CASES: tuple[tuple[int, int], ...] = (
@@ -112,9 +115,15 @@ def _vehicles(rng: np.random.Generator, n: int, cfg: ArenaConfig) -> tuple[np.nd
 
 
 def _short_starts(rng: np.random.Generator, targets: np.ndarray, cfg: ArenaConfig) -> np.ndarray:
-    """Starts U(lo, lo + d (hi - lo)) m from each target in a random direction, ≥ 5 m apart (d: ``start_difficulty``)."""
+    """Starts U(a, a + d (hi - a)) m from each target in a random direction, ≥ 5 m apart (d: ``start_difficulty``).
+
+    a = lo + (1 - d) (max(lo, 2 success_distance) - lo): at d = 1 the generator's (lo, hi); below, the
+    nearest starts move out of the success region.
+    """
     lo, hi = cfg.short_start_radius
-    hi = lo + cfg.start_difficulty * (hi - lo)
+    d = cfg.start_difficulty
+    lo = lo + (1.0 - d) * (max(lo, CURRICULUM_NEAR_FACTOR * cfg.success_distance) - lo)
+    hi = lo + d * (hi - lo)
 
     def draw(r: np.random.Generator, i: int, w: float) -> np.ndarray:
         angle = r.uniform(-np.pi, np.pi)
