@@ -173,17 +173,19 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     # the learning curves' settings (4 agents, small networks); the TD3 family in fp32 (faster than bf16 at these sizes),
     # its rates constant for 20k env steps, then falling to 10 % at 40k
     decay = {"lr_decay_start": 20_000, "lr_decay_steps": 20_000, "lr_final_fraction": 0.1}
-    for algo in ("cig_td3", "traco"):
-        assert trial_overrides(by_algo[algo]) == registry.quick_settings(algo) | {"precision": "fp32"} | decay
+    guard = {"actor_preact_penalty": 0.01, "actor_preact_threshold": 1.0}  # 10x the quick settings' guard, from |u| = 1
+    for algo in ("cig_td3", "itd3", "traco"):
+        assert trial_overrides(by_algo[algo]) == registry.quick_settings(algo) | {"precision": "fp32"} | guard | decay
     assert trial_overrides(by_algo["ippo"]) == registry.quick_settings("ippo")
     cfg = build_trial_config(by_algo["cig_td3"])
     assert (cfg.updates_per_env_step, cfg.train_batch_size_per_learner, cfg.env_config["scenario_config"].num_agents) == (1.0, 128, 4)
     assert cfg.precision == "fp32" and registry.get("cig_td3").hyperparameters["precision"][0] == "bf16"
+    assert (cfg.actor_preact_penalty, cfg.actor_preact_threshold) == (0.01, 1.0)  # the built config carries the stronger guard
     assert lr_schedule(1e-3, cfg) == [[0, 1e-3], [20_000, 1e-3], [40_000, pytest.approx(1e-4)]]
     assert trial_name(by_algo["copo"]) == "copo-s0" and trial_resources(by_algo["copo"]).bundles == [{"CPU": 1}]
     # the user's --set still comes last
     tweaked = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", ("itd3",), (0,), overrides={"hidden": 32}))
-    assert trial_overrides(tweaked[0]) == registry.quick_settings("itd3") | {"precision": "fp32", "hidden": 32} | decay
+    assert trial_overrides(tweaked[0]) == registry.quick_settings("itd3") | {"precision": "fp32", "hidden": 32} | guard | decay
     # another budget moves the decay with it (an odd budget: the second half is the longer one)
     (short,) = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", ("traco",), (0,), steps=601))
     assert {k: trial_overrides(short)[k] for k in decay} == {"lr_decay_start": 300, "lr_decay_steps": 301, "lr_final_fraction": 0.1}
