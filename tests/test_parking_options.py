@@ -31,13 +31,24 @@ def test_start_difficulty_narrows_the_same_draws(seed):
     np.testing.assert_allclose((narrow.starts[:, :2] - narrow.targets[:, :2]) / d_narrow[:, None], u_full, atol=1e-9)
 
 
-def test_low_spreads_never_start_inside_the_success_region():
-    cfg = make_arena_config(generator="short", num_vehicles=4, num_obstacles=0, start_difficulty=0.05)
+def _start_distances(difficulty: float, vehicles: int, layouts: int = 200) -> np.ndarray:
+    cfg = make_arena_config(generator="short", num_vehicles=vehicles, num_obstacles=0, start_difficulty=difficulty)
     rng = training_rng(11)
-    dist = np.concatenate([np.linalg.norm((lay.starts - lay.targets)[:, :2], axis=1) for lay in (generate(rng, cfg) for _ in range(200))])
-    # U(a, b) with a = 1 + 0.95 * 1.5 = 2.425 m and b = a + 0.05 * (7.5 - a) = 2.67875 m; a crowded draw may only widen b
-    assert dist.min() >= 2.425 - 1e-9 and dist.min() > cfg.success_distance
-    assert np.median(dist) == pytest.approx((2.425 + 2.67875) / 2, abs=0.02)
+    return np.concatenate(
+        [np.linalg.norm((lay.starts - lay.targets)[:, :2], axis=1) for lay in (generate(rng, cfg) for _ in range(layouts))]
+    )
+
+
+def test_low_spreads_never_start_inside_the_success_region():
+    # one vehicle (no spacing, no widening): U(a, b), a = 1 + 0.95 * 1.5 = 2.425 m, b = a + 0.05 * (7.5 - a) = 2.67875 m
+    one = _start_distances(0.05, vehicles=1)
+    assert one.min() >= 2.425 - 1e-9 and one.max() <= 2.67875 + 1e-9
+    assert np.median(one) == pytest.approx((2.425 + 2.67875) / 2, abs=0.02)
+    # four vehicles: a crowded draw may widen only the far end, so the near end still holds
+    assert _start_distances(0.05, vehicles=4).min() >= 2.425 - 1e-9 > 1.25  # beyond the success distance
+    # the full spread keeps the generator's near end of 1 m
+    full = _start_distances(1.0, vehicles=1)
+    assert full.min() >= 1.0 - 1e-9 and full.min() < 1.1 and full.max() <= 7.5 + 1e-9
 
 
 def test_start_difficulty_one_is_the_unchanged_generator_and_bad_values_are_refused():

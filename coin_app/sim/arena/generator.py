@@ -23,8 +23,8 @@ The ``"short"`` generator (short-range training) keeps the targets but starts ea
 U(1, 7.5) m from its target in a random direction (starts ≥ 5 m apart) with a random heading;
 obstacles are then placed along these short paths by the same rule. With ``start_difficulty``
 d < 1 (nav_ppo's curriculum) the same draws are narrowed: the distance to U(a, a + d (7.5 - a)) m
-with a = 1 + (1 - d)(2.5 - 1) (the near end moves out to twice the 1.25 m success distance as d
-falls, so an easy start is never already parked) and the start heading to within d·π of the
+with a = 1 + (1 - d)(2.5 - 1) (the near end moves toward twice the 1.25 m success distance as d
+falls; for d ≤ 5/6 no start is within the success distance) and the start heading to within d·π of the
 target heading; d = 1 gives the draws above unchanged.
 
 Seeds: training scenarios draw from ``training_rng(seed)`` and the fixed test sets from
