@@ -174,8 +174,14 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     # its rates constant for 20k env steps, then falling to 10 % at 40k
     decay = {"lr_decay_start": 20_000, "lr_decay_steps": 20_000, "lr_final_fraction": 0.1}
     guard = {"actor_preact_penalty": 0.01, "actor_preact_threshold": 1.0}  # 10x the quick settings' guard, from |u| = 1
-    for algo in ("cig_td3", "itd3", "traco"):
+    for algo in ("cig_td3", "itd3"):
         assert trial_overrides(by_algo[algo]) == registry.quick_settings(algo) | {"precision": "fp32"} | guard | decay
+    # TraCo also adds its optional individual critic (its domain critic alone froze the actor at one constant action)
+    assert trial_overrides(by_algo["traco"]) == registry.quick_settings("traco") | {"precision": "fp32"} | guard | decay | {
+        "individual_critic": True
+    }
+    assert build_trial_config(by_algo["traco"]).individual_critic is True
+    assert "individual_critic" not in trial_overrides(by_algo["cig_td3"]) | trial_overrides(by_algo["ippo"])
     assert trial_overrides(by_algo["ippo"]) == registry.quick_settings("ippo")
     cfg = build_trial_config(by_algo["cig_td3"])
     assert (cfg.updates_per_env_step, cfg.train_batch_size_per_learner, cfg.env_config["scenario_config"].num_agents) == (1.0, 128, 4)

@@ -44,6 +44,10 @@ REDUCED_TD3: dict[str, Any] = {"precision": "fp32", "actor_preact_penalty": 0.01
 # The TD3 family's learning rates decay linearly to this fraction over the second half of each trial's budget
 # (reduced_decay): with constant rates the policies learned, then froze or crashed late (docs/results/README.md).
 REDUCED_LR_FINAL_FRACTION = 0.1
+# TraCo with its domain critic alone collapsed at once to one constant action for every observation (steer ~0.7,
+# throttle ~-0.7: braking) on seeds 0 and 1, under either guard; with the optional individual critic (Q^l_1 added to its
+# actor objective, the TraCo spec's open choice "COIN-local") both seeds drove (docs/results/README.md).
+REDUCED_ALGO: dict[str, dict[str, Any]] = {"traco": {"individual_critic": True}}
 REDUCED_PPO: dict[str, Any] = {}  # the reference settings: 1,600 env steps per update, sampled in the trial's process
 
 
@@ -150,7 +154,8 @@ def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     """The registry overrides of one trial: the scale's settings, then the variant's, then the user's ``--set``.
 
     Smoke scale: the quick scenario and small batches; reduced scale: the quick scenario with each
-    family's reduced settings (the TD3 family's rates decaying over the second half of the budget);
+    family's reduced settings (the TD3 family's rates decaying over the second half of the budget)
+    and the per-algorithm ones (``REDUCED_ALGO``: TraCo's individual critic);
     paper scale: the PPO family's 4 env runners.
     """
     algo = config["algo"]
@@ -159,7 +164,8 @@ def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
     if config["scale"] == "smoke":
         scale = registry.quick_settings(algo) | (SMOKE_PPO | SMOKE_CHUNK if on_policy else SMOKE_TD3)
     elif config["scale"] == "reduced":
-        scale = registry.quick_settings(algo) | (REDUCED_PPO if on_policy else REDUCED_TD3 | reduced_decay(int(config["steps"])))
+        family = REDUCED_PPO if on_policy else REDUCED_TD3 | reduced_decay(int(config["steps"]))
+        scale = registry.quick_settings(algo) | family | REDUCED_ALGO.get(algo, {})
     elif on_policy:
         scale = dict(PAPER_PPO)
     return scale | config["variant_overrides"][config["variant"]] | config["overrides"]
