@@ -170,6 +170,8 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     trials = validate_trials(space)  # every trial of the protocol builds
     assert len(trials) == 5 * 5 and {t["seed"] for t in trials} == set(range(5)) and {t["steps"] for t in trials} == {40_000}
     by_algo = {t["algo"]: t for t in trials if t["seed"] == 0}
+    # a TD3 trial checkpoints every 10 iterations of 500 env steps; all of them are kept for the validation-seed selection
+    assert get_experiment("seeds").scale("reduced").keep >= 40_000 // (10 * 500)
     # the learning curves' settings (4 agents, small networks); the TD3 family in fp32 (faster than bf16 at these sizes),
     # its rates constant for 20k env steps, then falling to 10 % at 40k
     decay = {"lr_decay_start": 20_000, "lr_decay_steps": 20_000, "lr_final_fraction": 0.1}
