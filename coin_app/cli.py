@@ -156,6 +156,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations, {summary['wall_s']:.0f} s")
     print(f"  checkpoint: {summary['checkpoint']}")
+    if summary.get("stopped", "steps") != "steps":
+        where = f"{summary['env_steps']} of {args.steps} env steps"
+        print(f"  stopped early ({summary['stopped']}) at {where}; continue with --resume {summary['checkpoint']}")
     if summary.get("eval"):
         print("  last periodic evaluation (validation seeds):")
         print(format_metrics(summary["eval"]))
@@ -407,6 +410,8 @@ def cmd_report(args: argparse.Namespace) -> int:
         tsne_episodes=args.tsne_episodes,
         transfer=args.transfer,
         transfer_test_seeds=args.transfer_test_seeds,
+        select=args.select,
+        validation_episodes=args.validation_episodes,
         command=getattr(args, "command_line", None),
     )
     arena = [Path(p) for p in args.sources if is_arena_eval(p)]  # evaluate-arena outputs: the arena page
@@ -689,6 +694,12 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--tsne-episodes", type=int, default=4, help="test episodes the latents are collected from")
     rp.add_argument("--transfer", default=None, help="also evaluate every model on this backend (metadrive): the native -> MetaDrive gap")
     rp.add_argument("--transfer-test-seeds", type=int, default=5, help="test episodes per model on the --transfer backend")
+    rp.add_argument(
+        "--select",
+        default="final",
+        help="the checkpoint of each trial scored on the test seeds: final (default) | validation (the one best on validation seeds)",
+    )
+    rp.add_argument("--validation-episodes", type=int, default=10, help="validation seeds per checkpoint with --select validation")
     rp.set_defaults(func=cmd_report)
 
     sb = sub.add_parser("submit", help="submit a coin_app command to a Ray cluster as a job (ray job submit); prints the job id")

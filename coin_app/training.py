@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import logging
 import math
+import signal
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -273,6 +275,36 @@ def checkpoint_meta(name: str, scenario: str, seed: int, overrides: dict[str, An
     return meta | ({"learners": learners} if learners else {}) | extra
 
 
+class StopRequest:
+    """Set by SIGTERM or SIGINT while :func:`stop_on_signal` is active: the run stops after its current iteration."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None  # the name of the first signal received
+
+
+@contextmanager
+def stop_on_signal(log: Callable[[str], None] = print) -> Iterator[StopRequest]:
+    """While inside (main thread), the first SIGTERM or SIGINT asks for a stop after the current iteration; a second one stops at once."""
+    request = StopRequest()
+
+    def handler(signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if request.signal is not None:
+            raise KeyboardInterrupt(f"second {name}: stopping at once (the last checkpoint is kept)")
+        request.signal = name
+        log(f"{name}: stopping after this iteration and saving a checkpoint (send it again to stop at once)")
+
+    if threading.current_thread() is not threading.main_thread():  # handlers can only be set there; signals keep their default
+        yield request
+        return
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield request
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
 def save(algo: Algorithm, checkpoint: Path, meta: dict[str, Any], atomic: bool = True) -> None:
     """Save the algorithm, its coin_app metadata and manifest to ``checkpoint`` (atomically: ``checkpoints.save_checkpoint``)."""
     save_checkpoint(algo, checkpoint, meta, atomic=atomic)
@@ -415,34 +447,40 @@ def train(
         bar = RunProgress(steps, start, log, progress)
         if isinstance(algo, ProgressReporting):  # long iterations: their updates are shown as they go
             algo.progress_callback = bar.phase
+        stopped = "steps"  # why the loop ended: the budget, max_minutes or a signal's name
         try:
-            while sampled < steps and (max_minutes is None or time.perf_counter() - t0 < 60.0 * max_minutes):
-                result = algo.train()
-                m = iteration_metrics(result)
-                sampled = m["env_steps"]
-                bar.advance(sampled)
-                it = int(result["training_iteration"])
-                elapsed = time.perf_counter() - t0
-                critic = next((m[k] for k in CRITIC_LOSS_KEYS if k in m), np.nan)
-                bar.say(
-                    f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
-                    f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
-                )
-                for key, value in m.items():
-                    if math.isfinite(value):
-                        board.add_scalar(key, value, global_step=sampled)
-                board.flush()
-                warning = freeze.update(m)
-                if warning:
-                    bar.say(warning)
-                if EVAL_RESULT_KEY in result:
-                    last_eval = result[EVAL_RESULT_KEY]
-                    bar.say(_eval_line(last_eval))
-                if it % checkpoint_every == 0:
-                    bar.phase("saving checkpoint", 0, 0)
-                    save(algo, ckpt, meta)
-            bar.phase("saving checkpoint", 0, 0)
-            save(algo, ckpt, meta)
+            with stop_on_signal(bar.say) as stop:
+                while sampled < steps and stop.signal is None:
+                    if max_minutes is not None and time.perf_counter() - t0 >= 60.0 * max_minutes:
+                        stopped = "max_minutes"
+                        break
+                    result = algo.train()
+                    m = iteration_metrics(result)
+                    sampled = m["env_steps"]
+                    bar.advance(sampled)
+                    it = int(result["training_iteration"])
+                    elapsed = time.perf_counter() - t0
+                    critic = next((m[k] for k in CRITIC_LOSS_KEYS if k in m), np.nan)
+                    bar.say(
+                        f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
+                        f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
+                    )
+                    for key, value in m.items():
+                        if math.isfinite(value):
+                            board.add_scalar(key, value, global_step=sampled)
+                    board.flush()
+                    warning = freeze.update(m)
+                    if warning:
+                        bar.say(warning)
+                    if EVAL_RESULT_KEY in result:
+                        last_eval = result[EVAL_RESULT_KEY]
+                        bar.say(_eval_line(last_eval))
+                    if it % checkpoint_every == 0:
+                        bar.phase("saving checkpoint", 0, 0)
+                        save(algo, ckpt, meta | {"env_steps": int(sampled)})
+                stopped = stop.signal or stopped
+                bar.phase("saving checkpoint", 0, 0)
+                save(algo, ckpt, meta | {"env_steps": int(sampled)})
         finally:
             bar.close()
         board.close()
@@ -455,6 +493,7 @@ def train(
         "iterations": int(result.get("training_iteration", 0)),
         "wall_s": round(time.perf_counter() - t0, 1),
         "eval": last_eval,
+        "stopped": stopped,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -248,3 +248,27 @@ def test_train_killed_at_random_points_always_resumes_from_a_complete_checkpoint
     done = subprocess.run([*base, "--steps", "1", "--resume", str(ckpt)], cwd=repo, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and "resumed from" in done.stdout, done.stdout[-2000:] + done.stderr[-2000:]
     assert verify(ckpt)["algo"] == "itd3"
+
+
+def test_sigterm_stops_train_after_its_iteration_with_a_checkpoint_and_a_summary(tmp_path):
+    """SIGTERM to a real ``train`` (no periodic save due): it finishes the iteration, saves, prints its summary, exits 0."""
+    run = tmp_path / "run"
+    repo = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1"}
+    argv = [sys.executable, "-m", "coin_app", "train", "--algo", "itd3", "--out", str(run), *TINY]
+    argv += ["--steps", "1000000", "--checkpoint-every", "100000"]  # the last word wins: no periodic checkpoint
+    with open(tmp_path / "train.log", "w") as log:
+        proc = subprocess.Popen(argv, cwd=repo, env=env, stdout=log, stderr=log, start_new_session=True)
+        t0 = time.time()
+        while "iter    2" not in (tmp_path / "train.log").read_text():
+            assert proc.poll() is None and time.time() - t0 < 240, (tmp_path / "train.log").read_text()[-2000:]
+            time.sleep(0.2)
+        assert not (run / "checkpoint").exists()  # nothing saved yet
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=240)
+    text = (tmp_path / "train.log").read_text()
+    assert code == 0, text[-2000:]
+    assert "SIGTERM: stopping after this iteration" in text and "stopped early (SIGTERM)" in text
+    summary = json.loads((run / "summary.json").read_text())
+    meta = verify(run / "checkpoint")  # complete, and it says how far it trained
+    assert summary["stopped"] == "SIGTERM" and 0 < summary["env_steps"] == meta["env_steps"] < 1_000_000

@@ -12,7 +12,7 @@ import ray
 from coin_app.cli import main
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
 from coin_app.evaluation.sweep_results import load_trials
-from coin_app.sim.seeds import TEST_SEED_BASE, VALIDATION_SEED_BASE
+from coin_app.sim.seeds import TEST_SEED_BASE, VALIDATION_SEED_BASE, validation_seeds
 
 METRIC_COLUMNS = [c for c in RESULT_COLUMNS if c != "wall_time_s"]
 
@@ -140,6 +140,8 @@ def test_report_refuses_bad_options_before_any_work(tmp_path, capsys):
         ("--counts", "0", "bad --counts [0]"),
         ("--transfer", "native", "bad --transfer 'native'; allowed: metadrive"),
         ("--transfer-test-seeds", "0", "bad --transfer-test-seeds 0"),
+        ("--select", "best", "bad --select 'best'; allowed: final, validation"),
+        ("--validation-episodes", "0", "bad --validation-episodes 0"),
     ]:
         assert main(["report", str(tmp_path), "--out", str(tmp_path / "o"), flag, value]) == 2
         assert message in capsys.readouterr().err
@@ -175,6 +177,58 @@ def test_report_lists_unreadable_trials_and_still_writes_everything_else(sweep_d
     assert not (out / "radar_intersection.png").exists() and "radar_intersection: not drawn (a radar compares methods" in printed
     page = html.unescape((out / "report.html").read_text())
     assert "Not evaluated or unreadable" in page and str(progress) in page
+
+
+def test_validation_selection_scores_the_checkpoint_best_on_validation_seeds(sweep_dir, tmp_path, capsys):
+    copy = tmp_path / "sweep"
+    shutil.copytree(sweep_dir, copy)
+    trials = {t.config["algo"]: t for t in load_trials(copy)}
+    cig, ippo = trials["cig_td3"], trials["ippo"]
+    # CIG-TD3's trial gets two older checkpoints: IPPO's model (index 7) and a copy of its own final one (8); final = 9
+    final = cig.path / "checkpoint_000009"
+    cig.final_checkpoint.rename(final)
+    shutil.copytree(ippo.final_checkpoint, cig.path / "checkpoint_000007")
+    shutil.copytree(final, cig.path / "checkpoint_000008")
+    # the expectation from independent evaluations on the validation seeds (disjoint from the test seeds)
+    seeds = validation_seeds(2)
+    assert min(seeds) >= VALIDATION_SEED_BASE and max(seeds) < TEST_SEED_BASE
+    runs = [EvalRun("cig_td3", "default", 0, str(c)) for c in (cig.path / "checkpoint_000007", final)]
+    table = run_evaluation(runs, seeds).table
+    score = {c: g["success_rate"].mean() for c, g in table.groupby("checkpoint")}
+    s_ippo, s_own = score[str(cig.path / "checkpoint_000007")], score[str(final)]
+    expected = cig.path / "checkpoint_000007" if s_ippo > s_own else final  # a tie (the copy and the final) goes to the later one
+
+    out = tmp_path / "report"
+    argv = ["report", str(copy), "--out", str(out), "--test-seeds", "2", "--tsne-samples", "40", "--tsne-episodes", "1"]
+    assert main([*argv, "--select", "validation", "--validation-episodes", "2"]) == 0
+    assert "validation-seed selection: 4 checkpoints of 2 trials, 2 validation seeds each" in capsys.readouterr().out
+    chosen = pd.read_csv(out / "selection.csv")
+    assert len(chosen) == 4 and chosen.groupby("trained_seed")["selected"].sum().to_dict() == {0: 2}  # one per trial
+    by_ckpt = chosen[chosen["method"] == "cig_td3"].set_index("checkpoint")
+    assert list(by_ckpt["order"]) == [0, 1, 2]
+    # each checkpoint's metadata says how far its trial had trained (IPPO's copy keeps IPPO's count)
+    assert chosen.set_index("checkpoint")["trained_env_steps"].to_dict() == {
+        str(cig.path / "checkpoint_000007"): ippo.last["env_steps"],
+        str(cig.path / "checkpoint_000008"): cig.last["env_steps"],
+        str(final): cig.last["env_steps"],
+        str(ippo.final_checkpoint): ippo.last["env_steps"],
+    }
+    assert (
+        by_ckpt.loc[str(final), "validation_success"]
+        == pytest.approx(s_own)
+        == by_ckpt.loc[str(cig.path / "checkpoint_000008"), "validation_success"]
+    )
+    assert by_ckpt.loc[str(cig.path / "checkpoint_000007"), "validation_success"] == pytest.approx(s_ippo)
+    assert by_ckpt.index[by_ckpt["selected"]].tolist() == [str(expected)]
+    results = pd.read_csv(out / "results.csv")
+    assert set(results.loc[results["method"] == "cig_td3", "checkpoint"]) == {str(expected)}
+    assert results["test_seed"].min() >= TEST_SEED_BASE  # the selected model is scored on the test seeds only
+    assert "checkpoints selected on 2 validation seeds" in (out / "table_main.md").read_text()
+    # the default protocol in the same folder: the final checkpoints, and the old choice is gone
+    assert main(argv) == 0
+    assert not (out / "selection.csv").exists()
+    assert set(pd.read_csv(out / "results.csv").query("method == 'cig_td3'")["checkpoint"]) == {str(final)}
+    assert "(final checkpoints)" in (out / "table_main.md").read_text()
 
 
 def test_report_transfer_pairs_each_model_with_its_own_native_episodes_on_metadrive(sweep_dir, tmp_path, capsys):

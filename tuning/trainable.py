@@ -83,7 +83,8 @@ class CoinTrial(tune.Trainable):
     def save_checkpoint(self, checkpoint_dir: str) -> None:
         """Write a coin_app checkpoint (algorithm state and metadata) into Tune's checkpoint directory."""
 
-        save(self.algo, Path(checkpoint_dir), self.meta, atomic=False)  # Tune made this directory for this save
+        meta = self.meta | {"env_steps": int(self.last.get("env_steps", 0))}  # what evaluation tables report as trained env steps
+        save(self.algo, Path(checkpoint_dir), meta, atomic=False)  # Tune made this directory for this save
 
     def load_checkpoint(self, checkpoint: str) -> None:
         """Restore the algorithm (weights, optimizers, replay buffer, counters) from a verified checkpoint."""

@@ -11,6 +11,8 @@ every output without changes here. Outputs in ``out``:
 and ``table_ablation`` ``.{md,csv,tex}``, ``stats.csv``, ``radar_<scenario>.png``,
 ``generalization_<scenario>.png``, ``learning_curves_<scenario>.png``,
 ``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``marl_eval.json``, with
+``select="validation"`` each trial's checkpoint chosen on validation seeds (``selection.csv``:
+:mod:`coin_app.evaluation.selection`), with
 ``transfer`` the same models on another backend (``transfer_results.csv``, ``table_transfer``
 ``.{md,csv}``: :mod:`coin_app.evaluation.transfer`) and
 ``report.html`` (everything above in one self-contained page, with command, versions and
@@ -39,6 +41,7 @@ from coin_app.evaluation.html_report import write_html
 from coin_app.evaluation.latents import collect_latents
 from coin_app.evaluation.marl_eval import run_label, write_marl_eval
 from coin_app.evaluation.protocol import EvalRun, Evaluation, read_results, run_evaluation, write_results
+from coin_app.evaluation.selection import SELECTIONS, Candidates, select_checkpoints
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings
 from coin_app.evaluation.transfer import transfer_table, write_transfer
 from coin_app.sim.config import BACKENDS
@@ -62,6 +65,8 @@ class ReportOptions:
     tsne_episodes: int = 4  # test episodes the latents are drawn from
     transfer: str | None = None  # another backend every model is also evaluated on (metadrive), at its training count
     transfer_test_seeds: int = 5  # test episodes per model on that backend (the first of the native test seeds)
+    select: str = "final"  # the checkpoint of a trial scored: its final one, or the one best on validation seeds (COIN's "best_model")
+    validation_episodes: int = 10  # validation seeds per checkpoint for select="validation"
     command: str | None = None  # the command line, recorded in the page
 
     def check(self) -> None:
@@ -81,6 +86,10 @@ class ReportOptions:
         others = [b for b in BACKENDS if b != "native"]
         if self.transfer is not None and self.transfer not in others:
             raise ValueError(f"bad --transfer {self.transfer!r}; allowed: {', '.join(others)}")
+        if self.select not in SELECTIONS:
+            raise ValueError(f"bad --select {self.select!r}; allowed: {', '.join(SELECTIONS)}")
+        if self.validation_episodes < 1:
+            raise ValueError(f"bad --validation-episodes {self.validation_episodes}; allowed: an integer >= 1")
         if self.transfer_test_seeds < 1:
             raise ValueError(f"bad --transfer-test-seeds {self.transfer_test_seeds}; allowed: an integer >= 1")
         if self.transfer == "metadrive" and not metadrive_available():
@@ -91,7 +100,7 @@ class ReportOptions:
 class Sources:
     """What the report reads: sweeps to evaluate and results tables already evaluated."""
 
-    sweeps: list[dict[str, Any]] = field(default_factory=list)  # {"path", "settings", "runs", "skipped"}
+    sweeps: list[dict[str, Any]] = field(default_factory=list)  # {"path", "settings", "runs", "candidates", "skipped", "unfinished"}
     tables: list[dict[str, Any]] = field(default_factory=list)  # {"path", "table", "settings"}
 
 
@@ -110,7 +119,7 @@ def gather(paths: Sequence[Path]) -> Sources:
         if not path.is_dir() or not sweep_dirs:
             raise ValueError(f"{path} is not a results file, a sweep directory (with {SETTINGS_FILE}) or a directory of sweeps")
         for d in sweep_dirs:
-            runs, skipped, unfinished = [], [], []
+            runs, candidates, skipped, unfinished = [], [], [], []
             for trial in load_trials(d, unreadable=skipped):  # a corrupt trial is listed, the others reported
                 if not trial.finished:
                     unfinished.append(f"{trial.name} ({trial.last.get('env_steps', 0)} of {trial.config.get('steps')} env steps)")
@@ -119,8 +128,19 @@ def gather(paths: Sequence[Path]) -> Sources:
                     skipped.append({"trial": trial.name, "path": str(trial.path), "error": "no checkpoint"})
                     continue
                 cfg = trial.config
-                runs.append(EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(ckpt), int(trial.last.get("env_steps", 0))))
-            out.sweeps.append({"path": d, "settings": read_settings(d), "runs": runs, "skipped": skipped, "unfinished": unfinished})
+                run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(ckpt), int(trial.last.get("env_steps", 0)))
+                runs.append(run)
+                candidates.append(Candidates(run, tuple(str(c) for c in trial.checkpoints)))
+            out.sweeps.append(
+                {
+                    "path": d,
+                    "settings": read_settings(d),
+                    "runs": runs,
+                    "candidates": candidates,
+                    "skipped": skipped,
+                    "unfinished": unfinished,
+                }
+            )
     return out
 
 
@@ -132,17 +152,28 @@ def evaluate_sources(
     frames, failures = [t["table"] for t in sources.tables], []
     groups: dict[tuple, list[EvalRun]] = {}
     seen: set[str] = set()
+    selections = []
     for sweep in sources.sweeps:
         failures += [{**s, "sweep": str(sweep["path"])} for s in sweep["skipped"]]
         settings = sweep["settings"]
         counts = options.counts or (tuple(settings.get("counts") or ()) if settings.get("experiment") == "generalization" else None)
         n_seeds = options.test_seeds or int(settings.get("test_seeds", 20))
-        for run in sweep["runs"]:
+        runs = sweep["runs"]
+        if options.select == "validation" and sweep["candidates"]:
+            runs, chosen, selection_failures = select_checkpoints(sweep["candidates"], options.validation_episodes, options.workers, log)
+            selections.append(chosen.assign(sweep=str(sweep["path"])))
+            failures += [{**f, "sweep": str(sweep["path"]), "stage": "validation selection"} for f in selection_failures]
+        for run in runs:
             key = str(Path(run.checkpoint).resolve())
             if key not in seen:
                 seen.add(key)
                 groups.setdefault((counts, n_seeds), []).append(run)
-    settings = {"groups": []}
+    settings: dict[str, Any] = {"groups": [], "select": options.select}
+    if selections:
+        pd.concat(selections, ignore_index=True).to_csv(out / "selection.csv", index=False)
+        settings["validation_episodes"] = options.validation_episodes
+    else:  # an earlier report's choice in this folder no longer describes its tables
+        (out / "selection.csv").unlink(missing_ok=True)
     if groups:
         evaluations = []
         for (counts, n_seeds), runs in groups.items():
@@ -270,7 +301,11 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
 
     main = statistics.main_rows(trained)
     main_summary = statistics.rank_marks(statistics.summarize(main))
-    files = tables.write_tables(main_summary, out, "table_main", "Results at the training agent count: mean (std) over test episodes")
+    models = "final checkpoints" if options.select == "final" else f"checkpoints selected on {options.validation_episodes} validation seeds"
+    caption = f"Results at the training agent count ({models}): mean (std) over test episodes"
+    files = tables.write_tables(main_summary, out, "table_main", caption)
+    if (out / "selection.csv").is_file() and options.select == "validation":
+        files.append(out / "selection.csv")
     ablation = statistics.ablation_rows(trained, options.method)
     ablation_summary = statistics.rank_marks(statistics.summarize(ablation)) if len(ablation) else None
     if ablation_summary is not None:
