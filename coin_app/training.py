@@ -224,6 +224,9 @@ def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+COLLAPSED_ACTION_STD = 0.02  # an actor whose actions vary less than this over a batch acts the same everywhere
+
+
 class FreezeDetector:
     """Warns when vehicles stand still after the warm-up for ``patience`` iterations in a row (the TD3 full-brake freeze).
 
@@ -246,8 +249,15 @@ class FreezeDetector:
         if self.still < self.patience:
             return None
         saturation = metrics.get("learner/actor_saturation", float("nan"))
-        return (
-            f"warning: vehicles have stood still (mean speed {speed:.2f} m/s < {self.speed_threshold}) for {self.still} iterations; "
+        spread = metrics.get("learner/actor_action_std", float("nan"))
+        head = f"warning: vehicles have stood still (mean speed {speed:.2f} m/s < {self.speed_threshold}) for {self.still} iterations; "
+        if spread < COLLAPSED_ACTION_STD:
+            return head + (
+                f"the actor gives one action whatever it observes (action std over the batch {spread:.3f}, saturated "
+                f"{saturation:.0%}): a collapsed actor, which the saturation guard does not undo (TraCo's domain critic alone did "
+                "this: docs/results/README.md); its critic's action gradient is the suspect"
+            )
+        return head + (
             f"saturated actor outputs {saturation:.0%}. A TD3 actor frozen at full brake does not recover by itself "
             "(README: TD3 freeze): try --set actor_preact_penalty=1e-3 actor_preact_threshold=2"
         )

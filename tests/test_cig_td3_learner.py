@@ -2,6 +2,7 @@
 
 import copy
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.cig_td3.learner import loss_config
-from coin_app.algorithms.cig_td3.losses import actor_loss, preact_penalty
+from coin_app.algorithms.cig_td3.losses import actor_loss, actor_objective_loss, preact_penalty
 
 torch.set_num_threads(1)
 register_envs()
@@ -289,6 +290,16 @@ def test_preact_penalty_enters_the_actor_loss_and_saturation_is_logged():
     with_penalty, _ = actor_loss(m.actor, m.local_q, None, batch, dataclasses.replace(loss_config(cfg), preact_penalty=0.01))
     pre = m.actor.preactivation(batch["obs"])
     assert float(with_penalty - base) == pytest.approx(0.01 * float(pre.square().mean()), rel=1e-5)
+
+
+def test_actor_action_std_is_the_batch_spread_of_each_action():
+    pre = torch.tensor([[0.0, 1.0], [2.0, -1.0]])
+    _, stats = actor_objective_loss(torch.zeros(2), pre, {}, 0.0, 0.0)
+    # two rows: the sample std of a pair is |a - b| / sqrt(2); per action tanh(2) - tanh(0) and 2 tanh(1), then averaged
+    expected = (abs(math.tanh(2.0)) + 2 * math.tanh(1.0)) / math.sqrt(2) / 2
+    assert float(stats["actor_action_std"]) == pytest.approx(expected, rel=1e-6)
+    _, same = actor_objective_loss(torch.zeros(3), torch.tensor([[0.7, -0.3]] * 3), {}, 0.0, 0.0)
+    assert float(same["actor_action_std"]) == 0.0  # one action for every observation: a collapsed actor
 
 
 def test_exploration_noise_decays_linearly_after_the_warm_up():

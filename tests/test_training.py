@@ -5,9 +5,10 @@ import math
 from coin_app.training import FreezeDetector, iteration_metrics, outcome_text
 
 
-def result(env_steps, speed_sum=0.0, agent_steps=0, finished=0, saturation=None):
+def result(env_steps, speed_sum=0.0, agent_steps=0, finished=0, saturation=None, spread=None):
     """A minimal RLlib ``train()`` result with the env runner and learner keys coin_app reads."""
     learner = {} if saturation is None else {"actor_saturation": saturation}
+    learner |= {} if spread is None else {"actor_action_std": spread}
     runners = {"agents_finished": finished, "agents_speed_sum": speed_sum, "agents_agent_steps": agent_steps}
     return {"num_env_steps_sampled_lifetime": env_steps, "env_runners": runners, "learners": {"shared": learner}}
 
@@ -47,3 +48,15 @@ def test_ray_noise_goes_to_the_log_file_not_the_console(tmp_path, capsys):
     text = log.read_text()
     assert "rllib says hello" in text and "a deprecated thing" in text
     assert logging.getLogger("ray").handlers == before  # restored afterwards
+
+
+def test_detector_names_a_collapsed_actor_apart_from_the_saturation_freeze():
+    def warning(saturation, spread):
+        detector = FreezeDetector(warmup_steps=0, patience=1)
+        return detector.update(iteration_metrics(result(500, speed_sum=1.0, agent_steps=10, saturation=saturation, spread=spread)))
+
+    collapsed = warning(0.0, 0.004)  # TraCo's case: one braking action inside the guard, nothing saturated
+    assert "one action whatever it observes" in collapsed and "0.004" in collapsed and "actor_preact_penalty" not in collapsed
+    frozen = warning(0.97, 0.3)  # saturated at full brake, actions still vary: the freeze advice
+    assert "frozen at full brake" in frozen and "actor_preact_penalty" in frozen
+    assert "frozen at full brake" in warning(0.97, None)  # an algorithm without the statistic

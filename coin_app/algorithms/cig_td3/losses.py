@@ -164,10 +164,16 @@ def actor_loss(
 def actor_objective_loss(
     objective: torch.Tensor, pre: torch.Tensor, stats: dict, penalty_weight: float, penalty_threshold: float
 ) -> tuple[torch.Tensor, dict]:
-    """The actor loss -mean(objective) plus the optional pre-tanh penalty; ``stats`` gains the saturation share and mean |u|."""
+    """The actor loss -mean(objective) plus the optional pre-tanh penalty.
+
+    ``stats`` gains the saturation share, the mean |u| and ``actor_action_std``: the std of each
+    action over the batch, averaged over the action dimensions; near 0, the actor gives one
+    action whatever it observes (a collapsed actor).
+    """
     loss = -objective.mean()
     u = pre.detach().abs()
-    stats.update(actor_saturation=(u > SATURATED_PREACT).float().mean(), actor_preact_abs=u.mean())
+    spread = torch.tanh(pre.detach()).std(0).mean() if pre.shape[0] > 1 else torch.zeros((), device=pre.device)
+    stats.update(actor_saturation=(u > SATURATED_PREACT).float().mean(), actor_preact_abs=u.mean(), actor_action_std=spread)
     if penalty_weight > 0:
         penalty = preact_penalty(pre, penalty_weight, penalty_threshold)
         loss = loss + penalty
