@@ -48,7 +48,7 @@ from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame
 from coin_app.sim.rollout import DictEnvs, rollout
 from coin_app.sim.scenarios import config_from_dict
 from coin_app.sim.seeds import TEST_SEED_BASE, eval_test_seeds
-from coin_app.training import train
+from coin_app.training import STOPPED_AT_BUDGET, train
 from tuning.sweep import run_sweep, write_generalization
 
 CONSOLE_FORMATS = {"efficiency": "{:.0f}", "safety": "{:.0f}", "avg_travel_steps": "{:.1f}"}  # the rates: "{:.3f}"
@@ -156,7 +156,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations, {summary['wall_s']:.0f} s")
     print(f"  checkpoint: {summary['checkpoint']}")
-    if summary.get("stopped", "steps") != "steps":
+    if summary.get("stopped", STOPPED_AT_BUDGET) != STOPPED_AT_BUDGET:
         where = f"{summary['env_steps']} of {args.steps} env steps"
         print(f"  stopped early ({summary['stopped']}) at {where}; continue with --resume {summary['checkpoint']}")
     if summary.get("eval"):

@@ -251,7 +251,7 @@ class FreezeDetector:
         saturation = metrics.get("learner/actor_saturation", float("nan"))
         spread = metrics.get("learner/actor_action_std", float("nan"))
         head = f"warning: vehicles have stood still (mean speed {speed:.2f} m/s < {self.speed_threshold}) for {self.still} iterations; "
-        if spread < COLLAPSED_ACTION_STD:
+        if spread < COLLAPSED_ACTION_STD and not saturation >= 0.5:  # a saturated freeze also has ~0 spread: the guard advice
             return head + (
                 f"the actor gives one action whatever it observes (action std over the batch {spread:.3f}, saturated "
                 f"{saturation:.0%}): a collapsed actor, which the saturation guard does not undo (TraCo's domain critic alone did "
@@ -285,6 +285,9 @@ def checkpoint_meta(name: str, scenario: str, seed: int, overrides: dict[str, An
     return meta | ({"learners": learners} if learners else {}) | extra
 
 
+STOPPED_AT_BUDGET, STOPPED_AT_MAX_MINUTES = "steps", "max_minutes"  # summary["stopped"], or the name of the signal
+
+
 class StopRequest:
     """Set by SIGTERM or SIGINT while :func:`stop_on_signal` is active: the run stops after its current iteration."""
 
@@ -293,16 +296,15 @@ class StopRequest:
 
 
 @contextmanager
-def stop_on_signal(log: Callable[[str], None] = print) -> Iterator[StopRequest]:
+def stop_on_signal() -> Iterator[StopRequest]:
     """While inside (main thread), the first SIGTERM or SIGINT asks for a stop after the current iteration; a second one stops at once."""
     request = StopRequest()
 
-    def handler(signum: int, frame: Any) -> None:
+    def handler(signum: int, frame: Any) -> None:  # sets the flag only: printing here could re-enter a write to stdout
         name = signal.Signals(signum).name
         if request.signal is not None:
             raise KeyboardInterrupt(f"second {name}: stopping at once (the last checkpoint is kept)")
         request.signal = name
-        log(f"{name}: stopping after this iteration and saving a checkpoint (send it again to stop at once)")
 
     if threading.current_thread() is not threading.main_thread():  # handlers can only be set there; signals keep their default
         yield request
@@ -457,12 +459,12 @@ def train(
         bar = RunProgress(steps, start, log, progress)
         if isinstance(algo, ProgressReporting):  # long iterations: their updates are shown as they go
             algo.progress_callback = bar.phase
-        stopped = "steps"  # why the loop ended: the budget, max_minutes or a signal's name
+        stopped = STOPPED_AT_BUDGET  # why the loop ended: the budget, max_minutes or a signal's name
         try:
-            with stop_on_signal(bar.say) as stop:
+            with stop_on_signal() as stop:
                 while sampled < steps and stop.signal is None:
                     if max_minutes is not None and time.perf_counter() - t0 >= 60.0 * max_minutes:
-                        stopped = "max_minutes"
+                        stopped = STOPPED_AT_MAX_MINUTES
                         break
                     result = algo.train()
                     m = iteration_metrics(result)
@@ -488,7 +490,9 @@ def train(
                     if it % checkpoint_every == 0:
                         bar.phase("saving checkpoint", 0, 0)
                         save(algo, ckpt, meta | {"env_steps": int(sampled)})
-                stopped = stop.signal or stopped
+                if stop.signal is not None and sampled < steps:  # a signal during the last iteration changes nothing
+                    stopped = stop.signal
+                    bar.say(f"{stop.signal}: stopped after this iteration; saving a checkpoint (send it again to stop at once)")
                 bar.phase("saving checkpoint", 0, 0)
                 save(algo, ckpt, meta | {"env_steps": int(sampled)})
         finally:

@@ -268,7 +268,7 @@ def test_sigterm_stops_train_after_its_iteration_with_a_checkpoint_and_a_summary
         code = proc.wait(timeout=240)
     text = (tmp_path / "train.log").read_text()
     assert code == 0, text[-2000:]
-    assert "SIGTERM: stopping after this iteration" in text and "stopped early (SIGTERM)" in text
+    assert "SIGTERM: stopped after this iteration; saving a checkpoint" in text and "stopped early (SIGTERM)" in text
     summary = json.loads((run / "summary.json").read_text())
     meta = verify(run / "checkpoint")  # complete, and it says how far it trained
     assert summary["stopped"] == "SIGTERM" and 0 < summary["env_steps"] == meta["env_steps"] < 1_000_000

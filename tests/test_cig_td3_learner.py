@@ -295,11 +295,14 @@ def test_preact_penalty_enters_the_actor_loss_and_saturation_is_logged():
 def test_actor_action_std_is_the_batch_spread_of_each_action():
     pre = torch.tensor([[0.0, 1.0], [2.0, -1.0]])
     _, stats = actor_objective_loss(torch.zeros(2), pre, {}, 0.0, 0.0)
-    # two rows: the sample std of a pair is |a - b| / sqrt(2); per action tanh(2) - tanh(0) and 2 tanh(1), then averaged
-    expected = (abs(math.tanh(2.0)) + 2 * math.tanh(1.0)) / math.sqrt(2) / 2
+    # two rows: the sample std of a pair is |a - b| / sqrt(2): tanh(2) / sqrt(2) and 2 tanh(1) / sqrt(2); the smaller one
+    expected = min(math.tanh(2.0), 2 * math.tanh(1.0)) / math.sqrt(2)
     assert float(stats["actor_action_std"]) == pytest.approx(expected, rel=1e-6)
     _, same = actor_objective_loss(torch.zeros(3), torch.tensor([[0.7, -0.3]] * 3), {}, 0.0, 0.0)
     assert float(same["actor_action_std"]) == 0.0  # one action for every observation: a collapsed actor
+    braking = torch.tensor([[-1.0, -0.9], [0.5, -0.9], [1.5, -0.9]])  # steering varies, the pedal is always the same
+    assert float(actor_objective_loss(torch.zeros(3), braking, {}, 0.0, 0.0)[1]["actor_action_std"]) == 0.0
+    assert math.isnan(float(actor_objective_loss(torch.zeros(1), pre[:1], {}, 0.0, 0.0)[1]["actor_action_std"]))
 
 
 def test_exploration_noise_decays_linearly_after_the_warm_up():

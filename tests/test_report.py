@@ -224,6 +224,10 @@ def test_validation_selection_scores_the_checkpoint_best_on_validation_seeds(swe
     assert set(results.loc[results["method"] == "cig_td3", "checkpoint"]) == {str(expected)}
     assert results["test_seed"].min() >= TEST_SEED_BASE  # the selected model is scored on the test seeds only
     assert "checkpoints selected on 2 validation seeds" in (out / "table_main.md").read_text()
+    # re-drawn from its results table (default --select): the caption keeps the recorded rule, selection.csv stays
+    redraw = ["report", str(out / "results.csv"), "--out", str(out), "--tsne-samples", "40", "--tsne-episodes", "1"]
+    assert main(redraw) == 0
+    assert (out / "selection.csv").is_file() and "checkpoints selected on 2 validation seeds" in (out / "table_main.md").read_text()
     # the default protocol in the same folder: the final checkpoints, and the old choice is gone
     assert main(argv) == 0
     assert not (out / "selection.csv").exists()

@@ -2,6 +2,7 @@
 
 import math
 
+import pandas as pd
 import pytest
 
 from coin_app.evaluation.selection import best_index, select_checkpoints
@@ -27,3 +28,48 @@ def test_bad_selection_input_is_refused_by_name():
         best_index([])
     with pytest.raises(ValueError, match="bad validation episodes 0; allowed: an integer >= 1"):
         select_checkpoints([], 0)
+
+
+def test_select_checkpoints_picks_per_trial_skips_failures_and_fills_env_steps(monkeypatch):
+    """``run_evaluation`` replaced by crafted validation episodes: the choice, failures and env steps by hand."""
+    from coin_app.evaluation import selection
+    from coin_app.evaluation.protocol import EvalRun, Evaluation
+
+    episodes = {  # checkpoint -> (validation success of each episode, env steps in its metadata)
+        "a0": ([0.2, 0.4], 1000),
+        "a1": ([0.8, 0.6], 2000),  # the best of trial a, not its final one
+        "a2": ([0.5, 0.5], None),  # saved before checkpoints recorded env steps: the trial's count is used
+        "b1": ([0.1, 0.1], 500),  # b0 cannot be loaded
+        "d0": ([0.1 + 0.2, 0.3], 100),  # mean 0.30000000000000004: one ulp above d1, a tie all the same
+        "d1": ([0.3, 0.3], 200),
+    }
+    seen = []
+
+    def fake(runs, seeds, workers=1, log=print):
+        seen.append((len(runs), list(seeds)))
+        rows = [
+            {"checkpoint": r.checkpoint, "success_rate": s, "trained_env_steps": episodes[r.checkpoint][1]}
+            for r in runs
+            if r.checkpoint in episodes
+            for s in episodes[r.checkpoint][0]
+        ]
+        failed = [{"checkpoint": r.checkpoint, "error": "cannot load"} for r in runs if r.checkpoint not in episodes]
+        return Evaluation(pd.DataFrame(rows), failed)
+
+    monkeypatch.setattr(selection, "run_evaluation", fake)
+    trials = [
+        selection.Candidates(EvalRun("m", "default", 0, "a2", 3000), ("a0", "a1", "a2")),
+        selection.Candidates(EvalRun("m", "default", 1, "b1", 500), ("b0", "b1")),
+        selection.Candidates(EvalRun("m", "default", 2, "c1", 900), ("c0", "c1")),  # nothing loads: left out
+        selection.Candidates(EvalRun("m", "default", 3, "d1", 200), ("d0", "d1")),
+    ]
+    chosen, table, failures = selection.select_checkpoints(trials, 2, log=lambda _: None)
+    assert seen == [(9, selection.validation_seeds(2))]  # every kept checkpoint once, on the validation seeds
+    assert [(r.trained_seed, r.checkpoint, r.trained_env_steps) for r in chosen] == [(0, "a1", 2000), (1, "b1", 500), (3, "d1", 200)]
+    assert sorted(f["checkpoint"] for f in failures) == ["b0", "c0", "c1"]
+    by = table.set_index("checkpoint")
+    assert list(by.index) == ["a0", "a1", "a2", "b0", "b1", "d0", "d1"]  # the failed trial has no rows
+    assert by.loc["a1", "validation_success"] == pytest.approx(0.7) and by.loc["a2", "trained_env_steps"] == 3000
+    assert math.isnan(by.loc["b0", "validation_success"]) and pd.isna(by.loc["b0", "trained_env_steps"])
+    assert str(table["trained_env_steps"].dtype) == "Int64"  # whole numbers even with an empty cell
+    assert by["selected"].sum() == 3 and bool(by.loc["d1", "selected"])

@@ -60,3 +60,6 @@ def test_detector_names_a_collapsed_actor_apart_from_the_saturation_freeze():
     frozen = warning(0.97, 0.3)  # saturated at full brake, actions still vary: the freeze advice
     assert "frozen at full brake" in frozen and "actor_preact_penalty" in frozen
     assert "frozen at full brake" in warning(0.97, None)  # an algorithm without the statistic
+    # the saturation freeze itself: every output at tanh(u) = -1, so the spread is ~0 too; the guard advice, not "collapsed"
+    saturated = warning(1.0, 1e-6)
+    assert "frozen at full brake" in saturated and "whatever it observes" not in saturated

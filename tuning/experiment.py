@@ -45,8 +45,8 @@ REDUCED_TD3: dict[str, Any] = {"precision": "fp32", "actor_preact_penalty": 0.01
 # (reduced_decay): with constant rates the policies learned, then froze or crashed late (docs/results/README.md).
 REDUCED_LR_FINAL_FRACTION = 0.1
 # TraCo with its domain critic alone collapsed at once to one constant action for every observation (steer ~0.7,
-# throttle ~-0.7: braking) on seeds 0 and 1, under either guard; with the optional individual critic (Q^l_1 added to its
-# actor objective, the TraCo spec's open choice "COIN-local") both seeds drove (docs/results/README.md).
+# throttle ~-0.7: braking) on seeds 0 and 1 under the protocol's guard; with its optional individual critic (Q^l_1 added to
+# its actor objective, one of TraCo's inferred options in the README) both seeds drove (docs/results/README.md).
 REDUCED_ALGO: dict[str, dict[str, Any]] = {"traco": {"individual_critic": True}}
 REDUCED_PPO: dict[str, Any] = {}  # the reference settings: 1,600 env steps per update, sampled in the trial's process
 

@@ -34,6 +34,7 @@ from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPP
 from ray.rllib.core.rl_module.rl_module import RLModule
 
 from coin_app.adapters.lcf import SampledLCFPolicy
+from coin_app.algorithms.checkpoint_files import MANIFEST_FILE, META_FILE
 from coin_app.algorithms.common import SHARED_MODULE_ID
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import LCF_MODES, ActorModule, CoordinatedActorModule
@@ -42,8 +43,6 @@ from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.rollout import AgentPolicy, Policy
 from coin_app.sim.scenarios import config_from_dict
 
-META_FILE = "coin_app.json"
-MANIFEST_FILE = "coin_app_manifest.json"
 MANIFEST_VERSION = 1
 MODULE_PATH = ("learner_group", "learner", "rl_module", SHARED_MODULE_ID)
 PARTIAL_SUFFIX = ".partial"  # a checkpoint being written: <parent>/.<name>.partial

@@ -14,6 +14,7 @@ from typing import Any
 
 import pandas as pd
 
+from coin_app.algorithms.checkpoint_files import META_FILE
 from coin_app.algorithms.checkpoints import git_commit
 from coin_app.evaluation.tables import to_html
 
@@ -53,7 +54,7 @@ def _models(table: pd.DataFrame) -> str:
     """Per evaluated model: label, seed, episodes and the checkpoint's own metadata (what trained it)."""
     rows = []
     for ckpt, g in table.groupby("checkpoint", sort=True):
-        meta_file = Path(ckpt) / "coin_app.json"
+        meta_file = Path(ckpt) / META_FILE
         meta = meta_file.read_text() if meta_file.is_file() else "(checkpoint metadata not available)"
         params = Path(ckpt).parent / "params.json"
         trial = f"<pre>{escape(params.read_text())}</pre>" if params.is_file() else ""

@@ -41,7 +41,7 @@ from coin_app.evaluation.html_report import write_html
 from coin_app.evaluation.latents import collect_latents
 from coin_app.evaluation.marl_eval import run_label, write_marl_eval
 from coin_app.evaluation.protocol import EvalRun, Evaluation, read_results, run_evaluation, write_results
-from coin_app.evaluation.selection import SELECTIONS, Candidates, select_checkpoints
+from coin_app.evaluation.selection import FINAL, SELECTION_FILE, SELECTIONS, VALIDATION, Candidates, select_checkpoints, selection_caption
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings
 from coin_app.evaluation.transfer import transfer_table, write_transfer
 from coin_app.sim.config import BACKENDS
@@ -65,7 +65,7 @@ class ReportOptions:
     tsne_episodes: int = 4  # test episodes the latents are drawn from
     transfer: str | None = None  # another backend every model is also evaluated on (metadrive), at its training count
     transfer_test_seeds: int = 5  # test episodes per model on that backend (the first of the native test seeds)
-    select: str = "final"  # the checkpoint of a trial scored: its final one, or the one best on validation seeds (COIN's "best_model")
+    select: str = FINAL  # the checkpoint of a trial scored: its final one, or the one best on validation seeds (COIN's "best_model")
     validation_episodes: int = 10  # validation seeds per checkpoint for select="validation"
     command: str | None = None  # the command line, recorded in the page
 
@@ -128,7 +128,7 @@ def gather(paths: Sequence[Path]) -> Sources:
                     skipped.append({"trial": trial.name, "path": str(trial.path), "error": "no checkpoint"})
                     continue
                 cfg = trial.config
-                run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(ckpt), int(trial.last.get("env_steps", 0)))
+                run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(ckpt), trial.checkpoint_env_steps(ckpt))
                 runs.append(run)
                 candidates.append(Candidates(run, tuple(str(c) for c in trial.checkpoints)))
             out.sweeps.append(
@@ -159,7 +159,7 @@ def evaluate_sources(
         counts = options.counts or (tuple(settings.get("counts") or ()) if settings.get("experiment") == "generalization" else None)
         n_seeds = options.test_seeds or int(settings.get("test_seeds", 20))
         runs = sweep["runs"]
-        if options.select == "validation" and sweep["candidates"]:
+        if options.select == VALIDATION and sweep["candidates"]:
             runs, chosen, selection_failures = select_checkpoints(sweep["candidates"], options.validation_episodes, options.workers, log)
             selections.append(chosen.assign(sweep=str(sweep["path"])))
             failures += [{**f, "sweep": str(sweep["path"]), "stage": "validation selection"} for f in selection_failures]
@@ -169,11 +169,16 @@ def evaluate_sources(
                 seen.add(key)
                 groups.setdefault((counts, n_seeds), []).append(run)
     settings: dict[str, Any] = {"groups": [], "select": options.select}
+    # how each source's models were chosen: this report's rule for its sweeps, the recorded one for results tables
+    rules = {(t["settings"].get("select", FINAL), t["settings"].get("validation_episodes")) for t in sources.tables}
+    if sources.sweeps:
+        rules.add((options.select, options.validation_episodes if options.select == VALIDATION else None))
+    settings["captions"] = sorted(selection_caption(*rule) for rule in rules)
     if selections:
-        pd.concat(selections, ignore_index=True).to_csv(out / "selection.csv", index=False)
+        pd.concat(selections, ignore_index=True).to_csv(out / SELECTION_FILE, index=False)
         settings["validation_episodes"] = options.validation_episodes
-    else:  # an earlier report's choice in this folder no longer describes its tables
-        (out / "selection.csv").unlink(missing_ok=True)
+    elif sources.sweeps:  # this report chose final checkpoints: an earlier report's choice in this folder no longer applies
+        (out / SELECTION_FILE).unlink(missing_ok=True)
     if groups:
         evaluations = []
         for (counts, n_seeds), runs in groups.items():
@@ -301,11 +306,11 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
 
     main = statistics.main_rows(trained)
     main_summary = statistics.rank_marks(statistics.summarize(main))
-    models = "final checkpoints" if options.select == "final" else f"checkpoints selected on {options.validation_episodes} validation seeds"
+    models = "; ".join(eval_settings["captions"])
     caption = f"Results at the training agent count ({models}): mean (std) over test episodes"
     files = tables.write_tables(main_summary, out, "table_main", caption)
-    if (out / "selection.csv").is_file() and options.select == "validation":
-        files.append(out / "selection.csv")
+    if (out / SELECTION_FILE).is_file() and options.select == VALIDATION:
+        files.append(out / SELECTION_FILE)
     ablation = statistics.ablation_rows(trained, options.method)
     ablation_summary = statistics.rank_marks(statistics.summarize(ablation)) if len(ablation) else None
     if ablation_summary is not None:

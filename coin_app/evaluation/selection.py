@@ -21,13 +21,16 @@ import pandas as pd
 from coin_app.evaluation.protocol import EvalRun, run_evaluation
 from coin_app.sim.seeds import validation_seeds
 
-SELECTIONS = ("final", "validation")
+FINAL, VALIDATION = "final", "validation"
+SELECTIONS = (FINAL, VALIDATION)
+SELECTION_FILE = "selection.csv"  # the per-checkpoint validation table, written beside the report
 SELECTION_COLUMNS = ("method", "variant", "trained_seed", "checkpoint", "order", "trained_env_steps", "validation_success", "selected")
+TIE_DECIMALS = 9  # validation means equal to this many decimals are a tie (means over different episodes can differ by an ulp)
 
 
 @dataclass(frozen=True)
 class Candidates:
-    """One trial's model (its final checkpoint) and every checkpoint kept for it, oldest first."""
+    """One trial's model (its final checkpoint, with the trial's env steps) and every checkpoint kept for it, oldest first."""
 
     run: EvalRun
     checkpoints: tuple[str, ...]
@@ -44,10 +47,23 @@ def best_index(successes: Sequence[float]) -> int:
     return best
 
 
+def selection_caption(select: str, validation_episodes: int | None) -> str:
+    """How the models of a table were chosen, for its caption."""
+    if select == VALIDATION:
+        return f"checkpoints selected on {validation_episodes} validation seeds"
+    return "final checkpoints" if select == FINAL else f"checkpoints chosen by {select}"
+
+
 def select_checkpoints(
     trials: Sequence[Candidates], episodes: int, workers: int = 1, log: Callable[[str], None] = print
 ) -> tuple[list[EvalRun], pd.DataFrame, list[dict]]:
-    """Per trial the checkpoint best on ``episodes`` validation seeds; the per-checkpoint table; the failures."""
+    """Per trial the checkpoint best on ``episodes`` validation seeds; the per-checkpoint table; the failures.
+
+    A checkpoint that cannot be evaluated never wins (it is among the failures); a trial none of
+    whose checkpoints can be evaluated is left out. A checkpoint's trained env steps come from its
+    metadata; the final one falls back to the trial's own count (checkpoints saved before
+    coin_app recorded them); earlier ones without it stay empty.
+    """
     if episodes < 1:
         raise ValueError(f"bad validation episodes {episodes}; allowed: an integer >= 1")
     candidates = [replace(t.run, checkpoint=c, trained_env_steps=None) for t in trials for c in t.checkpoints]
@@ -58,26 +74,20 @@ def select_checkpoints(
     )
     selected, rows = [], []
     for trial in trials:
-        scores = [float(means["validation_success"].get(c, float("nan"))) for c in trial.checkpoints]
+        scores = [round(float(means["validation_success"].get(c, float("nan"))), TIE_DECIMALS) for c in trial.checkpoints]
         if all(s != s for s in scores):  # no checkpoint could be evaluated: the trial is left out (its failures are listed)
             continue
         best = best_index(scores)
+        steps = []
+        for c in trial.checkpoints:
+            known = means["trained_env_steps"].get(c)
+            known = None if known is None or pd.isna(known) else int(known)
+            steps.append(trial.run.trained_env_steps if known is None and c == trial.run.checkpoint else known)
         chosen = trial.checkpoints[best]
-        steps = means["trained_env_steps"].get(chosen)
-        selected.append(replace(trial.run, checkpoint=chosen, trained_env_steps=None if pd.isna(steps) else int(steps)))
+        selected.append(replace(trial.run, checkpoint=chosen, trained_env_steps=steps[best]))
         for i, (c, s) in enumerate(zip(trial.checkpoints, scores)):
-            env_steps = means["trained_env_steps"].get(c)
-            rows.append(
-                {
-                    "method": trial.run.method,
-                    "variant": trial.run.variant,
-                    "trained_seed": trial.run.trained_seed,
-                    "checkpoint": c,
-                    "order": i,
-                    "trained_env_steps": None if env_steps is None or pd.isna(env_steps) else int(env_steps),
-                    "validation_success": s,
-                    "selected": i == best,
-                }
-            )
+            row = {"method": trial.run.method, "variant": trial.run.variant, "trained_seed": trial.run.trained_seed, "checkpoint": c}
+            rows.append(row | {"order": i, "trained_env_steps": steps[i], "validation_success": s, "selected": i == best})
         log(f"  {trial.run.label}: checkpoint {best + 1} of {len(scores)} ({Path(chosen).name}), validation success {scores[best]:.3f}")
-    return selected, pd.DataFrame(rows, columns=list(SELECTION_COLUMNS)), evaluation.failures
+    table = pd.DataFrame(rows, columns=list(SELECTION_COLUMNS))
+    return selected, table.astype({"trained_env_steps": "Int64"}), evaluation.failures

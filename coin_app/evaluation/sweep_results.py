@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from coin_app.algorithms.checkpoint_files import META_FILE
+
 SETTINGS_FILE = "coin_sweep.json"
 
 
@@ -50,6 +52,16 @@ class TrialRecord:
     def final_checkpoint(self) -> Path | None:
         """The newest checkpoint, or None."""
         return self.checkpoints[-1] if self.checkpoints else None
+
+    def checkpoint_env_steps(self, checkpoint: Path) -> int | None:
+        """The env steps ``checkpoint`` was saved at: its metadata's, else the last result's for the final one, else None."""
+        try:
+            steps = json.loads((Path(checkpoint) / META_FILE).read_text()).get("env_steps")
+        except (OSError, ValueError):  # unreadable metadata: the evaluation names the checkpoint
+            steps = None
+        if steps is None and Path(checkpoint) == self.final_checkpoint and "env_steps" in self.last:
+            steps = self.last["env_steps"]
+        return None if steps is None else int(steps)
 
 
 def read_settings(experiment_dir: Path) -> dict[str, Any]:
@@ -97,9 +109,7 @@ def load_trials(experiment_dir: Path, live: bool = False, unreadable: list[dict[
                 raise ValueError(error) from err
             unreadable.append({"trial": d.name, "path": str(d), "error": error})
             continue
-        checkpoints = sorted(
-            (c for c in d.glob("checkpoint_*") if (c / "coin_app.json").is_file()), key=lambda c: int(c.name.split("_")[-1])
-        )
+        checkpoints = sorted((c for c in d.glob("checkpoint_*") if (c / META_FILE).is_file()), key=lambda c: int(c.name.split("_")[-1]))
         try:
             results = _read_json_lines(d / "result.json")
         except (ValueError, UnicodeDecodeError) as err:

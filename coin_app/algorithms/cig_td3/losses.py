@@ -166,13 +166,13 @@ def actor_objective_loss(
 ) -> tuple[torch.Tensor, dict]:
     """The actor loss -mean(objective) plus the optional pre-tanh penalty.
 
-    ``stats`` gains the saturation share, the mean |u| and ``actor_action_std``: the std of each
-    action over the batch, averaged over the action dimensions; near 0, the actor gives one
-    action whatever it observes (a collapsed actor).
+    ``stats`` gains the saturation share, the mean |u| and ``actor_action_std``: the std over the
+    batch of the action that varies least (NaN for a one-row batch); near 0, the actor gives that
+    action whatever it observes (a collapsed actor, e.g. always braking).
     """
     loss = -objective.mean()
     u = pre.detach().abs()
-    spread = torch.tanh(pre.detach()).std(0).mean() if pre.shape[0] > 1 else torch.zeros((), device=pre.device)
+    spread = torch.tanh(pre.detach()).std(0).min() if pre.shape[0] > 1 else torch.full((), float("nan"), device=pre.device)
     stats.update(actor_saturation=(u > SATURATED_PREACT).float().mean(), actor_preact_abs=u.mean(), actor_action_std=spread)
     if penalty_weight > 0:
         penalty = preact_penalty(pre, penalty_weight, penalty_threshold)
