@@ -460,6 +460,13 @@ def train(
         if isinstance(algo, ProgressReporting):  # long iterations: their updates are shown as they go
             algo.progress_callback = bar.phase
         stopped = STOPPED_AT_BUDGET  # why the loop ended: the budget, max_minutes or a signal's name
+        saved = None  # env steps of the newest checkpoint written by this run
+
+        def save_at(env_steps: int) -> int:
+            bar.phase("saving checkpoint", 0, 0)
+            save(algo, ckpt, meta | {"env_steps": int(env_steps)})
+            return env_steps
+
         try:
             with stop_on_signal() as stop:
                 while sampled < steps and stop.signal is None:
@@ -488,13 +495,12 @@ def train(
                         last_eval = result[EVAL_RESULT_KEY]
                         bar.say(_eval_line(last_eval))
                     if it % checkpoint_every == 0:
-                        bar.phase("saving checkpoint", 0, 0)
-                        save(algo, ckpt, meta | {"env_steps": int(sampled)})
+                        saved = save_at(sampled)
                 if stop.signal is not None and sampled < steps:  # a signal during the last iteration changes nothing
                     stopped = stop.signal
                     bar.say(f"{stop.signal}: stopped after this iteration; saving a checkpoint (send it again to stop at once)")
-                bar.phase("saving checkpoint", 0, 0)
-                save(algo, ckpt, meta | {"env_steps": int(sampled)})
+                if saved != sampled:  # the last iteration's periodic save already holds this state
+                    save_at(sampled)
         finally:
             bar.close()
         board.close()

@@ -5,6 +5,8 @@ import math
 import pandas as pd
 import pytest
 
+from coin_app.evaluation import selection
+from coin_app.evaluation.protocol import EvalRun, Evaluation
 from coin_app.evaluation.selection import best_index, select_checkpoints
 
 
@@ -32,9 +34,6 @@ def test_bad_selection_input_is_refused_by_name():
 
 def test_select_checkpoints_picks_per_trial_skips_failures_and_fills_env_steps(monkeypatch):
     """``run_evaluation`` replaced by crafted validation episodes: the choice, failures and env steps by hand."""
-    from coin_app.evaluation import selection
-    from coin_app.evaluation.protocol import EvalRun, Evaluation
-
     episodes = {  # checkpoint -> (validation success of each episode, env steps in its metadata)
         "a0": ([0.2, 0.4], 1000),
         "a1": ([0.8, 0.6], 2000),  # the best of trial a, not its final one
