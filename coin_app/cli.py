@@ -368,6 +368,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         address=args.address,
         max_concurrent=args.max_concurrent,
         resume=args.resume,
+        restart=tuple(args.restart),
         num_cpus=args.num_cpus,
         command=getattr(args, "command_line", None),
         wandb_project=args.wandb,
@@ -666,6 +667,13 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--max-concurrent", type=int, default=None, help="trials running at once (default: as many as fit)")
     sw.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
     sw.add_argument("--resume", action="store_true", help="continue the named sweep: finished trials stay, others resume")
+    sw.add_argument(
+        "--restart",
+        nargs="+",
+        default=[],
+        metavar="METHOD",
+        help="with --resume: run these methods' trials again from scratch (after a fix); their old directories move to replaced/",
+    )
     sw.add_argument("--wandb", default=None, metavar="PROJECT", help="also log trials to this W&B project (needs wandb)")
     sw.add_argument("--mlflow", default=None, metavar="URI", help="also log trials to this MLflow tracking URI (needs mlflow)")
     sw.set_defaults(func=cmd_sweep)

@@ -149,6 +149,7 @@ def test_bad_sweeps_are_refused_before_any_work(tmp_path, capsys):
         (["sweep", "seeds", "--smoke", "--address", "127.0.0.1:1"], "cannot reach a Ray cluster at 127.0.0.1:1"),
         (["sweep", "seeds", "--smoke", "--address", "nohost"], "bad --address 'nohost'"),
         (["sweep", "seeds", "--smoke", "--resume"], "nothing to resume"),
+        (["sweep", "seeds", "--smoke", "--restart", "ippo"], "--restart ippo without --resume"),
         (["sweep", "seeds", "--scale", "huge"], "unknown scale 'huge'; allowed: paper, reduced, smoke"),
         (["sweep", "ablations", "--scale", "reduced"], "experiment 'ablations' has no reduced scale; allowed: paper, smoke"),
         (["sweep", "seeds", "--smoke", "--scale", "paper"], "--smoke with --scale paper; allowed: one of them"),
@@ -250,6 +251,23 @@ def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(local_ray, tmp_path, 
         meta = json.loads((t.final_checkpoint / "coin_app.json").read_text())
         assert meta["overrides"] == trial_overrides(t.config) and meta["seed"] == 3
         assert meta["overrides"]["num_agents"] == 4 and (t.config["algo"] != "cig_td3" or meta["overrides"]["precision"] == "fp32")
+    # --restart copo: CoPO's trial runs again from scratch (a new directory; the old one kept aside), CIG-TD3's stays as it is
+    before = {t.config["algo"]: t for t in load_trials(exp_dir)}
+    kept = (before["cig_td3"].path / "result.json").read_bytes()
+    assert main([*argv, "--storage", str(storage), "--resume", "--restart", "ippo"]) == 2
+    assert "--restart ippo: not a method of" in capsys.readouterr().err
+    assert main([*argv, "--storage", str(storage), "--resume", "--restart", "copo"]) == 0
+    assert "restarting 1 trials of copo" in capsys.readouterr().out
+    trials = load_trials(exp_dir)
+    assert sorted(t.name for t in trials) == ["cig_td3-s3", "copo-s3"]  # the old trial directory is not left behind
+    after = {t.config["algo"]: t for t in trials}
+    assert after["cig_td3"].path == before["cig_td3"].path and (after["cig_td3"].path / "result.json").read_bytes() == kept
+    old, new = before["copo"], after["copo"]
+    assert new.path != old.path and new.finished and new.last["env_steps"] >= 600
+    assert list((exp_dir / "replaced").glob(f"*/{old.path.name}/result.json"))  # nothing lost
+    # the rerun, in another worker process (another string hash seed), reproduces the first run
+    keys = ("env_steps", "episode_return_mean", "learner/policy_loss", "learner/vf_loss", "learner/lcf_mean")
+    assert json.dumps([[r[k] for k in keys] for r in new.results]) == json.dumps([[r[k] for k in keys] for r in old.results])
 
 
 def test_ablations_smoke_sweep_end_to_end(local_ray, tmp_path, capsys):

@@ -7,6 +7,8 @@
 * A fresh sweep writes ``coin_sweep.json`` (what was asked) into its experiment directory and
   runs ``tune.Tuner(CoinTrial, ...)`` with Tune's progress table, a checkpoint every
   ``checkpoint_every`` iterations and at the end, the newest ``keep`` kept per trial.
+* ``restart`` (``--resume --restart METHOD ...``) reruns these methods' trials from scratch, for a
+  method changed after its trials ran: their directories move to ``replaced/<time>/``.
 * ``resume=True`` runs ``Tuner.restore(..., resume_unfinished=True, resume_errored=True)``:
   finished trials stay as they are, interrupted or errored ones continue from their newest
   checkpoint; this works after ``kill -9`` of the driver because Tune's experiment state
@@ -48,6 +50,7 @@ from tuning.reaper import clear_mark, start_reaper
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus
 
 EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
+REPLACED_DIR = "replaced"  # restarted trials' earlier directories: replaced/<time>/<trial dir> (out of the report's reach)
 
 
 def check_address(address: str | None, timeout: float = 5.0) -> None:
@@ -111,6 +114,7 @@ def run_sweep(
     address: str | None = None,
     max_concurrent: int | None = None,
     resume: bool = False,
+    restart: tuple[str, ...] = (),
     num_cpus: int | None = None,
     log: Callable[[str], None] = print,
     command: str | None = None,
@@ -119,6 +123,7 @@ def run_sweep(
 ) -> dict[str, Any]:
     """Run (or resume) one sweep; returns its summary (experiment directory, trials, generalization CSV).
 
+    ``restart`` (with ``resume``): these methods' trials run again from scratch (``restart_trials``).
     ``wandb_project`` / ``mlflow_uri``: also log every trial's results with Tune's W&B / MLflow
     logger callbacks (the package must be installed; refused with one line before any work if not).
     """
@@ -141,8 +146,12 @@ def run_sweep(
         settings = read_settings(path) if local else {}
         if settings and settings["experiment"] != experiment:
             raise ValueError(f"{path} holds experiment {settings['experiment']!r}, not {experiment!r}")
+        if restart:
+            check_restart(path, restart, settings, local)
         space = None
     else:
+        if restart:
+            raise ValueError(f"--restart {' '.join(restart)} without --resume; allowed: --restart only with --resume")
         if local and path.exists() and any(path.iterdir()):
             raise ValueError(f"experiment directory {path} already exists; continue it with --resume or pick another --name")
         space = exp.param_space(scenario, scale, methods, seeds, steps, overrides)
@@ -186,8 +195,13 @@ def run_sweep(
     if local_ray and gpus:
         check_local_gpus(gpus, started_here)
     if resume:
+        if restart:
+            moved, replaced = restart_trials(path, restart)
+            log(f"restarting {len(moved)} trials of {', '.join(restart)} from scratch; their earlier directories -> {replaced}")
         log(f"resuming {path}: finished trials stay, the others continue from their newest checkpoint")
-        tuner = tune.Tuner.restore(str(path), trainable=CoinTrial, resume_unfinished=True, resume_errored=True)
+        tuner = tune.Tuner.restore(
+            str(path), trainable=CoinTrial, resume_unfinished=True, resume_errored=not restart, restart_errored=bool(restart)
+        )
     else:
         if local:
             path.mkdir(parents=True, exist_ok=True)
@@ -215,6 +229,8 @@ def run_sweep(
         with terminate_as_interrupt():  # SIGTERM stops Tune as Ctrl-C does: experiment state saved, trials resumable
             grid = tuner.fit()
     finally:
+        if resume and restart:
+            tidy_restarted(path, moved, replaced)
         if started_here:  # no Ray process of this sweep outlives it (raylet, GCS, dashboard and runtime-env agents)
             ray.shutdown()
     summary: dict[str, Any] = {"experiment_dir": str(path), "wall_s": round(time.perf_counter() - t0, 1), "errors": grid.num_errors}
@@ -238,6 +254,67 @@ def run_sweep(
         if done:
             summary["generalization_csv"] = str(write_generalization(path, records=done, log=log))
     return summary
+
+
+def _trial_states(path: Path) -> tuple[Path, dict[str, Any], list[dict[str, Any]]]:
+    """The newest Tune experiment-state file of a local sweep, its content and each trial's decoded state."""
+    state_file = max(path.glob(EXPERIMENT_STATE_GLOB), key=lambda p: p.name)
+    state = json.loads(state_file.read_text())
+    return state_file, state, [json.loads(trial_json) for trial_json, _ in state["trial_data"]]
+
+
+def check_restart(path: Path, methods: tuple[str, ...], settings: dict[str, Any], local: bool) -> None:
+    """Refuse a ``--restart`` that names a method the sweep lacks, needs a remote sweep edited, or would restart others' errored trials."""
+    if not local:
+        raise ValueError(f"--restart on {path}; allowed: a sweep in a local directory (it edits Tune's experiment state there)")
+    swept = settings.get("methods", [])
+    for m in methods:
+        if m not in swept:
+            raise ValueError(f"--restart {m}: not a method of {path}; allowed: {', '.join(swept)}")
+    others = [t["relative_logdir"] for t in _trial_states(path)[2] if t["status"] == "ERROR" and t["config"]["algo"] not in methods]
+    if others:
+        raise ValueError(
+            f"--restart with errored trials of other methods ({', '.join(others)}); allowed: resume them first without --restart"
+        )
+
+
+def restart_trials(path: Path, methods: tuple[str, ...]) -> tuple[list[str], Path]:
+    """Mark these methods' trials for a restart from scratch and move their directories aside; their names and where they went.
+
+    Tune restarts errored trials from scratch (``Tuner.restore(..., restart_errored=True)``, a new
+    trial id and directory), so the trials of ``methods`` are marked errored in the newest
+    experiment state (written atomically) and their directories go to ``replaced/<time>/``, where
+    nothing is lost and ``load_trials`` (the report) does not look. For a method rerun after a fix.
+    """
+    state_file, state, trials = _trial_states(path)
+    names = []
+    for i, trial in enumerate(trials):
+        if trial["config"]["algo"] in methods:
+            trial["status"] = "ERROR"
+            state["trial_data"][i][0] = json.dumps(trial, indent=2)
+            names.append(trial["relative_logdir"])
+    tmp = state_file.with_name(state_file.name + ".tmp")
+    tmp.write_text(json.dumps(state))
+    os.replace(tmp, state_file)
+    dest = path / REPLACED_DIR / time.strftime("%Y%m%d-%H%M%S")
+    for name in names:
+        if (path / name).is_dir():
+            dest.mkdir(parents=True, exist_ok=True)
+            os.replace(path / name, dest / name)
+    return names, dest
+
+
+def tidy_restarted(path: Path, names: list[str], dest: Path) -> None:
+    """Move restarted trials' old directories that Tune re-created during the run (empty, or re-synced) to ``dest``."""
+    for name in names:
+        old = path / name
+        if not old.is_dir():
+            continue
+        if not any(old.iterdir()):
+            old.rmdir()
+        else:
+            dest.mkdir(parents=True, exist_ok=True)
+            os.replace(old, dest / f"{name}.resynced")
 
 
 def tracking_callbacks(wandb_project: str | None, mlflow_uri: str | None, experiment_name: str) -> list[Any]:

@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 import uuid
 from collections import defaultdict
+from collections.abc import KeysView
 from typing import Any
 
 import numpy as np
@@ -75,6 +76,21 @@ from coin_app.sim.simulator import agent_name
 
 ILB = InfiniteLookbackBuffer
 ALL_AGENTS = "__all_agents__"  # the agent key of the agent-step counters (RLlib's runner keeps one per vehicle id)
+
+
+class OrderedMultiAgentEpisode(MultiAgentEpisode):
+    """A ``MultiAgentEpisode`` whose agent ids iterate in the order the vehicles were added.
+
+    RLlib's ``agent_ids`` is a ``set`` of strings, so the learner connectors (which iterate it
+    to lay out the train batch) order an episode's rows by the process's string hash seed:
+    the same seed then trained differently in every process. A keys view is set-like and keeps
+    insertion order, so the batch (and the run) depends on the seed alone.
+    """
+
+    @property
+    def agent_ids(self) -> KeysView[str]:  # type: ignore[override]
+        """The episode's agent ids, in insertion order (set-like)."""
+        return self.agent_episodes.keys()
 
 
 class BatchedEnvRunner(EnvRunner, Checkpointable):
@@ -380,7 +396,7 @@ class BatchedEnvRunner(EnvRunner, Checkpointable):
                 env_steps = (steps if last is None else last + 1) - first
                 if env_steps <= 0:
                     continue
-                ma = MultiAgentEpisode(id_=ep_id, env_t_started=t_before, agent_to_module_mapping_fn=self.config.policy_mapping_fn)
+                ma = OrderedMultiAgentEpisode(id_=ep_id, env_t_started=t_before, agent_to_module_mapping_fn=self.config.policy_mapping_fn)
                 ma.env_t = t_before + env_steps
                 ma.agent_episodes = agents_of.get(ep_id, {})
                 ma._agent_to_module_mapping = dict.fromkeys(ma.agent_episodes, self.module_id)

@@ -20,6 +20,9 @@ learner does what Ray 1.x did, each difference a learner-connector piece or a le
   value Ray 1.x's SGD loops reported; "last_minibatch" keeps RLlib 2.60's signal, the KL of the
   last minibatch only.
 
+Every learner-connector pipeline starts with ``FixedAgentOrder`` (``agent_order.py``): the batch's
+rows do not depend on the Python hash seed.
+
 ``learner_config_dict["precision"]`` "bf16" runs each minibatch's forward pass and losses under
 bfloat16 autocast (``precision.py``); "fp32", the default, is RLlib's update as it is.
 """
@@ -40,6 +43,7 @@ from ray.rllib.core.rl_module.apis.value_function_api import ValueFunctionAPI
 from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.torch_utils import explained_variance
 
+from coin_app.algorithms.ppo_family.agent_order import fix_agent_order
 from coin_app.algorithms.ppo_family.losses import clipped_value_loss, last_epoch_mean, surrogate_loss
 from coin_app.algorithms.ppo_family.precision import MixedPrecisionLearner
 
@@ -97,6 +101,7 @@ class ClippedValuePPOLearner(MixedPrecisionLearner, PPOTorchLearner):
         cfg = self.config.learner_config_dict
         self.kl_signal: str = cfg["kl_signal"]
         self._minibatch_kls: dict[str, list[torch.Tensor]] = defaultdict(list)
+        fix_agent_order(self)
         if self._learner_connector is not None:
             if not cfg["timeout_bootstrap"]:
                 self._learner_connector.insert_before(AddOneTsToEpisodesAndTruncate, TimeoutsAsTerminal())
