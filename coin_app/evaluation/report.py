@@ -130,7 +130,8 @@ def gather(paths: Sequence[Path]) -> Sources:
                 cfg = trial.config
                 run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(ckpt), trial.checkpoint_env_steps(ckpt))
                 runs.append(run)
-                candidates.append(Candidates(run, tuple(str(c) for c in trial.checkpoints)))
+                steps = tuple(trial.checkpoint_env_steps(c) for c in trial.checkpoints)
+                candidates.append(Candidates(run, tuple(str(c) for c in trial.checkpoints), steps))
             out.sweeps.append(
                 {
                     "path": d,

@@ -30,10 +30,16 @@ TIE_DECIMALS = 9  # validation means equal to this many decimals are a tie (mean
 
 @dataclass(frozen=True)
 class Candidates:
-    """One trial's model (its final checkpoint, with the trial's env steps) and every checkpoint kept for it, oldest first."""
+    """One trial's model (its final checkpoint) and every checkpoint kept for it, oldest first, with the env steps each was saved at."""
 
     run: EvalRun
     checkpoints: tuple[str, ...]
+    env_steps: tuple[int | None, ...]  # per checkpoint (``TrialRecord.checkpoint_env_steps``); None where unknown
+
+    def __post_init__(self) -> None:
+        """Refuse env steps that do not match the checkpoints one to one."""
+        if len(self.env_steps) != len(self.checkpoints):
+            raise ValueError(f"{len(self.env_steps)} env-step counts for {len(self.checkpoints)} checkpoints; allowed: one per checkpoint")
 
 
 def best_index(successes: Sequence[float]) -> int:
@@ -60,29 +66,22 @@ def select_checkpoints(
     """Per trial the checkpoint best on ``episodes`` validation seeds; the per-checkpoint table; the failures.
 
     A checkpoint that cannot be evaluated never wins (it is among the failures); a trial none of
-    whose checkpoints can be evaluated is left out. A checkpoint's trained env steps come from its
-    metadata; the final one falls back to the trial's own count (checkpoints saved before
-    coin_app recorded them); earlier ones without it stay empty.
+    whose checkpoints can be evaluated is left out. Each checkpoint's trained env steps are the
+    trial's (``Candidates.env_steps``).
     """
     if episodes < 1:
         raise ValueError(f"bad validation episodes {episodes}; allowed: an integer >= 1")
-    candidates = [replace(t.run, checkpoint=c, trained_env_steps=None) for t in trials for c in t.checkpoints]
+    candidates = [replace(t.run, checkpoint=c, trained_env_steps=n) for t in trials for c, n in zip(t.checkpoints, t.env_steps)]
     log(f"validation-seed selection: {len(candidates)} checkpoints of {len(trials)} trials, {episodes} validation seeds each")
     evaluation = run_evaluation(candidates, validation_seeds(episodes), workers=workers, log=log)
-    means = evaluation.table.groupby("checkpoint", sort=False).agg(
-        validation_success=("success_rate", "mean"), trained_env_steps=("trained_env_steps", "first")
-    )
+    means = evaluation.table.groupby("checkpoint", sort=False)["success_rate"].mean()
     selected, rows = [], []
     for trial in trials:
-        scores = [round(float(means["validation_success"].get(c, float("nan"))), TIE_DECIMALS) for c in trial.checkpoints]
+        scores = [round(float(means.get(c, float("nan"))), TIE_DECIMALS) for c in trial.checkpoints]
         if all(s != s for s in scores):  # no checkpoint could be evaluated: the trial is left out (its failures are listed)
             continue
         best = best_index(scores)
-        steps = []
-        for c in trial.checkpoints:
-            known = means["trained_env_steps"].get(c)
-            known = None if known is None or pd.isna(known) else int(known)
-            steps.append(trial.run.trained_env_steps if known is None and c == trial.run.checkpoint else known)
+        steps = trial.env_steps
         chosen = trial.checkpoints[best]
         selected.append(replace(trial.run, checkpoint=chosen, trained_env_steps=steps[best]))
         for i, (c, s) in enumerate(zip(trial.checkpoints, scores)):
