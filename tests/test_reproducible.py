@@ -7,11 +7,16 @@ either env runner. Runs must match bit for bit.
 """
 
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
+
+from coin_app.adapters.episodes import OrderedMultiAgentEpisode, order_agents
 
 PRELUDE = """
 import ray, torch
@@ -45,11 +50,14 @@ for runner in ("batched", "multi_agent"):
 }
 
 
+EXPECTED_LINES = {"cig_td3": 1, "ippo": 2}
+
+
 def run(algo: str, hash_seed: int) -> str:
     env = {**os.environ, "PYTHONHASHSEED": str(hash_seed), "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     out = subprocess.run([sys.executable, "-c", PRELUDE + SCRIPTS[algo]], env=env, capture_output=True, text=True, timeout=300)
     lines = [line for line in out.stdout.splitlines() if line.startswith("RESULT")]
-    assert lines, out.stderr[-2000:]
+    assert out.returncode == 0 and len(lines) == EXPECTED_LINES[algo], out.stderr[-2000:]
     return "\n".join(lines)
 
 
@@ -57,3 +65,17 @@ def run(algo: str, hash_seed: int) -> str:
 def test_same_seed_same_run_across_hash_seeds(algo):
     a, b = run(algo, 0), run(algo, 1)
     assert a == b
+
+
+def test_ordered_episode_iterates_agents_sorted_by_id_and_survives_pickling():
+    obs = {"agent10": np.zeros(2), "agent2": np.ones(2), "agent1": np.full(2, 2.0)}
+    ep = MultiAgentEpisode()
+    ep.add_env_reset(observations=obs, infos={a: {} for a in obs})
+    order_agents([ep])
+    assert type(ep) is OrderedMultiAgentEpisode
+    assert list(ep.agent_ids) == ["agent1", "agent2", "agent10"] == list(ep.get_agents_that_stepped())
+    assert "agent2" in ep.agent_ids and set(ep.agent_ids) == set(obs)  # still set-like
+    again = pickle.loads(pickle.dumps(ep))
+    assert type(again) is OrderedMultiAgentEpisode and list(again.agent_ids) == ["agent1", "agent2", "agent10"]
+    again._del_agent("agent2")  # RLlib's removal calls agent_ids.discard
+    assert list(again.agent_ids) == ["agent1", "agent10"]

@@ -22,6 +22,7 @@ from coin_app.cli import main
 from coin_app.evaluation.sweep_results import load_trials, trial_name
 from coin_app.training import checkpoint_meta
 from tuning import EXPERIMENTS, get_experiment
+from tuning import sweep as sweep_module
 from tuning.ablations import VARIANTS
 from tuning.experiment import expand_grid, trial_overrides
 from tuning.progress_csv import aligned_row, read_table, write_table
@@ -239,7 +240,7 @@ def test_trial_files_caught_mid_write_are_handled_and_corrupt_ones_named(tmp_pat
         load_trials(exp)
 
 
-def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(local_ray, tmp_path, capsys):
+def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(local_ray, tmp_path, capsys, monkeypatch):
     storage = tmp_path / "sweeps"
     argv = ["sweep", "seeds", "--scale", "reduced", "--algos", "cig_td3", "copo", "--seeds", "3", "--steps", "600"]
     assert main([*argv, "--storage", str(storage)]) == 0
@@ -254,10 +255,13 @@ def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(local_ray, tmp_path, 
     # --restart copo: CoPO's trial runs again from scratch (a new directory; the old one kept aside), CIG-TD3's stays as it is
     before = {t.config["algo"]: t for t in load_trials(exp_dir)}
     kept = (before["cig_td3"].path / "result.json").read_bytes()
+    assert main([*argv, "--storage", str(storage), "--resume", "--restart", "copo"]) == 2  # just written: may be running
+    assert "so its sweep may still be running" in capsys.readouterr().err
+    monkeypatch.setattr(sweep_module, "LIVE_STATE_S", 0.0)
     assert main([*argv, "--storage", str(storage), "--resume", "--restart", "ippo"]) == 2
     assert "--restart ippo: not a method of" in capsys.readouterr().err
     assert main([*argv, "--storage", str(storage), "--resume", "--restart", "copo"]) == 0
-    assert "restarting 1 trials of copo" in capsys.readouterr().out
+    assert "restarting 1 trial(s) of copo" in capsys.readouterr().out
     trials = load_trials(exp_dir)
     assert sorted(t.name for t in trials) == ["cig_td3-s3", "copo-s3"]  # the old trial directory is not left behind
     after = {t.config["algo"]: t for t in trials}
@@ -492,3 +496,40 @@ def test_sweep_driver_stopped_leaves_no_ray_process(tmp_path, sig):
     _wait_for(lambda: not _processes_with_env(ray_tmp), 90, f"the sweep's Ray processes to exit: {_processes_with_env(ray_tmp)}")
     if sig == signal.SIGTERM:
         assert "Traceback" not in (tmp_path / "driver.log").read_text()
+
+
+def _crafted_sweep(root: Path) -> Path:
+    """A sweep directory with Tune's experiment state for three trials (a finished, an errored, a finished), no Ray."""
+    path = root / "crafted"
+    path.mkdir(parents=True)
+    (path / "coin_sweep.json").write_text(json.dumps({"experiment": "seeds", "methods": ["a", "b"]}))
+    trials = [("a-s0_1", "a", "TERMINATED"), ("b-s0_2", "b", "ERROR"), ("a-s1_3", "a", "TERMINATED")]
+    data = [[json.dumps({"status": st, "config": {"algo": algo}, "relative_logdir": name}), "{}"] for name, algo, st in trials]
+    for name, _, _ in trials:
+        (path / name).mkdir()
+        (path / name / "result.json").write_text("{}\n")
+    state = path / "experiment_state-2026-01-01_00-00-00.json"
+    state.write_text(json.dumps({"trial_data": data, "runner_data": {}, "stats": {}}))
+    os.utime(state, (time.time() - 3600, time.time() - 3600))
+    return path
+
+
+def test_restart_marks_the_methods_trials_moves_their_directories_and_guards_a_plain_resume(tmp_path, capsys):
+    path = _crafted_sweep(tmp_path)
+    settings = json.loads((path / "coin_sweep.json").read_text())
+    with pytest.raises(ValueError, match=r"errored trials of other methods \(b-s0_2\); allowed: resume them first"):
+        sweep_module.check_restart(path, ("a",), settings, True)
+    with pytest.raises(ValueError, match="--restart c: not a method of"):
+        sweep_module.check_restart(path, ("b", "c"), settings, True)
+    with pytest.raises(ValueError, match="allowed: a sweep in a local directory"):
+        sweep_module.check_restart(path, ("a",), settings, False)
+    names, dest = sweep_module.restart_trials(path, ("a", "b"), "the command")
+    assert names == ["a-s0_1", "b-s0_2", "a-s1_3"]
+    assert sorted(p.name for p in dest.iterdir()) == sorted(names) and not any((path / n).exists() for n in names)
+    state = json.loads(next(path.glob("experiment_state-*.json")).read_text())
+    assert [json.loads(t)["status"] for t, _ in state["trial_data"]] == ["ERROR"] * 3  # Tune restarts errored trials
+    after = json.loads((path / "coin_sweep.json").read_text())
+    assert after["restart_pending"] == ["a", "b"] and after["restarts"][0]["command"] == "the command"
+    # a crash before the rerun: a plain --resume is refused before any work, the same --restart is the way on
+    assert main(["sweep", "seeds", "--storage", str(tmp_path), "--name", "crafted", "--resume"]) == 2
+    assert "has an unfinished --restart of a b; allowed: --resume --restart a b" in capsys.readouterr().err

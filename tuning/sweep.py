@@ -50,6 +50,8 @@ from tuning.reaper import clear_mark, start_reaper
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus
 
 EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
+RESTART_PENDING = "restart_pending"  # coin_sweep.json: methods of a --restart begun and not yet run (a plain --resume is refused)
+LIVE_STATE_S = 30.0  # an experiment state written more recently than this: the sweep's driver may still be running
 REPLACED_DIR = "replaced"  # restarted trials' earlier directories: replaced/<time>/<trial dir> (out of the report's reach)
 
 
@@ -146,6 +148,11 @@ def run_sweep(
         settings = read_settings(path) if local else {}
         if settings and settings["experiment"] != experiment:
             raise ValueError(f"{path} holds experiment {settings['experiment']!r}, not {experiment!r}")
+        pending = settings.get(RESTART_PENDING) or []
+        if pending and not set(pending) <= set(restart):
+            raise ValueError(
+                f"{path} has an unfinished --restart of {' '.join(pending)}; allowed: --resume --restart {' '.join(pending)} (finishes it)"
+            )
         if restart:
             check_restart(path, restart, settings, local)
         space = None
@@ -196,8 +203,8 @@ def run_sweep(
         check_local_gpus(gpus, started_here)
     if resume:
         if restart:
-            moved, replaced = restart_trials(path, restart)
-            log(f"restarting {len(moved)} trials of {', '.join(restart)} from scratch; their earlier directories -> {replaced}")
+            moved, replaced = restart_trials(path, restart, command)
+            log(f"restarting {len(moved)} trial(s) of {', '.join(restart)} from scratch; their earlier directories -> {replaced}")
         log(f"resuming {path}: finished trials stay, the others continue from their newest checkpoint")
         tuner = tune.Tuner.restore(
             str(path), trainable=CoinTrial, resume_unfinished=True, resume_errored=not restart, restart_errored=bool(restart)
@@ -205,7 +212,7 @@ def run_sweep(
     else:
         if local:
             path.mkdir(parents=True, exist_ok=True)
-            (path / SETTINGS_FILE).write_text(json.dumps(settings, indent=2))
+            write_settings(path, settings)
         tuner = tune.Tuner(
             CoinTrial,
             param_space=space,
@@ -231,6 +238,7 @@ def run_sweep(
     finally:
         if resume and restart:
             tidy_restarted(path, moved, replaced)
+            write_settings(path, {k: v for k, v in read_settings(path).items() if k != RESTART_PENDING})
         if started_here:  # no Ray process of this sweep outlives it (raylet, GCS, dashboard and runtime-env agents)
             ray.shutdown()
     summary: dict[str, Any] = {"experiment_dir": str(path), "wall_s": round(time.perf_counter() - t0, 1), "errors": grid.num_errors}
@@ -267,6 +275,12 @@ def check_restart(path: Path, methods: tuple[str, ...], settings: dict[str, Any]
     """Refuse a ``--restart`` that names a method the sweep lacks, needs a remote sweep edited, or would restart others' errored trials."""
     if not local:
         raise ValueError(f"--restart on {path}; allowed: a sweep in a local directory (it edits Tune's experiment state there)")
+    age = time.time() - max(p.stat().st_mtime for p in path.glob(EXPERIMENT_STATE_GLOB))
+    if age < LIVE_STATE_S:
+        raise ValueError(
+            f"--restart on {path}: its experiment state was written {age:.0f} s ago, so its sweep may still be running; "
+            f"allowed: --restart once that sweep's driver has stopped (state older than {LIVE_STATE_S:g} s)"
+        )
     swept = settings.get("methods", [])
     for m in methods:
         if m not in swept:
@@ -278,14 +292,27 @@ def check_restart(path: Path, methods: tuple[str, ...], settings: dict[str, Any]
         )
 
 
-def restart_trials(path: Path, methods: tuple[str, ...]) -> tuple[list[str], Path]:
+def write_settings(path: Path, settings: dict[str, Any]) -> None:
+    """Write a sweep's ``coin_sweep.json`` atomically."""
+    tmp = path / f"{SETTINGS_FILE}.tmp"
+    tmp.write_text(json.dumps(settings, indent=2))
+    os.replace(tmp, path / SETTINGS_FILE)
+
+
+def restart_trials(path: Path, methods: tuple[str, ...], command: str | None = None) -> tuple[list[str], Path]:
     """Mark these methods' trials for a restart from scratch and move their directories aside; their names and where they went.
 
     Tune restarts errored trials from scratch (``Tuner.restore(..., restart_errored=True)``, a new
     trial id and directory), so the trials of ``methods`` are marked errored in the newest
     experiment state (written atomically) and their directories go to ``replaced/<time>/``, where
     nothing is lost and ``load_trials`` (the report) does not look. For a method rerun after a fix.
+    ``coin_sweep.json`` records the restart (``restarts``) and marks it pending until the run ends,
+    so that a crash in between is finished by the same command, not by a plain ``--resume``.
     """
+    settings = read_settings(path)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    record = {"methods": list(methods), "time": stamp, "command": command}
+    write_settings(path, settings | {RESTART_PENDING: list(methods), "restarts": [*settings.get("restarts", []), record]})
     state_file, state, trials = _trial_states(path)
     names = []
     for i, trial in enumerate(trials):
@@ -296,7 +323,7 @@ def restart_trials(path: Path, methods: tuple[str, ...]) -> tuple[list[str], Pat
     tmp = state_file.with_name(state_file.name + ".tmp")
     tmp.write_text(json.dumps(state))
     os.replace(tmp, state_file)
-    dest = path / REPLACED_DIR / time.strftime("%Y%m%d-%H%M%S")
+    dest = path / REPLACED_DIR / stamp
     for name in names:
         if (path / name).is_dir():
             dest.mkdir(parents=True, exist_ok=True)

@@ -38,7 +38,6 @@ from __future__ import annotations
 import math
 import uuid
 from collections import defaultdict
-from collections.abc import KeysView
 from typing import Any
 
 import numpy as np
@@ -70,27 +69,13 @@ from ray.rllib.utils.metrics import (
     WEIGHTS_SEQ_NO,
 )
 
+from coin_app.adapters.episodes import OrderedMultiAgentEpisode
 from coin_app.adapters.rllib_env import OUTCOMES, parse_env_config
 from coin_app.adapters.vector_env import VectorEnv, VectorStep, make_vector_env, vector_spaces
 from coin_app.sim.simulator import agent_name
 
 ILB = InfiniteLookbackBuffer
 ALL_AGENTS = "__all_agents__"  # the agent key of the agent-step counters (RLlib's runner keeps one per vehicle id)
-
-
-class OrderedMultiAgentEpisode(MultiAgentEpisode):
-    """A ``MultiAgentEpisode`` whose agent ids iterate in the order the vehicles were added.
-
-    RLlib's ``agent_ids`` is a ``set`` of strings, so the learner connectors (which iterate it
-    to lay out the train batch) order an episode's rows by the process's string hash seed:
-    the same seed then trained differently in every process. A keys view is set-like and keeps
-    insertion order, so the batch (and the run) depends on the seed alone.
-    """
-
-    @property
-    def agent_ids(self) -> KeysView[str]:  # type: ignore[override]
-        """The episode's agent ids, in insertion order (set-like)."""
-        return self.agent_episodes.keys()
 
 
 class BatchedEnvRunner(EnvRunner, Checkpointable):

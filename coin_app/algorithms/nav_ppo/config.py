@@ -33,6 +33,7 @@ from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import set_on_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
+from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
@@ -128,7 +129,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     config = (
         PPOConfig(algo_class=NavPPO)
         .environment("coin-arena-v0", env_config=env_config_of(scenario))
-        .env_runners(num_env_runners=hp.pop("num_env_runners"))
+        .env_runners(num_env_runners=hp.pop("num_env_runners"), env_to_module_connector=acting_order)  # fixed agent order
         .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
         .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision, **curriculum})
         .rl_module(model_config=model, rl_module_spec=RLModuleSpec(module_class=PPOActorModule))

@@ -1,12 +1,13 @@
-"""A fixed agent order in the PPO learners' train batches, so that a seed gives one run in every process.
+"""A fixed agent order in the PPO family's acting and train batches, so that a seed gives one run in every process.
 
-RLlib 2.60's ``MultiAgentEpisode.agent_ids`` is a ``set`` of strings, and its learner connectors
-lay out the train batch by iterating it: the rows' order (and through the minibatches, the run)
+RLlib 2.60 keeps an episode's agent ids in sets, and its connectors lay out the acting batch
+(which agent draws which exploration noise) and the train batch by iterating them: runs
 followed the process's string hash seed (``PYTHONHASHSEED``). The batched env runner builds
-``OrderedMultiAgentEpisode`` chunks, whose agents iterate in the order they were added.
-``FixedAgentOrder``, the learner connector's first piece, gives episodes from RLlib's
-``MultiAgentEnvRunner`` the same property: it sorts their agents by id (``agent2`` before
-``agent10``; RLlib's ``cut`` re-inserts them in set order) and makes them ordered episodes.
+``OrderedMultiAgentEpisode`` chunks and acts on all vehicles in one fixed order itself.
+``FixedAgentOrder`` makes RLlib's episodes ordered ones (``coin_app/adapters/episodes.py``): as the
+first env-to-module piece (``acting_order``, for RLlib's ``MultiAgentEnvRunner``; it runs on every
+step, since RLlib's ``cut`` rebuilds episodes in set order) and as the learner connector's first
+piece (``fix_agent_order``).
 """
 
 from __future__ import annotations
@@ -14,30 +15,26 @@ from __future__ import annotations
 from typing import Any
 
 from ray.rllib.connectors.connector_v2 import ConnectorV2
-from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 
-from coin_app.adapters.batched_runner import OrderedMultiAgentEpisode
-
-
-def agent_sort_key(agent_id: Any) -> tuple[int, str]:
-    """Sort key of an agent id: shorter ids first, then by text (``agent2`` < ``agent10``)."""
-    text = str(agent_id)
-    return len(text), text
+from coin_app.adapters.episodes import order_agents
 
 
 class FixedAgentOrder(ConnectorV2):
-    """Learner connector (first piece): every multi-agent episode iterates its agents in a fixed order."""
+    """Connector piece (env-to-module or learner, first): every multi-agent episode iterates its agents in a fixed order."""
 
     def __call__(self, *, rl_module: Any, batch: dict[str, Any], episodes: Any, **kwargs: Any) -> dict[str, Any]:
-        """Sort the agents of each episode not already ordered and make it an ``OrderedMultiAgentEpisode``."""
-        for episode in episodes:
-            if isinstance(episode, MultiAgentEpisode) and not isinstance(episode, OrderedMultiAgentEpisode):
-                episode.agent_episodes = dict(sorted(episode.agent_episodes.items(), key=lambda kv: agent_sort_key(kv[0])))
-                episode.__class__ = OrderedMultiAgentEpisode  # same fields; only agent_ids differs
+        """Make each plain ``MultiAgentEpisode`` an ``OrderedMultiAgentEpisode`` (agents sorted by id); the batch unchanged."""
+        order_agents(episodes)
         return batch
 
 
+def acting_order(env: Any = None, spaces: Any = None, device: Any = None) -> FixedAgentOrder:
+    """The ``env_to_module_connector`` of the PPO family's configs: ``FixedAgentOrder`` before RLlib's default pieces."""
+    return FixedAgentOrder()
+
+
 def fix_agent_order(learner: Any) -> None:
-    """Put ``FixedAgentOrder`` first in a built learner's connector pipeline (no-op without one)."""
-    if learner._learner_connector is not None:
-        learner._learner_connector.prepend(FixedAgentOrder())
+    """Put ``FixedAgentOrder`` first in a built learner's connector pipeline; a ValueError if the learner has none."""
+    if learner._learner_connector is None:
+        raise ValueError("a PPO learner without a learner connector; allowed: num_aggregator_actors_per_learner=0 (the default)")
+    learner._learner_connector.prepend(FixedAgentOrder())

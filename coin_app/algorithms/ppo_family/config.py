@@ -36,6 +36,7 @@ from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import backend_errors, shared_policy_config
+from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.centralized import CentralizedCriticPPOLearner, CentralizedCriticPPOModule, critic_input_dim
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
@@ -122,7 +123,11 @@ def ppo_base_config(
     return (
         PPOConfig(algo_class=algo_class)
         .environment(f"coin-{scenario_name(scenario)}-v0", env_config=env_config)
-        .env_runners(num_env_runners=hp["num_env_runners"], rollout_fragment_length=hp["rollout_fragment_length"])
+        .env_runners(
+            num_env_runners=hp["num_env_runners"],
+            rollout_fragment_length=hp["rollout_fragment_length"],
+            env_to_module_connector=acting_order,  # RLlib's runner acts on the agents in a fixed order (agent_order.py)
+        )
         .training(**{k: hp[k] for k in TRAINING_KEYS})
         .debugging(seed=seed)
         .evaluation(evaluation_interval=None)
