@@ -264,9 +264,14 @@ def run_sweep(
     return summary
 
 
+def newest_state(path: Path) -> Path:
+    """The experiment-state file Tune restores from: the newest by name (Tune's own rule)."""
+    return max(path.glob(EXPERIMENT_STATE_GLOB), key=lambda p: p.name)
+
+
 def _trial_states(path: Path) -> tuple[Path, dict[str, Any], list[dict[str, Any]]]:
     """The newest Tune experiment-state file of a local sweep, its content and each trial's decoded state."""
-    state_file = max(path.glob(EXPERIMENT_STATE_GLOB), key=lambda p: p.name)
+    state_file = newest_state(path)
     state = json.loads(state_file.read_text())
     return state_file, state, [json.loads(trial_json) for trial_json, _ in state["trial_data"]]
 
@@ -275,7 +280,7 @@ def check_restart(path: Path, methods: tuple[str, ...], settings: dict[str, Any]
     """Refuse a ``--restart`` that names a method the sweep lacks, needs a remote sweep edited, or would restart others' errored trials."""
     if not local:
         raise ValueError(f"--restart on {path}; allowed: a sweep in a local directory (it edits Tune's experiment state there)")
-    age = time.time() - max(p.stat().st_mtime for p in path.glob(EXPERIMENT_STATE_GLOB))
+    age = time.time() - newest_state(path).stat().st_mtime
     if age < LIVE_STATE_S:
         raise ValueError(
             f"--restart on {path}: its experiment state was written {age:.0f} s ago, so its sweep may still be running; "
