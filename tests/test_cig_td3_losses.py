@@ -126,6 +126,26 @@ def test_td_targets_match_hand_computation_and_timeouts_bootstrap():
     assert td_targets(batch, actor, local_q, None, NO_NOISE)[1] is None
 
 
+def test_timeouts_end_the_targets_without_timeout_bootstrap():
+    """timeout_bootstrap=False (the paper's d_i): every done row is terminal, truncated ones too; the others bootstrap as before."""
+    batch = make_batch()
+    actor, local_q, central = FakeActor(), FakeTwinQ(), FakeCentral()
+    cfg = LossConfig(gamma=0.9, target_noise=0.0, target_noise_clip=0.5, timeout_bootstrap=False)
+    y_l, y_g = td_targets(batch, actor, local_q, central, cfg)
+    # by hand: rows 1 (terminated), 2 (both flags) and 3 (truncated) stop bootstrapping; rows 0 and 4 bootstrap
+    not_done = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0])
+    a_next = actor(batch["new_obs"])
+    q1, q2 = local_q(batch["new_obs"], a_next)
+    assert torch.allclose(y_l, batch["rewards"] + 0.9 * not_done * torch.minimum(q1, q2))
+    assert torch.equal(y_l[1:4], batch["rewards"][1:4])
+    m = batch["next_others_mask"]
+    a_others = actor(batch["next_others_obs"]) * m.unsqueeze(-1)
+    g1, g2 = central.q_values(batch["new_obs"], batch["new_state"], a_next, batch["next_others_state"], a_others, m)
+    assert torch.allclose(y_g, batch["global_rewards"] + 0.9 * not_done * torch.minimum(g1, g2))
+    y_default, _ = td_targets(batch, actor, local_q, central, NO_NOISE)
+    assert torch.equal(y_default[[0, 4]], y_l[[0, 4]]) and not torch.allclose(y_default[2:4], y_l[2:4])
+
+
 def test_target_smoothing_noise_is_clipped():
     actor = FakeActor()
     obs = torch.randn(2000, O)

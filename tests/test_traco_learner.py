@@ -97,6 +97,11 @@ def test_domain_target_by_hand():
     y, y_local = td_targets(batch, d1, torch.tensor([2.0]), actor, ConstQ(), None, cfg)
     # Q1 = 0.5 + 0.25 - 1.0 = -0.25, Q2 = 10.25: y = 2 + 0.5 * min = 1.875 (the far vehicle's 0.75 is left out)
     assert y_local is None and y.tolist() == [1.875]
+    batch[col.TRUNCATEDS] = torch.tensor([True])  # a time-out bootstraps by default; it is terminal with timeout_bootstrap=False
+    assert td_targets(batch, d1, torch.tensor([2.0]), actor, ConstQ(), None, cfg)[0].tolist() == [1.875]
+    paper = TracoLossConfig(gamma=0.5, target_noise=0.0, domain_radius=40.0, position_scale=1.0, timeout_bootstrap=False)
+    assert td_targets(batch, d1, torch.tensor([2.0]), actor, ConstQ(), None, paper)[0].tolist() == [2.0]
+    batch[col.TRUNCATEDS] = torch.tensor([False])
     batch[col.TERMINATEDS] = torch.tensor([True])
     assert td_targets(batch, d1, torch.tensor([2.0]), actor, ConstQ(), None, cfg)[0].tolist() == [2.0]
 

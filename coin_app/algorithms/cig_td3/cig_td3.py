@@ -78,6 +78,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "exploration_noise": (0.05, "std of the Gaussian noise added to actions while collecting"),
     "target_noise": (0.1, "std of the target-policy smoothing noise (Eq. 8)"),
     "target_noise_clip": (0.5, "clip of the target-policy smoothing noise"),
+    "timeout_bootstrap": (
+        True,
+        "True: a vehicle's time-out (its own step limit or the force stop, reported truncated) bootstraps its TD targets; "
+        "False: every done is terminal, time-outs too (the paper's d_i and the official code)",
+    ),
     "warmup_steps": (30_000, "env steps with uniform random actions before the policy acts (official code)"),
     "replay_capacity": (10_000_000, "agent transitions kept in the joint-step replay buffer (official code; memory grows with use)"),
     "updates_per_env_step": (1.0, "gradient updates per sampled env step (official: one per env step)"),

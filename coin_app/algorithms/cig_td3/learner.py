@@ -56,6 +56,7 @@ def loss_config(config: Any) -> LossConfig:
         kl_beta=config.kl_beta,
         preact_penalty=config.actor_preact_penalty,
         preact_threshold=config.actor_preact_threshold,
+        timeout_bootstrap=config.timeout_bootstrap,
     )
 
 

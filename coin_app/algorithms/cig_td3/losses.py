@@ -53,6 +53,7 @@ class LossConfig:
     kl_beta: float = 1.0
     preact_penalty: float = 0.0  # p: weight of the actor's pre-tanh penalty (0 = off, the paper)
     preact_threshold: float = 0.0  # u0: the pre-tanh magnitude the penalty starts at
+    timeout_bootstrap: bool = True  # a truncated transition (time-out) bootstraps; False: every done is terminal (the paper)
 
 
 SATURATED_PREACT = math.atanh(0.99)  # |u| above this: |tanh(u)| > 0.99, tanh's gradient < 0.02
@@ -65,9 +66,10 @@ def smoothed_target_action(actor_target: nn.Module, obs: torch.Tensor, noise_std
     return (mu + eps).clamp(-1.0, 1.0)
 
 
-def not_done(batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """1 - d with d = terminated and not truncated (a time-out still bootstraps)."""
-    done = batch[col.TERMINATEDS].bool() & ~batch[col.TRUNCATEDS].bool()
+def not_done(batch: dict[str, torch.Tensor], timeout_bootstrap: bool = True) -> torch.Tensor:
+    """1 - d: d = terminated and not truncated (a time-out bootstraps), or with ``timeout_bootstrap=False`` terminated or truncated."""
+    terminated, truncated = batch[col.TERMINATEDS].bool(), batch[col.TRUNCATEDS].bool()
+    done = terminated & ~truncated if timeout_bootstrap else terminated | truncated
     return 1.0 - done.float()
 
 
@@ -80,7 +82,7 @@ def td_targets(
     cfg: LossConfig,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Individual and global TD targets y^l (Eq. 8) and y^G (Eq. 11); y^G is None without a global critic."""
-    nd = not_done(batch)
+    nd = not_done(batch, cfg.timeout_bootstrap)
     next_a = smoothed_target_action(actor_target, batch[col.NEXT_OBS], cfg.target_noise, cfg.target_noise_clip)
     q1_t, q2_t = local_q_target(batch[col.NEXT_OBS], next_a)
     y_local = batch[col.REWARDS] + cfg.gamma * nd * torch.minimum(full_precision(q1_t), full_precision(q2_t))

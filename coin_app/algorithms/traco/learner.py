@@ -42,6 +42,7 @@ def loss_config(config: Any, position_scale: float) -> TracoLossConfig:
         domain_weight=config.domain_weight,
         preact_penalty=config.actor_preact_penalty,
         preact_threshold=config.actor_preact_threshold,
+        timeout_bootstrap=config.timeout_bootstrap,
     )
 
 

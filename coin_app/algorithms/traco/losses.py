@@ -53,6 +53,7 @@ class TracoLossConfig:
     domain_weight: float = 1.0
     preact_penalty: float = 0.0
     preact_threshold: float = 0.0
+    timeout_bootstrap: bool = True
 
 
 def domains(batch: dict[str, torch.Tensor], cfg: TracoLossConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -102,7 +103,7 @@ def td_targets(
     cfg: TracoLossConfig,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The domain target y^D and, with the individual critic, y^l (else None)."""
-    nd = not_done(batch)
+    nd = not_done(batch, cfg.timeout_bootstrap)
     next_a = smoothed_target_action(actor_target, batch[col.NEXT_OBS], cfg.target_noise, cfg.target_noise_clip)
     others_next_a = smoothed_target_action(actor_target, batch[col.NEXT_OTHERS_OBS], cfg.target_noise, cfg.target_noise_clip)
     others_next_a = others_next_a * next_domain.unsqueeze(-1)

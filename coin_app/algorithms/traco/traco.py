@@ -42,6 +42,7 @@ SHARED_KEYS = (
     "exploration_noise",
     "target_noise",
     "target_noise_clip",
+    "timeout_bootstrap",
     "warmup_steps",
     "replay_capacity",
     "updates_per_env_step",
