@@ -259,6 +259,34 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_probe(args: argparse.Namespace) -> int:
+    """Print what a TD3-family checkpoint's critics say at its deterministic policy's stopped vehicles."""
+    from coin_app.evaluation.critic_probe import probe_checkpoint
+
+    t0 = time.perf_counter()
+    probe = probe_checkpoint(Path(args.checkpoint), args.episodes, args.speed_below)
+    share = probe.stopped_steps / max(1, probe.vehicle_steps)
+    print(
+        f"probe: {args.checkpoint}, {args.episodes} test seeds, deterministic actions: {probe.stopped_steps} of "
+        f"{probe.vehicle_steps} vehicle-steps ({share:.1%}) below {args.speed_below:g} m/s"
+    )
+    if probe.stopped_steps:
+        steer, throttle = probe.policy_action
+        print(
+            f"  the policy's action there: steering {steer:+.3f}, throttle {throttle:+.3f}; "
+            f"Q_local {probe.policy_q_local:.3f}, Q_global {probe.policy_q_global:.3f}"
+        )
+        print("  same steering, throttle replaced: mean Q and the share of those steps where it beats the policy's action")
+        print(f"  {'throttle':>8} {'Q_local':>9} {'Q_global':>9} {'local':>6} {'global':>6} {'actor objective':>16}")
+        for r in probe.table.itertuples():
+            print(
+                f"  {r.throttle:>+8.1f} {r.q_local:>9.3f} {r.q_global:>9.3f} {r.local_prefers:>6.2f} "
+                f"{r.global_prefers:>6.2f} {r.objective_prefers:>16.2f}"
+            )
+    print(f"summary: {probe.stopped_steps} stopped vehicle-steps probed in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     """Export a checkpoint's deterministic actor to a Ray-free file and check it against the RLModule."""
 
@@ -607,6 +635,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--num-agents", type=int, default=None, help="evaluate at another agent count (generalization)")
     ev.add_argument("--out", default=None, help="write per-episode results to this JSON file")
     ev.set_defaults(func=cmd_evaluate)
+
+    pr = sub.add_parser("probe", help="a TD3-family checkpoint's critics at its stopped vehicles: do they prefer braking or driving on?")
+    pr.add_argument("checkpoint", help="a CIG-TD3 or ITD3 checkpoint directory (native backend)")
+    pr.add_argument("--episodes", type=int, default=10, help="test seeds to run (default 10)")
+    pr.add_argument("--speed-below", type=float, default=0.5, help="a vehicle counts as stopped below this speed (m/s)")
+    pr.set_defaults(func=cmd_probe)
 
     ex = sub.add_parser("export", help="export a checkpoint's actor for Ray-free inference")
     ex.add_argument("checkpoint", help="a checkpoint directory written by train or a sweep")

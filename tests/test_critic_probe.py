@@ -1,0 +1,69 @@
+"""The critic probe (``coin_app probe``) against critics whose preferences are known by construction."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from coin_app.evaluation.critic_probe import others_of, probe_stopped
+from coin_app.sim.config import ScenarioConfig
+
+CONFIG = ScenarioConfig(scenario="intersection", num_agents=3, horizon=40, max_agent_steps=40)
+
+
+class Brake(nn.Module):
+    """Straight ahead at full brake, whatever it observes: every vehicle stops and stays stopped."""
+
+    def forward(self, obs):
+        return torch.tensor([0.0, -1.0]).expand(len(obs), 2).clone()
+
+
+class ThrottleQ(nn.Module):
+    """Q^l_1(o, a) = the throttle: the individual critic prefers driving on."""
+
+    def q1_only(self, obs, act):
+        return act[:, 1]
+
+
+class BrakeGlobalQ(nn.Module):
+    """Q^G_1 = 3 x the brake + the number of others: the global critic prefers braking, three times as strongly."""
+
+    def q1(self, obs, state, action, others_state, others_action, mask):
+        assert others_state.shape[:2] == mask.shape and bool((others_action[~mask] == 0).all())
+        return -3.0 * action[:, 1] + mask.sum(1)
+
+
+def test_others_of_lists_each_rows_env_mates_in_row_order():
+    idx, mask = others_of(np.array([0, 1, 0, 0]), 3)
+    assert mask.tolist() == [[True, True, False], [False, False, False], [True, True, False], [True, True, False]]
+    assert idx[0, :2].tolist() == [2, 3] and idx[2, :2].tolist() == [0, 3] and idx[3, :2].tolist() == [0, 2]
+
+
+def test_probe_reports_the_individual_critics_preference_for_driving_on():
+    probe = probe_stopped(Brake(), ThrottleQ(), None, CONFIG, [200000, 200001])
+    assert probe.stopped_steps > 0 and probe.stopped_steps <= probe.vehicle_steps
+    assert probe.policy_action.tolist() == [0.0, -1.0] and probe.policy_q_local == -1.0
+    t = probe.table.set_index("throttle")
+    assert t["q_local"].tolist() == [-1.0, 0.0, 0.5, 1.0]  # Q^l = the throttle put in
+    # a throttle above the policy's full brake beats it at every stopped vehicle-step; the brake itself never does
+    assert t["local_prefers"].tolist() == [0.0, 1.0, 1.0, 1.0] and t["objective_prefers"].tolist() == [0.0, 1.0, 1.0, 1.0]
+    assert all(math.isnan(x) for x in t["global_prefers"]) and math.isnan(probe.policy_q_global)
+
+
+def test_probe_weighs_the_global_critic_as_the_actor_does():
+    probe = probe_stopped(Brake(), ThrottleQ(), BrakeGlobalQ(), CONFIG, [200000, 200001], global_weight=1.0)
+    t = probe.table.set_index("throttle")
+    assert t["global_prefers"].tolist() == [0.0, 0.0, 0.0, 0.0]  # the global critic: nothing beats full brake
+    # objective at throttle x: x - 3x = -2x (plus the same count of others) against the brake's +2: braking wins
+    assert t["objective_prefers"].tolist() == [0.0, 0.0, 0.0, 0.0] and t["local_prefers"].tolist() == [0.0, 1.0, 1.0, 1.0]
+    light = probe_stopped(Brake(), ThrottleQ(), BrakeGlobalQ(), CONFIG, [200000, 200001], global_weight=0.2)
+    # x - 0.6x = 0.4x against -0.4: every throttle above the brake wins
+    assert light.table["objective_prefers"].tolist() == [0.0, 1.0, 1.0, 1.0]
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [({"speed_below": 0.0}, "bad speed_below 0.0"), ({"throttles": [2.0]}, "bad throttles")])
+def test_probe_refuses_bad_input(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        probe_stopped(Brake(), ThrottleQ(), None, CONFIG, [200000], **kwargs)
