@@ -273,7 +273,8 @@ def cmd_probe(args: argparse.Namespace) -> int:
     if probe.stopped_steps:
         steer, throttle = probe.policy_action
         print(
-            f"  the policy's action there: steering {steer:+.3f}, throttle {throttle:+.3f}; "
+            f"  the policy's action there: steering {steer:+.3f}, throttle {throttle:+.3f} (mean |pre-tanh| "
+            f"{probe.policy_preact_abs[0]:.2f}, {probe.policy_preact_abs[1]:.2f}); "
             f"Q_local {probe.policy_q_local:.3f}, Q_global {probe.policy_q_global:.3f}"
         )
         print("  same steering, throttle replaced: mean Q and the share of those steps where it beats the policy's action")

@@ -50,6 +50,20 @@ def test_probe_reports_the_individual_critics_preference_for_driving_on():
     # a throttle above the policy's full brake beats it at every stopped vehicle-step; the brake itself never does
     assert t["local_prefers"].tolist() == [0.0, 1.0, 1.0, 1.0] and t["objective_prefers"].tolist() == [0.0, 1.0, 1.0, 1.0]
     assert all(math.isnan(x) for x in t["global_prefers"]) and math.isnan(probe.policy_q_global)
+    assert np.isnan(probe.policy_preact_abs).all()  # this actor has no pre-tanh output
+
+
+def test_probe_reports_the_actors_pre_tanh_magnitude():
+    class PreBrake(Brake):
+        def preactivation(self, obs):
+            return torch.tensor([0.5, -3.0]).expand(len(obs), 2)
+
+        def forward(self, obs):
+            return torch.tanh(self.preactivation(obs))
+
+    probe = probe_stopped(PreBrake(), ThrottleQ(), None, CONFIG, [200000])
+    assert probe.policy_preact_abs.tolist() == pytest.approx([0.5, 3.0])
+    assert probe.policy_action.tolist() == pytest.approx([math.tanh(0.5), math.tanh(-3.0)], abs=1e-6)  # float32
 
 
 def test_probe_weighs_the_global_critic_as_the_actor_does():

@@ -48,6 +48,7 @@ class Probe:
     policy_action: np.ndarray  # the policy's mean action (steering, throttle) at the stopped vehicle-steps
     policy_q_local: float  # mean Q^l_1 of the policy's action there
     policy_q_global: float  # mean Q^G_1 of the policy's action there (NaN without a global critic)
+    policy_preact_abs: np.ndarray  # mean |pre-tanh output| per action entry there (NaN for an actor without ``preactivation``)
 
 
 def others_of(env: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -79,7 +80,7 @@ def probe_stopped(
         raise ValueError(f"bad throttles {list(throttles)}; allowed: one or more values in [-1, 1]")
     envs = BatchedEnvs(DrivingSimulator(config, num_envs=len(seeds)))
     sim = envs.sim
-    parts: dict[str, list[np.ndarray]] = {"a": [], "ql": [], "qg": []}
+    parts: dict[str, list[np.ndarray]] = {"a": [], "pre": [], "ql": [], "qg": []}
     for t in throttles:
         parts[f"ql{t}"], parts[f"qg{t}"] = [], []
     seen = 0
@@ -103,6 +104,8 @@ def probe_stopped(
         others = (state[idx[rows]], a[idx[rows]] * torch.as_tensor(mask[rows, :, None]), torch.as_tensor(mask[rows]))
         with torch.no_grad():
             parts["a"].append(a[r].numpy())
+            pre = actor.preactivation(o[r]).abs().numpy() if hasattr(actor, "preactivation") else np.full((len(rows), 2), np.nan)
+            parts["pre"].append(pre)
             for key, action in [("", a[r])] + [(str(t), _with_throttle(a[r], t)) for t in throttles]:
                 parts[f"ql{key}"].append(local_q.q1_only(o[r], action).numpy())
                 qg = central.q1(o[r], state[r], action, *others).numpy() if central is not None else np.full(len(rows), np.nan)
@@ -133,6 +136,7 @@ def probe_stopped(
         c["a"].reshape(-1, 2).mean(0) if n else np.full(2, np.nan),
         float(c["ql"].mean()) if n else float("nan"),
         float(c["qg"].mean()) if n else float("nan"),
+        c["pre"].reshape(-1, 2).mean(0) if n else np.full(2, np.nan),
     )
 
 
