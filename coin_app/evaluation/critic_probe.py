@@ -157,6 +157,8 @@ def probe_checkpoint(checkpoint: Path, episodes: int = 10, speed_below: float = 
     if episodes < 1:
         raise ValueError(f"bad --episodes {episodes}; allowed: an integer >= 1")
     module: Any = load_module(Path(checkpoint))
+    if getattr(module, "domain_q", None) is not None:  # TraCo: its actor also follows a domain critic the probe does not read
+        raise ValueError(f"{checkpoint} is a TraCo checkpoint; the probe reads CIG-TD3 and ITD3 checkpoints")
     if getattr(module, "local_q", None) is None:
         raise ValueError(f"{checkpoint} has no individual critic (local_q); the probe reads CIG-TD3 and ITD3 checkpoints")
     config = scenario_of(Path(checkpoint))
