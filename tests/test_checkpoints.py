@@ -272,3 +272,17 @@ def test_sigterm_stops_train_after_its_iteration_with_a_checkpoint_and_a_summary
     summary = json.loads((run / "summary.json").read_text())
     meta = verify(run / "checkpoint")  # complete, and it says how far it trained
     assert summary["stopped"] == "SIGTERM" and 0 < summary["env_steps"] == meta["env_steps"] < 1_000_000
+
+
+def test_probe_runs_on_a_trained_checkpoint_and_counts_its_vehicle_steps(trained, capsys):
+    from coin_app.evaluation.critic_probe import probe_checkpoint
+
+    probe = probe_checkpoint(trained / "checkpoint", episodes=1)
+    assert 0 <= probe.stopped_steps <= probe.vehicle_steps and probe.vehicle_steps > 0
+    assert list(probe.table["throttle"]) == [-1.0, 0.0, 0.5, 1.0]
+    assert probe.table["global_prefers"].isna().all()  # ITD3: no global critic
+    assert main(["probe", str(trained / "checkpoint"), "--episodes", "1"]) == 0
+    out = capsys.readouterr().out
+    assert f"{probe.stopped_steps} of {probe.vehicle_steps} vehicle-steps" in out and "summary:" in out
+    assert main(["probe", str(trained / "checkpoint"), "--episodes", "0"]) == 2
+    assert "bad --episodes 0; allowed: an integer >= 1" in capsys.readouterr().err
