@@ -33,6 +33,7 @@ from coin_app.evaluation.arena_suite import (
     plot_scenarios,
     summarize,
 )
+from coin_app.evaluation.critic_probe import probe_checkpoint
 from coin_app.evaluation.evaluate import evaluate_policy, record
 from coin_app.evaluation.metrics import METRIC_KEYS, EpisodeRecorder, aggregate
 from coin_app.evaluation.policies import as_policy
@@ -261,8 +262,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_probe(args: argparse.Namespace) -> int:
     """Print what a TD3-family checkpoint's critics say at its deterministic policy's stopped vehicles."""
-    from coin_app.evaluation.critic_probe import probe_checkpoint
-
     t0 = time.perf_counter()
     probe = probe_checkpoint(Path(args.checkpoint), args.episodes, args.speed_below)
     share = probe.stopped_steps / max(1, probe.vehicle_steps)
