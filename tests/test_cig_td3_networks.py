@@ -11,6 +11,7 @@ from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfi
 from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, GATLayer, GraphModule, build_graph
 from coin_app.algorithms.cig_td3.individual import Actor, TwinQ, mlp
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
+from coin_app.algorithms.masked_softmax import masked_softmax
 
 torch.set_num_threads(1)
 
@@ -371,7 +372,8 @@ class SingleHeadGATBefore27(torch.nn.Module):
 
     def alpha(self, s_recv, s_nbr, adj):
         e = F.leaky_relu(s_recv.unsqueeze(-1) + s_nbr.unsqueeze(1), 0.2)
-        return torch.softmax(e.masked_fill(~adj, float("-inf")), dim=-1)
+        # the softmax the layer now uses (short rows padded to one vector; checked against its definition in test_masked_softmax.py)
+        return masked_softmax(e, adj)
 
     def forward(self, h, graph):
         u = torch.stack([self.a_recv @ self.W.weight, self.a_nbr @ self.W.weight])

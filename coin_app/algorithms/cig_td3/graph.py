@@ -34,6 +34,7 @@ from torch import Tensor, nn
 
 from coin_app.algorithms.choices import GAT_INITS, GLOBAL_MODULES  # noqa: F401 (re-exported)
 from coin_app.algorithms.cig_td3.pairwise import PairPacker
+from coin_app.algorithms.masked_softmax import masked_softmax
 
 XAVIER_GAIN = 1.414  # pyGAT's gain for W and a (the official COIN code's GAT, docs/decisions.md §2)
 
@@ -137,7 +138,7 @@ class GATLayer(nn.Module):
     def _alpha(self, s_recv: Tensor, s_nbr: Tensor, adj: Tensor) -> Tensor:
         """Scores s_recv (B, H, R), s_nbr (B, H, M), adj (B, R, M) -> alpha (B, H, R, M), softmax over j."""
         e = F.leaky_relu(s_recv.unsqueeze(-1) + s_nbr.unsqueeze(-2), self.leaky_slope)
-        return torch.softmax(e.masked_fill(~adj.unsqueeze(1), float("-inf")), dim=-1)
+        return masked_softmax(e, adj.unsqueeze(1))
 
     def forward(self, h: Tensor, graph: Graph) -> tuple[Tensor, Tensor]:
         """Packed h (P, F_in) -> (out (B, M, H*F), alpha (B, H, M, M)); padded receivers' rows are zero."""

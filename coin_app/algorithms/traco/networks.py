@@ -36,6 +36,7 @@ from torch import Tensor, nn
 
 from coin_app.algorithms.choices import NEIGHBOUR_FEATURES
 from coin_app.algorithms.cig_td3.individual import mlp
+from coin_app.algorithms.masked_softmax import masked_softmax
 from coin_app.sim import schema
 
 __all__ = [
@@ -167,7 +168,7 @@ class DomainAttention(nn.Module):
         v = self.value(tokens).view(b, n + 1, hh, d)
         keep = torch.cat([torch.ones(b, 1, dtype=torch.bool, device=nbr.device), nbr_mask.to(torch.bool)], 1)  # (B, 1+N)
         logits = (k.transpose(1, 2) @ q.unsqueeze(-1)).squeeze(-1) * self.scale  # (B, H, 1+N): q . k per head
-        weights = torch.softmax(logits.masked_fill(~keep.unsqueeze(1), float("-inf")), dim=-1)  # exactly 0 outside
+        weights = masked_softmax(logits, keep.unsqueeze(1))  # exactly 0 outside
         attn = (weights.unsqueeze(2) @ v.transpose(1, 2)).reshape(b, self.hidden)  # (B, H, 1, D) -> (B, F)
         return self.norm(ego + self.out(attn)), weights
 
