@@ -7,7 +7,7 @@ import pytest
 import torch
 from torch import nn
 
-from coin_app.evaluation.critic_probe import others_of, probe_stopped
+from coin_app.evaluation.critic_probe import probe_stopped
 from coin_app.sim.config import ScenarioConfig
 
 CONFIG = ScenarioConfig(scenario="intersection", num_agents=3, horizon=40, max_agent_steps=40)
@@ -33,12 +33,6 @@ class BrakeGlobalQ(nn.Module):
     def q1(self, obs, state, action, others_state, others_action, mask):
         assert others_state.shape[:2] == mask.shape and bool((others_action[~mask] == 0).all())
         return -3.0 * action[:, 1] + mask.sum(1)
-
-
-def test_others_of_lists_each_rows_env_mates_in_row_order():
-    idx, mask = others_of(np.array([0, 1, 0, 0]), 3)
-    assert mask.tolist() == [[True, True, False], [False, False, False], [True, True, False], [True, True, False]]
-    assert idx[0, :2].tolist() == [2, 3] and idx[2, :2].tolist() == [0, 3] and idx[3, :2].tolist() == [0, 2]
 
 
 def test_probe_reports_the_individual_critics_preference_for_driving_on():
@@ -81,3 +75,18 @@ def test_probe_weighs_the_global_critic_as_the_actor_does():
 def test_probe_refuses_bad_input(kwargs, message):
     with pytest.raises(ValueError, match=message):
         probe_stopped(Brake(), ThrottleQ(), None, CONFIG, [200000], **kwargs)
+
+
+def test_the_global_critic_sees_every_other_vehicle_of_the_egos_env_and_not_the_ego():
+    """3 braking vehicles per env (none leaves): every stopped row has exactly 2 others, none at the ego's position (normalised)."""
+    seen = []
+
+    class Record(nn.Module):
+        def q1(self, obs, state, action, others_state, others_action, mask):
+            seen.append((mask.sum(1), (others_state[..., :2] - state[:, None, :2]).norm(dim=-1)[mask]))
+            return torch.zeros(len(obs))
+
+    probe = probe_stopped(Brake(), ThrottleQ(), Record(), CONFIG, [200000, 200001])
+    counts = torch.cat([c for c, _ in seen])
+    assert len(counts) == probe.stopped_steps * (1 + len(probe.table)) and bool((counts == 2).all())
+    assert float(torch.cat([d for _, d in seen]).min()) > 1e-3  # another vehicle (normalised positions), never the ego (0)

@@ -51,12 +51,7 @@ def test_select_checkpoints_picks_per_trial_skips_failures_and_carries_env_steps
 
     def fake(runs, seeds, workers=1, log=print):
         seen.append((len(runs), list(seeds)))
-        rows = [
-            {"checkpoint": r.checkpoint, "success_rate": s, "trained_env_steps": r.trained_env_steps}
-            for r in runs
-            if r.checkpoint in episodes
-            for s in episodes[r.checkpoint]
-        ]
+        rows = [{"checkpoint": r.checkpoint, "success_rate": s} for r in runs if r.checkpoint in episodes for s in episodes[r.checkpoint]]
         failed = [{"checkpoint": r.checkpoint, "error": "cannot load"} for r in runs if r.checkpoint not in episodes]
         return Evaluation(pd.DataFrame(rows), failed)
 

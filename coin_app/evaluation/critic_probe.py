@@ -29,6 +29,7 @@ import pandas as pd
 import torch
 
 from coin_app.algorithms.checkpoints import load_module, read_metadata, scenario_of
+from coin_app.algorithms.ppo_family.neighbours import neighbour_indices
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.rollout import BatchedEnvs, rollout
 from coin_app.sim.seeds import eval_test_seeds
@@ -49,18 +50,6 @@ class Probe:
     policy_q_local: float  # mean Q^l_1 of the policy's action there
     policy_q_global: float  # mean Q^G_1 of the policy's action there (NaN without a global critic)
     policy_preact_abs: np.ndarray  # mean |pre-tanh output| per action entry there (NaN for an actor without ``preactivation``)
-
-
-def others_of(env: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """For each row, the rows of the other vehicles of its env (first ``width``) and their mask: ``(idx (B, width), mask (B, width))``."""
-    same = (env[:, None] == env[None, :]) & ~np.eye(len(env), dtype=bool)
-    order = np.argsort(~same, axis=1, kind="stable")[:, :width]  # same-env rows first, in row order
-    mask = np.take_along_axis(same, order, axis=1)
-    if order.shape[1] < width:  # fewer vehicles than slots: pad
-        pad = width - order.shape[1]
-        order = np.pad(order, ((0, 0), (0, pad)))
-        mask = np.pad(mask, ((0, 0), (0, pad)))
-    return order, mask
 
 
 def probe_stopped(
@@ -96,20 +85,31 @@ def probe_stopped(
             _collect(rows, o, a)
         return a.numpy()
 
-    def _collect(rows: np.ndarray, o: torch.Tensor, a: torch.Tensor) -> None:
-        r = torch.as_tensor(rows)
-        state = torch.as_tensor(envs.state[envs.acting], dtype=torch.float32)
-        env = sim.env_of[envs.acting]
-        idx, mask = others_of(env, max(1, int(np.bincount(env).max()) - 1))  # every other vehicle of the env
-        others = (state[idx[rows]], a[idx[rows]] * torch.as_tensor(mask[rows, :, None]), torch.as_tensor(mask[rows]))
+    def _collect(rows_np: np.ndarray, o: torch.Tensor, a: torch.Tensor) -> None:
+        acting, rows = envs.acting, torch.as_tensor(rows_np)
+        state = torch.as_tensor(envs.state[acting], dtype=torch.float32)
+        idx = neighbour_indices(sim.pos[acting], sim.env_of[acting], np.inf)[rows_np]  # every other vehicle of the env, -1 pads
+        if idx.shape[1] == 0:  # every env holds one vehicle: one empty slot
+            idx = np.full((len(rows_np), 1), -1)
+        mask = torch.as_tensor(idx >= 0)
+        take = torch.as_tensor(np.maximum(idx, 0))
+        others = (state[take] * mask[..., None], a[take] * mask[..., None], mask)
+        variants = [a[rows]] + [_with_throttle(a[rows], t) for t in throttles]  # the policy's action, then each throttle
+        k = len(variants)
         with torch.no_grad():
-            parts["a"].append(a[r].numpy())
-            pre = actor.preactivation(o[r]).abs().numpy() if hasattr(actor, "preactivation") else np.full((len(rows), 2), np.nan)
+            parts["a"].append(a[rows].numpy())
+            pre = actor.preactivation(o[rows]).abs().numpy() if hasattr(actor, "preactivation") else np.full((len(rows), 2), np.nan)
             parts["pre"].append(pre)
-            for key, action in [("", a[r])] + [(str(t), _with_throttle(a[r], t)) for t in throttles]:
-                parts[f"ql{key}"].append(local_q.q1_only(o[r], action).numpy())
-                qg = central.q1(o[r], state[r], action, *others).numpy() if central is not None else np.full(len(rows), np.nan)
-                parts[f"qg{key}"].append(qg)
+            ob, action = o[rows].repeat(k, 1), torch.cat(variants)  # one critic call for all variants
+            ql = local_q.q1_only(ob, action).numpy().reshape(k, -1)
+            if central is not None:
+                rep = [x.repeat(k, *[1] * (x.dim() - 1)) for x in (state[rows], *others)]
+                qg = central.q1(ob, rep[0], action, *rep[1:]).numpy().reshape(k, -1)
+            else:
+                qg = np.full((k, len(rows)), np.nan)
+            for key, q_l, q_g in zip(["", *map(str, throttles)], ql, qg, strict=True):
+                parts[f"ql{key}"].append(q_l)
+                parts[f"qg{key}"].append(q_g)
 
     for _ in rollout(envs, act, seeds, config.force_stop_factor * config.horizon):
         pass
