@@ -175,13 +175,13 @@ def local_head(tmp_path_factory):
                 time.sleep(1.0)
         yield address
     finally:
-        for sig in (signal.SIGTERM, signal.SIGKILL):
+        for sig, grace in ((signal.SIGTERM, 5), (signal.SIGKILL, 30)):  # `ray start --block` rarely exits on SIGTERM in 30 s
             try:
                 os.killpg(head.pid, sig)
             except ProcessLookupError:
                 break
             try:
-                head.wait(timeout=30)
+                head.wait(timeout=grace)
                 break
             except subprocess.TimeoutExpired:
                 continue

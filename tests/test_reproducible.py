@@ -53,17 +53,28 @@ for runner in ("batched", "multi_agent"):
 EXPECTED_LINES = {"cig_td3": 1, "ippo": 2}
 
 
-def run(algo: str, hash_seed: int) -> str:
-    env = {**os.environ, "PYTHONHASHSEED": str(hash_seed), "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    out = subprocess.run([sys.executable, "-c", PRELUDE + SCRIPTS[algo]], env=env, capture_output=True, text=True, timeout=300)
-    lines = [line for line in out.stdout.splitlines() if line.startswith("RESULT")]
-    assert out.returncode == 0 and len(lines) == EXPECTED_LINES[algo], out.stderr[-2000:]
-    return "\n".join(lines)
+def run_both(algo: str, hash_seeds: tuple[int, int]) -> list[str]:
+    """The RESULT lines of ``algo``'s script under each hash seed; the two processes run side by side (one thread each)."""
+    procs = []
+    for hash_seed in hash_seeds:
+        env = {**os.environ, "PYTHONHASHSEED": str(hash_seed), "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "-c", PRELUDE + SCRIPTS[algo]], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+            )
+        )
+    results = []
+    for proc in procs:
+        stdout, stderr = proc.communicate(timeout=300)
+        lines = [line for line in stdout.splitlines() if line.startswith("RESULT")]
+        assert proc.returncode == 0 and len(lines) == EXPECTED_LINES[algo], stderr[-2000:]
+        results.append("\n".join(lines))
+    return results
 
 
 @pytest.mark.parametrize("algo", sorted(SCRIPTS))
 def test_same_seed_same_run_across_hash_seeds(algo):
-    a, b = run(algo, 0), run(algo, 1)
+    a, b = run_both(algo, (0, 1))
     assert a == b
 
 
