@@ -7,7 +7,7 @@ import pytest
 import torch
 from torch import nn
 
-from coin_app.evaluation.critic_probe import probe_stopped
+from coin_app.evaluation.critic_probe import env_mates, probe_stopped
 from coin_app.sim.config import ScenarioConfig
 
 CONFIG = ScenarioConfig(scenario="intersection", num_agents=3, horizon=40, max_agent_steps=40)
@@ -33,6 +33,16 @@ class BrakeGlobalQ(nn.Module):
     def q1(self, obs, state, action, others_state, others_action, mask):
         assert others_state.shape[:2] == mask.shape and bool((others_action[~mask] == 0).all())
         return -3.0 * action[:, 1] + mask.sum(1)
+
+
+def test_env_mates_lists_every_other_vehicle_of_each_rows_env_nearest_first_and_pads():
+    pos = np.array([[0.0, 0.0], [5.0, 0.0], [3.0, 0.0], [1.0, 0.0], [9.0, 9.0]])
+    take, mask = env_mates(pos, np.array([0, 1, 0, 0, 2]))  # env 0: rows 0, 2, 3; env 1: row 1 alone; env 2: row 4 alone
+    assert mask.tolist() == [[True, True], [False, False], [True, True], [True, True], [False, False]]
+    assert take[0].tolist() == [3, 2] and take[2].tolist() == [3, 0] and take[3].tolist() == [0, 2]  # nearest first
+    assert take[1].tolist() == [0, 0] and take[4].tolist() == [0, 0]  # pads point at row 0, masked
+    take, mask = env_mates(pos[:2], np.array([0, 1]))  # one vehicle per env: one empty slot each
+    assert take.shape == mask.shape == (2, 1) and not mask.any()
 
 
 def test_probe_reports_the_individual_critics_preference_for_driving_on():
@@ -90,3 +100,11 @@ def test_the_global_critic_sees_every_other_vehicle_of_the_egos_env_and_not_the_
     counts = torch.cat([c for c, _ in seen])
     assert len(counts) == probe.stopped_steps * (1 + len(probe.table)) and bool((counts == 2).all())
     assert float(torch.cat([d for _, d in seen]).min()) > 1e-3  # another vehicle (normalised positions), never the ego (0)
+
+
+def test_probe_with_one_vehicle_per_env_gives_the_global_critic_an_empty_masked_slot():
+    alone = ScenarioConfig(scenario="intersection", num_agents=1, horizon=40, max_agent_steps=40)
+    probe = probe_stopped(Brake(), ThrottleQ(), BrakeGlobalQ(), alone, [200000])
+    assert probe.stopped_steps > 0
+    # Q^G = -3 x the throttle + 0 others: at the policy's full brake exactly 3 (BrakeGlobalQ also checks masked slots are zero)
+    assert probe.policy_q_global == 3.0 and probe.table.set_index("throttle").loc[1.0, "q_global"] == -3.0

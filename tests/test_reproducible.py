@@ -10,6 +10,7 @@ import os
 import pickle
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -55,21 +56,28 @@ EXPECTED_LINES = {"cig_td3": 1, "ippo": 2}
 
 def run_both(algo: str, hash_seeds: tuple[int, int]) -> list[str]:
     """The RESULT lines of ``algo``'s script under each hash seed; the two processes run side by side (one thread each)."""
-    procs = []
-    for hash_seed in hash_seeds:
-        env = {**os.environ, "PYTHONHASHSEED": str(hash_seed), "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-        procs.append(
-            subprocess.Popen(
-                [sys.executable, "-c", PRELUDE + SCRIPTS[algo]], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-            )
-        )
-    results = []
-    for proc in procs:
-        stdout, stderr = proc.communicate(timeout=300)
-        lines = [line for line in stdout.splitlines() if line.startswith("RESULT")]
-        assert proc.returncode == 0 and len(lines) == EXPECTED_LINES[algo], stderr[-2000:]
-        results.append("\n".join(lines))
-    return results
+    procs, logs = [], []
+    try:
+        for hash_seed in hash_seeds:
+            env = {**os.environ, "PYTHONHASHSEED": str(hash_seed), "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+            out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")  # files, not pipes: neither process blocks
+            logs.append((out, err))
+            procs.append(subprocess.Popen([sys.executable, "-c", PRELUDE + SCRIPTS[algo]], env=env, stdout=out, stderr=err, text=True))
+        results = []
+        for proc, (out, err) in zip(procs, logs, strict=True):
+            proc.wait(timeout=300)
+            out.seek(0), err.seek(0)
+            lines = [line for line in out.read().splitlines() if line.startswith("RESULT")]
+            assert proc.returncode == 0 and len(lines) == EXPECTED_LINES[algo], err.read()[-2000:]
+            results.append("\n".join(lines))
+        return results
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for out, err in logs:
+            out.close(), err.close()
 
 
 @pytest.mark.parametrize("algo", sorted(SCRIPTS))

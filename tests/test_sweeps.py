@@ -5,6 +5,7 @@ import json
 import os
 import random
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -321,6 +322,14 @@ def test_sweep_logs_every_trial_to_wandb_offline_and_an_mlflow_store(local_ray, 
         assert history == sorted(history) and history[-1] >= 1000
 
 
+@pytest.fixture
+def ray_tmp():
+    """A fresh RAY_TMPDIR, short (Ray's socket paths must fit in 107 characters), removed afterwards."""
+    path = tempfile.mkdtemp(prefix="cr", dir="/tmp")
+    yield path
+    shutil.rmtree(path, ignore_errors=True)
+
+
 def _wait_for(condition, timeout: float, what: str) -> None:
     t0 = time.time()
     while not condition():
@@ -329,8 +338,7 @@ def _wait_for(condition, timeout: float, what: str) -> None:
         time.sleep(0.5)
 
 
-def test_sweep_killed_with_sigkill_leaves_no_ray_process_and_resumes_without_rerunning_or_losing_anything(tmp_path, capsys):
-    ray_tmp = tempfile.mkdtemp(prefix="cr", dir="/tmp")  # short: Ray's socket paths must fit in 107 characters
+def test_sweep_killed_with_sigkill_leaves_no_ray_process_and_resumes_without_rerunning_or_losing_anything(tmp_path, capsys, ray_tmp):
     storage = tmp_path / "sweeps"
     argv = ["sweep", "seeds", "--smoke", "--seeds", "0", "1", "--max-concurrent", "1"]
     argv += ["--num-cpus", "1", "--storage", str(storage), "--name", "killed"]
@@ -346,7 +354,7 @@ def test_sweep_killed_with_sigkill_leaves_no_ray_process_and_resumes_without_rer
         _wait_for(
             lambda: any(t.finished for t in trials()) and any(t.checkpoints and not t.finished for t in trials()), 400, "a mid-way sweep"
         )
-        assert _processes_with_env(ray_tmp), "the sweep's Ray processes should be running"
+        assert _ray_processes(ray_tmp), f"the sweep's Ray should be running: {_processes_with_env(ray_tmp)}"
     finally:
         driver.send_signal(signal.SIGKILL)
         driver.wait()
@@ -467,6 +475,11 @@ def test_progress_rows_follow_the_existing_header_and_new_keys_extend_it(tmp_pat
     assert header == columns and rows[0]["eval/success"] == "" and rows[1]["learner/lr"] == "0.2" and rows[1]["env_steps"] == "1000"
 
 
+def _ray_processes(text: str) -> list[str]:
+    """Those of :func:`_processes_with_env` that are Ray's own (its raylet or GCS), not the driver or the reaper."""
+    return [c for c in _processes_with_env(text) if "raylet" in c or "gcs_server" in c]
+
+
 def _processes_with_env(text: str) -> list[str]:
     """Command lines of live processes whose environment contains ``text`` (Linux /proc; Ray retitles its processes)."""
     found = []
@@ -479,10 +492,9 @@ def _processes_with_env(text: str) -> list[str]:
     return found
 
 
-def test_sweep_driver_stopped_with_sigterm_leaves_no_ray_process_and_no_traceback(tmp_path):
+def test_sweep_driver_stopped_with_sigterm_leaves_no_ray_process_and_no_traceback(tmp_path, ray_tmp):
     """SIGTERM (kill -9 is the killed-sweep test above, which also resumes)."""
     sig = signal.SIGTERM
-    ray_tmp = tempfile.mkdtemp(prefix="cr", dir="/tmp")  # short: Ray's socket paths must fit in 107 characters
     storage = tmp_path / "sweeps"
     argv = ["sweep", "seeds", "--smoke", "--seeds", "0", "--num-cpus", "1", "--storage", str(storage), "--name", "stop"]
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "RAY_TMPDIR": ray_tmp}
@@ -490,7 +502,7 @@ def test_sweep_driver_stopped_with_sigterm_leaves_no_ray_process_and_no_tracebac
         driver = subprocess.Popen([sys.executable, "-m", "coin_app", *argv], cwd=REPO, env=env, stdout=log, stderr=log)
         try:
             _wait_for(lambda: any(storage.glob("stop/*/result.json")), 300, "a running trial")
-            assert _processes_with_env(ray_tmp), "the sweep's Ray processes should be running"
+            assert _ray_processes(ray_tmp), f"the sweep's Ray should be running: {_processes_with_env(ray_tmp)}"
             driver.send_signal(sig)
             driver.wait(timeout=120)
         finally:

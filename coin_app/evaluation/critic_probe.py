@@ -52,6 +52,17 @@ class Probe:
     policy_preact_abs: np.ndarray  # mean |pre-tanh output| per action entry there (NaN for an actor without ``preactivation``)
 
 
+def env_mates(positions: np.ndarray, env: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the rows of every other vehicle of its env (nearest first) and their mask: ``(take (n, w), mask (n, w))``, w >= 1.
+
+    Padded slots point at row 0 with a False mask.
+    """
+    idx = neighbour_indices(positions, env, np.inf)
+    if idx.shape[1] == 0:  # every env holds one vehicle: one empty slot
+        idx = np.full((len(env), 1), -1)
+    return np.maximum(idx, 0), idx >= 0
+
+
 def probe_stopped(
     actor: torch.nn.Module,
     local_q: torch.nn.Module,
@@ -88,11 +99,8 @@ def probe_stopped(
     def _collect(rows_np: np.ndarray, o: torch.Tensor, a: torch.Tensor) -> None:
         acting, rows = envs.acting, torch.as_tensor(rows_np)
         state = torch.as_tensor(envs.state[acting], dtype=torch.float32)
-        idx = neighbour_indices(sim.pos[acting], sim.env_of[acting], np.inf)[rows_np]  # every other vehicle of the env, -1 pads
-        if idx.shape[1] == 0:  # every env holds one vehicle: one empty slot
-            idx = np.full((len(rows_np), 1), -1)
-        mask = torch.as_tensor(idx >= 0)
-        take = torch.as_tensor(np.maximum(idx, 0))
+        take_np, mask_np = env_mates(sim.pos[acting], sim.env_of[acting])
+        take, mask = torch.as_tensor(take_np[rows_np]), torch.as_tensor(mask_np[rows_np])
         others = (state[take] * mask[..., None], a[take] * mask[..., None], mask)
         variants = [a[rows]] + [_with_throttle(a[rows], t) for t in throttles]  # the policy's action, then each throttle
         k = len(variants)
@@ -107,6 +115,11 @@ def probe_stopped(
                 qg = central.q1(ob, rep[0], action, *rep[1:]).numpy().reshape(k, -1)
             else:
                 qg = np.full((k, len(rows)), np.nan)
+            # a variant equal to the policy's own action (e.g. its full brake) gets exactly its Q: in one batch the
+            # rows would round differently by position, and a one-ulp difference would count as a preference
+            for v in range(1, k):
+                same = (variants[v] == variants[0]).all(1).numpy()
+                ql[v, same], qg[v, same] = ql[0, same], qg[0, same]
             for key, q_l, q_g in zip(["", *map(str, throttles)], ql, qg, strict=True):
                 parts[f"ql{key}"].append(q_l)
                 parts[f"qg{key}"].append(q_g)

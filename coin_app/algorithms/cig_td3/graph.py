@@ -103,7 +103,8 @@ class GATLayer(nn.Module):
     ``init="xavier"``: every W_k and every (2F, 1) vector a_k Xavier-uniform with gain 1.414, as
     pyGAT / the official code (``docs/decisions.md`` §2); ``init="default"``: ``nn.Linear``'s
     default for W, a_k as Xavier (the draws of the single-head layer before issue #27, in the same
-    RNG order, so ``heads=1, init="default"`` is bit-identical to it for a given torch seed).
+    RNG order, so ``heads=1, init="default"`` starts from its exact weights for a given torch seed;
+    its outputs differ from that layer's by the float rounding of :func:`masked_softmax` only).
     """
 
     def __init__(self, in_dim: int, out_dim: int, leaky_slope: float = 0.2, heads: int = 1, init: str = "xavier") -> None:
@@ -130,7 +131,7 @@ class GATLayer(nn.Module):
 
     def _score_vectors(self) -> tuple[Tensor, Tensor]:
         """(u_recv, u_nbr), each (H, F_in): ``u[k] = a[k]^T W_k``, so that ``a[k] . (W_k h) = u[k] . h``."""
-        if self.heads == 1:  # vector-matrix products, as the single-head layer (bit-identical gradients)
+        if self.heads == 1:  # vector-matrix products, as the single-head layer before issue #27
             return (self.a_recv[0] @ self.W.weight).unsqueeze(0), (self.a_nbr[0] @ self.W.weight).unsqueeze(0)
         w = self.W.weight.view(self.heads, self.out_dim, -1)  # (H, F, F_in)
         return (self.a_recv.unsqueeze(1) @ w).squeeze(1), (self.a_nbr.unsqueeze(1) @ w).squeeze(1)
