@@ -20,7 +20,8 @@ import pandas as pd
 
 from cluster import jobs
 from coin_app.algorithms import registry
-from coin_app.algorithms.checkpoints import export_actor, load_module, read_metadata
+from coin_app.algorithms.checkpoint_files import read_metadata
+from coin_app.algorithms.checkpoints import export_actor, load_module
 from coin_app.algorithms.registry import parse_overrides, quick_settings
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
 from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, policy_labels, write_arena_html, write_side_by_side

@@ -35,7 +35,8 @@ from tqdm import tqdm
 from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import make_env, register_envs
 from coin_app.algorithms import registry
-from coin_app.algorithms.checkpoints import PREVIOUS_SUFFIX, actor_policy, latest_complete, save_checkpoint
+from coin_app.algorithms.checkpoint_files import PREVIOUS_SUFFIX, latest_complete, save_checkpoint
+from coin_app.algorithms.checkpoints import actor_policy
 from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes, ProgressReporting, scenario_config_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import aggregate
@@ -318,7 +319,7 @@ def stop_on_signal() -> Iterator[StopRequest]:
 
 
 def save(algo: Algorithm, checkpoint: Path, meta: dict[str, Any], atomic: bool = True) -> None:
-    """Save the algorithm, its coin_app metadata and manifest to ``checkpoint`` (atomically: ``checkpoints.save_checkpoint``)."""
+    """Save the algorithm, its coin_app metadata and manifest to ``checkpoint`` (atomically: ``checkpoint_files.save_checkpoint``)."""
     save_checkpoint(algo, checkpoint, meta, atomic=atomic)
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from coin_app.algorithms.checkpoints import (
+from coin_app.algorithms.checkpoint_files import (
     MANIFEST_FILE,
     META_FILE,
     MODULE_PATH,
@@ -31,7 +31,7 @@ SAVER = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from coin_app.algorithms.checkpoints import MODULE_PATH, save_checkpoint
+    from coin_app.algorithms.checkpoint_files import MODULE_PATH, save_checkpoint
 
     class SlowAlgo:
         gen = 0
@@ -76,7 +76,7 @@ def test_sigkill_at_random_points_of_repeated_saves_always_leaves_one_complete_c
     states = {"checkpoint": 0, "prev": 0}
     for _ in range(12):  # each kill lands somewhere in a save: writing files, the manifest, or between the two renames
         proc = subprocess.Popen([sys.executable, str(script), str(ckpt), str(last_seen)], stdout=subprocess.PIPE, text=True)
-        assert proc.stdout.readline().strip().isdigit()  # its first save is complete (the import takes seconds)
+        assert proc.stdout.readline().strip().isdigit()  # its first save is complete
         time.sleep(rng.uniform(0.0, 0.4))  # a save takes ~0.1 s: the kill lands in one of the next few
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()

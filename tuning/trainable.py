@@ -25,7 +25,7 @@ from ray import tune
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.tune import PlacementGroupFactory
 
-from coin_app.algorithms.checkpoints import verify
+from coin_app.algorithms.checkpoint_files import verify
 from coin_app.training import build_config, checkpoint_meta, iteration_metrics, save
 from tuning.experiment import trial_overrides
 

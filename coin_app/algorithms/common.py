@@ -15,11 +15,10 @@ from ray.rllib.callbacks.callbacks import RLlibCallback
 
 from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.adapters.rllib_env import ADAPTER_KEYS, ENV_IDS, OUTCOMES, SCENARIO_CONFIG_KEY, CoinMultiAgentEnv
+from coin_app.algorithms.checkpoint_files import SHARED_MODULE_ID
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenarios import config_from_dict
-
-SHARED_MODULE_ID = "shared"
 
 ProgressCallback = Callable[[str, int, int], None]
 

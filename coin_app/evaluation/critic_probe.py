@@ -28,7 +28,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from coin_app.algorithms.checkpoints import load_module, read_metadata, scenario_of
+from coin_app.algorithms.checkpoint_files import read_metadata
+from coin_app.algorithms.checkpoints import load_module, scenario_of
 from coin_app.algorithms.ppo_family.neighbours import neighbour_indices
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.rollout import BatchedEnvs, rollout

@@ -14,8 +14,7 @@ from typing import Any
 
 import pandas as pd
 
-from coin_app.algorithms.checkpoint_files import META_FILE
-from coin_app.algorithms.checkpoints import git_commit
+from coin_app.algorithms.checkpoint_files import META_FILE, git_commit
 from coin_app.evaluation.tables import to_html
 
 PACKAGES = ("ray", "torch", "numpy", "pandas", "scipy", "matplotlib", "gymnasium", "pettingzoo")

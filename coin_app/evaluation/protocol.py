@@ -32,7 +32,8 @@ from typing import Any
 import pandas as pd
 import torch
 
-from coin_app.algorithms.checkpoints import load_checkpoint_policy, read_metadata, scenario_of
+from coin_app.algorithms.checkpoint_files import read_metadata
+from coin_app.algorithms.checkpoints import load_checkpoint_policy, scenario_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import METRIC_KEYS
 from coin_app.sim.config import BACKENDS, DEFAULT_NUM_AGENTS
