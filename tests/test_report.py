@@ -5,6 +5,7 @@ import html
 import json
 import shutil
 
+import numpy as np
 import pandas as pd
 import pytest
 import ray
@@ -116,8 +117,11 @@ def test_report_from_a_real_sweep_writes_every_output(sweep_dir, tmp_path, capsy
     # 2 models x counts {2, 4} x 2 test seeds, one row per episode
     assert len(results) == 8 and set(results["agent_count"]) == {2, 4}
     stats = pd.read_csv(out / "stats.csv")
-    assert list(stats["baseline"]) == ["ippo"] * 3 and list(stats["metric"]) == ["success_rate", "safety", "efficiency"]
-    assert (stats["n_pairs"] == 2).all() and stats["threshold"].iloc[0] == pytest.approx(0.01 / 3)
+    assert list(stats["unit"]) == ["episode"] * 3 + ["seed"] * 3 and (stats["baseline"] == "ippo").all()
+    assert list(stats["metric"]) == ["success_rate", "safety", "efficiency"] * 2
+    episodes, seeds = stats[stats["unit"] == "episode"], stats[stats["unit"] == "seed"]
+    assert (episodes["n_pairs"] == 2).all() and np.allclose(stats["threshold"], 0.01 / 3)
+    assert (seeds["n_pairs"] == 1).all() and seeds["p"].isna().all()  # one trained seed per method: no seed-level test
     md = (out / "table_main.md").read_text()
     assert "| cig_td3 |" in md and "| ippo |" in md and "**" in md
     page = html.unescape((out / "report.html").read_text())

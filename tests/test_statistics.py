@@ -70,6 +70,33 @@ def test_paired_t_tests_match_hand_computation_and_bonferroni():
     assert res.loc[("roundabout", "success_rate"), "t"] == pytest.approx(1.0)
 
 
+def test_seed_unit_pairs_each_trained_seeds_mean_over_its_paired_episodes():
+    rows = []
+    # seed 0: ours 1.0, 0.0 vs base 0.0, 0.0 (+ an unpaired base episode 0.9, left out) -> seed means 0.5 vs 0.0
+    rows += _episodes("ours", "intersection", {"success_rate": [1.0, 0.0]}, seed=0)
+    rows += _episodes("base", "intersection", {"success_rate": [0.0, 0.0, 0.9]}, seed=0)
+    # seed 1: 0.6 vs 0.3 -> d 0.3; seed 2: 0.2 vs 0.3 -> d -0.1 (one test seed each)
+    rows += _episodes("ours", "intersection", {"success_rate": [0.6]}, seed=1)
+    rows += _episodes("base", "intersection", {"success_rate": [0.3]}, seed=1)
+    rows += _episodes("ours", "intersection", {"success_rate": [0.2]}, seed=2)
+    rows += _episodes("base", "intersection", {"success_rate": [0.3]}, seed=2)
+    main = statistics.main_rows(pd.DataFrame(rows).sample(frac=1.0, random_state=1))
+    by_seed = statistics.paired_tests(main, "ours", metrics=["success_rate"], unit="seed").iloc[0]
+    # d = (0.5, 0.3, -0.1): mean 0.7 / 3, sd sqrt(((0.5-m)^2 + (0.3-m)^2 + (-0.1-m)^2) / 2), df 2
+    d = np.array([0.5, 0.3, -0.1])
+    t = d.mean() / (d.std(ddof=1) / math.sqrt(3.0))
+    assert by_seed["unit"] == "seed" and by_seed["n_pairs"] == 3
+    assert by_seed["mean_method"] == pytest.approx(1.3 / 3) and by_seed["mean_baseline"] == pytest.approx(0.6 / 3)
+    assert by_seed["t"] == pytest.approx(t) and by_seed["p"] == pytest.approx(1.0 - t / math.sqrt(t * t + 2.0))
+    # the same rows by episode: 4 pairs d = (1, 0, 0.3, -0.1)
+    by_episode = statistics.paired_tests(main, "ours", metrics=["success_rate"]).iloc[0]
+    assert by_episode["unit"] == "episode" and by_episode["n_pairs"] == 4 and by_episode["mean_diff"] == pytest.approx(1.2 / 4)
+    both = statistics.paired_tests_all_units(main, "ours", alpha=0.01)
+    assert list(both["unit"]) == ["episode"] * 3 + ["seed"] * 3 and (both["n_tests"] == 3).all()
+    with pytest.raises(ValueError, match="bad unit 'run'; allowed: episode, seed"):
+        statistics.paired_tests(main, "ours", unit="run")
+
+
 def test_constant_nonzero_difference_is_infinitely_significant():
     rows = _episodes("ours", "s", {"success_rate": [0.5, 0.6, 0.7]}) + _episodes("base", "s", {"success_rate": [0.4, 0.5, 0.6]})
     for r in rows:

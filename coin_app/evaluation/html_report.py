@@ -98,13 +98,15 @@ def write_html(
     if ablation_summary is not None:
         parts += [f"<h2>Ablations of {escape(opts['method'])}</h2>", to_html(ablation_summary, "Variant")]
     if len(stats):
-        thr = stats["threshold"].iloc[0]
-        parts += [
-            "<h2>Paired t-tests</h2>",
-            f"<p>{escape(opts['method'])} vs each baseline, paired on (trained seed, test seed); {len(stats)} tests, "
-            f"Bonferroni threshold p &lt; {opts['alpha']} / {len(stats)} = {thr:.3g}.</p>",
-            stats.to_html(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-"),
-        ]
+        parts.append("<h2>Paired t-tests</h2>")
+        pairing = {"episode": "paired on (trained seed, test seed), as the paper", "seed": "paired on the trained seed (each seed's mean)"}
+        for unit, tests in stats.groupby("unit", sort=False):
+            thr, n = tests["threshold"].iloc[0], len(tests)
+            parts += [
+                f"<p>{escape(opts['method'])} vs each baseline, {escape(pairing.get(str(unit), str(unit)))}; {n} tests, "
+                f"Bonferroni threshold p &lt; {opts['alpha']} / {n} = {thr:.3g}.</p>",
+                tests.to_html(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-"),
+            ]
     else:
         parts.append(f"<h2>Paired t-tests</h2><p class='note'>No baseline shares a scenario with {escape(opts['method'])}: no tests.</p>")
     if transfer is not None:

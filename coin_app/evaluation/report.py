@@ -316,7 +316,7 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
     ablation_summary = statistics.rank_marks(statistics.summarize(ablation)) if len(ablation) else None
     if ablation_summary is not None:
         files += tables.write_tables(ablation_summary, out, "table_ablation", f"Ablations of {options.method}", "Variant")
-    stats = statistics.paired_tests(main, options.method, alpha=options.alpha)
+    stats = statistics.paired_tests_all_units(main, options.method, alpha=options.alpha)
     stats.to_csv(out / "stats.csv", index=False)
     files += [out / "stats.csv", write_marl_eval(table, out / "marl_eval.json")]
     transfer = None

@@ -15,6 +15,10 @@ paper's Table 5.1 and Section 5.2; ``docs/decisions.md`` §5.2):
   baseline on success, safety and efficiency per scenario. Episodes are paired on
   (trained seed, test seed): the same test traffic and the same position in the seed list.
   The Bonferroni-corrected threshold is ``alpha / number of tests`` (the paper: 0.01 / 18).
+* The same tests with the trained seed as the unit (``unit="seed"``): each seed's mean over the
+  paired episodes, paired on the trained seed (5 pairs for 5 seeds). Test episodes of one
+  trained model are not independent draws of the training run, so this is the stricter test of
+  whether a method, not one set of models, is better; its Bonferroni family is its own tests.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ METRICS = (
 )
 METRIC_BY_KEY = {m.key: m for m in METRICS}
 TESTED_METRICS = ("success_rate", "safety", "efficiency")
+TEST_UNITS = ("episode", "seed")  # what one pair of a paired t-test is: a (trained seed, test seed) episode, or a trained seed
 MAIN_VARIANTS = ("default", "full")  # the variant that stands for a method in the main table, in order of preference
 
 
@@ -143,15 +148,20 @@ def paired_tests(
     method: str,
     metrics: Sequence[str] = TESTED_METRICS,
     alpha: float = 0.01,
+    unit: str = "episode",
 ) -> pd.DataFrame:
     """Paired two-sided t-tests of ``method`` against every other label per scenario and metric, Bonferroni-corrected.
 
+    ``unit`` is what one pair is (:data:`TEST_UNITS`): an episode paired on (trained seed, test
+    seed), the paper's; or a trained seed, each side's mean over the paired episodes of that seed.
     Degenerate cases: fewer than two pairs or all differences zero give t = p = NaN (never
     significant); the same nonzero difference in every pair gives t = +-inf and p = 0.
     """
 
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"bad alpha {alpha}; allowed: a number in (0, 1)")
+    if unit not in TEST_UNITS:
+        raise ValueError(f"bad unit {unit!r}; allowed: {', '.join(TEST_UNITS)}")
     tests = []
     for scenario, g in rows.groupby("scenario", sort=False):
         ours = g[g["label"] == method].set_index(["trained_seed", "test_seed"])
@@ -165,6 +175,9 @@ def paired_tests(
                 b = theirs.loc[both, metric].to_numpy(dtype=float)
                 keep = ~(np.isnan(a) | np.isnan(b))
                 a, b = a[keep], b[keep]
+                if unit == "seed":
+                    seeds = both.get_level_values("trained_seed").to_numpy()[keep]
+                    a, b = (pd.Series(v).groupby(seeds).mean().to_numpy() for v in (a, b))
                 d = a - b
                 t, p = _paired_t(a, b, stats)
                 tests.append(
@@ -173,6 +186,7 @@ def paired_tests(
                         "metric": metric,
                         "method": method,
                         "baseline": baseline,
+                        "unit": unit,
                         "n_pairs": len(d),
                         "mean_method": float(a.mean()) if len(a) else float("nan"),
                         "mean_baseline": float(b.mean()) if len(b) else float("nan"),
@@ -181,9 +195,13 @@ def paired_tests(
                         "p": p,
                     }
                 )
-    out = pd.DataFrame(
-        tests, columns=["scenario", "metric", "method", "baseline", "n_pairs", "mean_method", "mean_baseline", "mean_diff", "t", "p"]
-    )
+    columns = ["scenario", "metric", "method", "baseline", "unit", "n_pairs", "mean_method", "mean_baseline", "mean_diff", "t", "p"]
+    out = pd.DataFrame(tests, columns=columns)
     n = len(out)
     threshold = alpha / n if n else float("nan")
     return out.assign(alpha=alpha, n_tests=n, threshold=threshold, significant=out["p"] < threshold)
+
+
+def paired_tests_all_units(rows: pd.DataFrame, method: str, alpha: float = 0.01) -> pd.DataFrame:
+    """:func:`paired_tests` at every unit of :data:`TEST_UNITS`, one table; each unit is its own Bonferroni family."""
+    return pd.concat([paired_tests(rows, method, alpha=alpha, unit=unit) for unit in TEST_UNITS], ignore_index=True)
