@@ -1,4 +1,4 @@
-"""The short stage's training options: the start-spread curriculum and the initial action std (issue 23)."""
+"""The parking stage's training options: the start-spread curriculum, the initial action std and the warm start (issue 23)."""
 
 import numpy as np
 import pytest
@@ -6,9 +6,11 @@ import torch
 from ray.rllib.core.columns import Columns
 
 from coin_app.algorithms.nav_ppo.config import curriculum_difficulty
+from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.generator import generate, training_rng
+from coin_app.sim.arena.heuristic import heuristic_actions
 from coin_app.sim.dynamics import wrap_angle
 from coin_app.training import build_config, fresh_module, with_env_runner
 
@@ -116,3 +118,76 @@ def test_a_curriculum_run_moves_every_env_to_the_scheduled_spread(ray_session):
         algo.stop()
     # set before each iteration from the env steps sampled so far: 0, 400, 800 of 800
     assert seen == [[0.2, 0.2], [pytest.approx(0.6), pytest.approx(0.6)], [1.0, 1.0]]
+
+
+def test_demonstrations_label_each_driven_state_with_the_driver_and_its_discounted_return():
+    cfg = make_arena_config(generator="short", num_vehicles=2, num_obstacles=1, max_steps=120)
+    demos = heuristic_demonstrations(cfg, episodes=1, seed=5, noise=0.3, gamma=0.9)  # episode 0 is driven without noise
+    # the same scenario, driven independently through the dict env
+    env = ArenaEnv(cfg)
+    env.reset(seed=5)
+    layout = env.draw_layout()
+    obs, _ = env.reset(options={"layout": layout})
+    rewards = {a: [] for a in obs}
+    first_obs = np.stack([obs[a] for a in sorted(obs)])
+    while env.agents:
+        obs, rew, _, _, _ = env.step({a: heuristic_actions(o[None])[0] for a, o in obs.items()})
+        for a, r in rew.items():
+            rewards[a].append(r)
+    assert len(demos.obs) == sum(len(r) for r in rewards.values())  # one row per vehicle and step it drove
+    np.testing.assert_allclose(demos.obs[:2], first_obs, atol=1e-6)
+    np.testing.assert_allclose(demos.actions[:2], heuristic_actions(first_obs), atol=1e-6)
+    for row, agent in enumerate(sorted(rewards)):  # rows of step 0: vehicle 0, then vehicle 1
+        brute = sum(r * 0.9**t for t, r in enumerate(rewards[agent]))
+        assert demos.returns[row] == pytest.approx(brute, rel=1e-5, abs=1e-4)
+    assert demos.success_rate == np.mean([env.sim.succeeded[i] for i in range(2)])
+
+
+def test_warm_start_settings_are_checked_before_any_work():
+    with pytest.raises(ValueError, match=r"bad value for 'warm_start': 'bc'; allowed: 'none', 'heuristic'"):
+        build_config("nav_ppo", "arena", {"warm_start": "bc"}, 0)
+    with pytest.raises(ValueError, match=r"bad value for 'warm_start_episodes': 0; allowed: an integer >= 1"):
+        build_config("nav_ppo", "arena", {"warm_start": "heuristic", "warm_start_episodes": 0}, 0)
+
+
+def _mean_action_error(module, obs: np.ndarray) -> float:
+    with torch.no_grad():
+        inputs = module.forward_inference({Columns.OBS: torch.as_tensor(obs, dtype=torch.float32)})[Columns.ACTION_DIST_INPUTS]
+    return float(np.abs(inputs[:, :2].clamp(-1, 1).numpy() - heuristic_actions(obs)).mean())
+
+
+def test_warm_start_clones_the_driver_into_the_learner_and_the_env_runners(ray_session):
+    overrides = {
+        "stage": "short",
+        "warm_start": "heuristic",
+        "warm_start_episodes": 30,
+        "warm_start_epochs": 20,
+        "log_std_init": -1.0,
+        "train_batch_size_per_learner": 400,
+        "minibatch_size": 200,
+        "num_epochs": 1,
+        "hidden": 64,
+        "max_steps": 150,
+    }
+    cfg = build_config("nav_ppo", "arena", overrides, 0)
+    cfg = with_env_runner(cfg, "batched", 2, True, cfg.env_config["scenario_config"])
+    algo = cfg.build_algo()
+    try:
+        held_out = heuristic_demonstrations(cfg.env_config["scenario_config"], episodes=6, seed=99, noise=0.3, gamma=0.99).obs
+        learner_module = algo.learner_group._learner.module["shared"]
+        before = _mean_action_error(learner_module, held_out)
+        result = algo.train()  # the first iteration clones before it samples
+        algo.train()
+        runner_module = algo.env_runner.module["shared"]
+        after = _mean_action_error(learner_module, held_out)
+        assert after < 0.5 * before  # the untrained policy's means sit near 0, the driver's actions mostly near +-1
+        for name, value in learner_module.state_dict().items():
+            if name in runner_module.state_dict():
+                np.testing.assert_allclose(runner_module.state_dict()[name].numpy(), value.numpy())
+        with torch.no_grad():
+            log_std = learner_module.forward_inference({Columns.OBS: torch.as_tensor(held_out)})[Columns.ACTION_DIST_INPUTS][:, 2:]
+        assert float(log_std.mean()) == pytest.approx(-1.0, abs=0.3)
+        assert 0 < result["warm_start/warm_start_demo_success"] <= 1
+        assert 0 <= result["warm_start/action_mse"] < before**2  # the untrained MSE is at least its mean error squared (Jensen)
+    finally:
+        algo.stop()

@@ -31,6 +31,7 @@ from coin_app.algorithms.choices import (
     LCF_MODES,
     LOCAL_MODULES,
     NAV_STAGES,
+    NAV_WARM_STARTS,
     NEIGHBOUR_FEATURES,
     PRECISIONS,
     UPDATE_ORDERS,
@@ -195,6 +196,10 @@ RULES: dict[str, Rule] = {
     "log_std_init": Rule("float", -5.0, 2.0),
     "curriculum_steps": non_negative("int"),
     "curriculum_start": unit(lo_open=True),
+    "warm_start": choice(*NAV_WARM_STARTS),
+    "warm_start_episodes": positive("int"),
+    "warm_start_noise": non_negative(),
+    "warm_start_epochs": non_negative("int"),
 }
 
 

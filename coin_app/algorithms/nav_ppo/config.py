@@ -15,6 +15,10 @@ ours are Stable-Baselines3's PPO defaults with a larger minibatch for speed, all
 the others, every vehicle here trains the one shared policy (parameter sharing): the same
 policy for all, without discarding the other vehicles' experience.
 
+Options for the parking stage, off by default (the paper's setting): a lower initial action std
+(``log_std_init``), a start-spread curriculum (``curriculum_steps``) and a warm start that clones
+the scripted driver before the first PPO iteration (``warm_start="heuristic"``, ``warm_start.py``).
+
 The learner is RLlib's PPO learner with the PPO family's ``precision`` option (``learner.py``):
 "bf16" runs each minibatch's forward pass and loss under bfloat16 autocast.
 """
@@ -29,10 +33,12 @@ from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from coin_app.adapters.rllib_env import env_config_of
+from coin_app.adapters.rllib_env import env_config_of, parse_env_config
+from coin_app.algorithms.checkpoint_files import SHARED_MODULE_ID
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import set_on_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
+from coin_app.algorithms.nav_ppo.warm_start import clone, heuristic_demonstrations
 from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
@@ -65,6 +71,14 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         "(0 = no curriculum, the paper)",
     ),
     "curriculum_start": (0.2, "stage=short: the start spread (start_difficulty) at env step 0 of a curriculum"),
+    "warm_start": (
+        "none",
+        "'heuristic' = before the first PPO iteration, clone the scripted arena driver on the stage's scenario mix "
+        "(warm_start.py; not in the paper); 'none' = from scratch (the paper)",
+    ),
+    "warm_start_episodes": (200, "warm start: scenarios the scripted driver drives (every second one with action noise)"),
+    "warm_start_noise": (0.3, "warm start: std of the Gaussian noise on the driver's actions in the noisy scenarios"),
+    "warm_start_epochs": (10, "warm start: passes over the demonstrations (minibatches of 512, Adam 1e-3)"),
     "precision": (
         "fp32",
         "learner update precision: 'fp32', or 'bf16' = each minibatch's forward pass and loss under torch.autocast bfloat16 "
@@ -94,19 +108,35 @@ def curriculum_difficulty(env_steps: int, steps: int, start: float) -> float:
 
 
 class NavPPO(PPO):
-    """RLlib PPO whose training step first moves the short stage's curriculum to the lifetime env-step count."""
+    """RLlib PPO whose training step first warm-starts the policy (once) and moves the short stage's curriculum."""
 
     def training_step(self) -> Any:
-        """Set every env runner's start spread for this iteration's samples (a resumed run continues its curriculum), then PPO's step."""
+        """The optional warm start before the first samples, then every env runner's start spread, then PPO's step."""
         cfg = self.config.learner_config_dict
+        done = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
+        if cfg.get("warm_start", "none") != "none" and done == 0:
+            self._warm_start(cfg)
         if cfg.get("curriculum_steps", 0) > 0:
-            done = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
             difficulty = curriculum_difficulty(done, cfg["curriculum_steps"], cfg["curriculum_start"])
             self.env_runner_group.foreach_env_runner(
                 lambda runner: set_on_envs(runner, "set_start_difficulty", difficulty), local_env_runner=True
             )
             self.metrics.log_value("start_difficulty", difficulty, window=1)
         return super().training_step()
+
+    def _warm_start(self, cfg: Mapping[str, Any]) -> None:
+        """Clone the scripted driver into every learner's module (``warm_start.py``) and send the weights to the env runners."""
+        scenario, _ = parse_env_config(self.config.env_config)
+        scenario = dataclasses.replace(scenario, start_difficulty=1.0)  # the whole start spread, whatever a curriculum's start
+        demos = heuristic_demonstrations(
+            scenario, cfg["warm_start_episodes"], int(self.config.seed or 0), cfg["warm_start_noise"], self.config.gamma
+        )
+        epochs, log_std, seed = cfg["warm_start_epochs"], cfg["log_std_init"], int(self.config.seed or 0)
+        losses = self.learner_group.foreach_learner(lambda learner: clone(learner.module[SHARED_MODULE_ID], demos, epochs, log_std, seed))
+        self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group, inference_only=True)
+        first = next(iter(losses)).get()  # every learner fitted the same demonstrations from the same seed
+        for key, value in {"warm_start_demo_success": demos.success_rate, "warm_start_samples": len(demos.obs), **first}.items():
+            self.metrics.log_value(f"warm_start/{key}", value, window=1)
 
 
 def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
@@ -118,6 +148,8 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     check_values(hp)
     precision = hp.pop("precision")
     curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
+    warm = {k: hp.pop(k) for k in ("warm_start", "warm_start_episodes", "warm_start_noise", "warm_start_epochs")}
+    warm["log_std_init"] = hp["log_std_init"]
     if curriculum["curriculum_steps"] > 0:
         if stage != "short" or scenario.generator != "short":
             raise ValueError(
@@ -131,7 +163,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
         .environment("coin-arena-v0", env_config=env_config_of(scenario))
         .env_runners(num_env_runners=hp.pop("num_env_runners"), env_to_module_connector=acting_order)  # fixed agent order
         .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
-        .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision, **curriculum})
+        .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision, **curriculum, **warm})
         .rl_module(model_config=model, rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
         .debugging(seed=seed)
         .evaluation(evaluation_interval=None)

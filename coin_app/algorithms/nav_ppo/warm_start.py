@@ -1,0 +1,111 @@
+"""nav_ppo's optional warm start (not in the paper): behaviour cloning of the scripted arena driver before PPO.
+
+The paper trains both stages from scratch over 30–40M env steps. On this machine's budgets (under
+1M per stage) PPO from scratch never found the parking manoeuvre (docs/arena/README.md): it
+settles inside d_c, misaligned. With ``warm_start="heuristic"`` the stage first drives
+``warm_start_episodes`` scenarios of its own mix with the scripted driver
+(``coin_app.sim.arena.heuristic``, which ignores obstacles and other vehicles), half of them with
+Gaussian action noise so that the clone also sees states off the driver's path, labelled with the
+driver's action at each visited state (DART, Laskey et al. 2017). Then, before the first PPO
+iteration, the policy's Gaussian mean is fitted to those labels, its log std to ``log_std_init``,
+and the value network to the discounted returns (Eqs. 2–6, the stage's own reward) that followed
+each state. PPO then starts from a policy that parks and has to learn what the driver ignores.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from ray.rllib.core.columns import Columns
+from torch import nn
+
+from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.arena.env import ArenaEnv
+from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.simulator import ArenaSimulator
+
+
+@dataclass(frozen=True)
+class Demonstrations:
+    """The scripted driver's labelled states: one row per vehicle and step it drove."""
+
+    obs: np.ndarray  # (T, obs_dim)
+    actions: np.ndarray  # (T, 2): the driver's (steering, pedal) at that state
+    returns: np.ndarray  # (T,): discounted sum of the rewards that followed (the executed actions', to the episode's end)
+    success_rate: float  # share of the demonstrated vehicles that reached the success state
+
+
+def heuristic_demonstrations(config: ArenaConfig, episodes: int, seed: int, noise: float, gamma: float) -> Demonstrations:
+    """``episodes`` scenarios of ``config``'s mix driven by the scripted driver, every second one with action noise ``noise``."""
+    if episodes < 1:
+        raise ValueError(f"bad value for 'warm_start_episodes': {episodes}; allowed: an integer >= 1")
+    layouts = ArenaEnv(config)
+    layouts.reset(seed=seed)  # seeds the scenario stream; the layouts below are drawn from it
+    sim = ArenaSimulator(config)
+    rng = np.random.default_rng(seed)
+    obs_rows, act_rows, ret_rows = [], [], []
+    successes = vehicles = 0
+    for episode in range(episodes):
+        obs = sim.reset(layouts.draw_layout())
+        sigma = noise if episode % 2 else 0.0
+        steps_obs, steps_act, steps_rew, steps_mask = [], [], [], []
+        while sim.driving.any():
+            label = heuristic_actions(obs, dt=config.dt, friction=config.friction, max_steer=config.max_steer)
+            action = np.clip(label + sigma * rng.standard_normal(label.shape), -1.0, 1.0) if sigma else label
+            mask = sim.driving.copy()
+            step = sim.step(action)
+            steps_obs.append(obs)
+            steps_act.append(label)
+            steps_rew.append(step.reward)
+            steps_mask.append(mask)
+            obs = step.obs
+        rewards, mask = np.array(steps_rew), np.array(steps_mask)
+        returns = np.zeros_like(rewards)
+        following = np.zeros(rewards.shape[1])
+        for t in range(len(rewards) - 1, -1, -1):  # a vehicle's rewards are 0 once it is done
+            following = rewards[t] + gamma * following
+            returns[t] = following
+        obs_rows.append(np.array(steps_obs)[mask])
+        act_rows.append(np.array(steps_act)[mask])
+        ret_rows.append(returns[mask])
+        successes += int(sim.succeeded.sum())
+        vehicles += sim.num_vehicles
+    return Demonstrations(
+        np.concatenate(obs_rows).astype(np.float32),
+        np.concatenate(act_rows).astype(np.float32),
+        np.concatenate(ret_rows).astype(np.float32),
+        successes / vehicles,
+    )
+
+
+def clone(module: nn.Module, demos: Demonstrations, epochs: int, log_std: float, seed: int, lr: float = 1e-3) -> dict[str, float]:
+    """Fit a PPO module to ``demos``: Gaussian mean to the actions, log std to ``log_std``, values to the returns; final MSEs."""
+    device = next(module.parameters()).device
+    obs, actions, returns = (torch.as_tensor(x, device=device) for x in (demos.obs, demos.actions, demos.returns))
+    optimizer = torch.optim.Adam(module.parameters(), lr)
+    generator = torch.Generator().manual_seed(seed)
+    minibatch = 512
+    losses = {"action_mse": float("nan"), "log_std_mse": float("nan"), "value_mse": float("nan")}
+    module.train()
+    for _ in range(epochs):
+        order = torch.randperm(len(obs), generator=generator).to(device)
+        sums, count = np.zeros(3), 0
+        for start in range(0, len(obs), minibatch):
+            idx = order[start : start + minibatch]
+            batch = {Columns.OBS: obs[idx]}
+            inputs = module.forward_train(batch)[Columns.ACTION_DIST_INPUTS]
+            mean, log_stds = inputs.chunk(2, dim=-1)
+            terms = (
+                ((mean - actions[idx]) ** 2).mean(),
+                ((log_stds - log_std) ** 2).mean(),
+                ((module.compute_values(batch) - returns[idx]) ** 2).mean(),
+            )
+            optimizer.zero_grad()
+            sum(terms).backward()
+            optimizer.step()
+            sums += [float(t.detach()) * len(idx) for t in terms]
+            count += len(idx)
+        losses = dict(zip(losses, (sums / count).tolist()))
+    return losses
