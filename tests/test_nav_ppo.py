@@ -10,9 +10,13 @@ import torch
 from torch import nn
 
 from coin_app.cli import main
-from coin_app.evaluation.arena_suite import PAPER_TABLE_I, evaluate_suite, parse_cases, summarize
+from coin_app.evaluation.arena_suite import PAPER_TABLE_I, evaluate_suite, parse_cases, run_scenario, summarize
 from coin_app.inference import export_numpy, load_policy
 from coin_app.inference.switching import SwitchingPolicy, target_distance, write_pair
+from coin_app.sim.arena.config import make_arena_config
+from coin_app.sim.arena.env import ArenaEnv
+from coin_app.sim.arena.generator import generate, heldout_rng
+from coin_app.sim.arena.heuristic import heuristic_actions
 from coin_app.training import build_config
 
 
@@ -80,6 +84,24 @@ def test_suite_is_deterministic_and_its_summary_aggregates_by_hand():
     assert summary.loc[(2, 1), "success_to_goal_rate"] == pytest.approx(want_success)
     assert summary.loc[(2, 1), "collision_rate"] == pytest.approx(want_rate)
     assert summary.loc[(2, 1), "scenarios"] == 3 and np.isnan(summary.loc[(2, 1), "paper_success"])
+
+
+def test_short_generator_scores_the_parking_stages_starts_on_the_held_out_seeds(tmp_path):
+    rows = evaluate_suite("heuristic", [(1, 0)], 3, max_steps=150, workers=1, log=lambda s: None, generator="short")
+    paper = evaluate_suite("heuristic", [(1, 0)], 3, max_steps=150, workers=1, log=lambda s: None)
+    cfg = make_arena_config(generator="short", obstacle_side="left", max_steps=150)
+    for k, row in enumerate(rows):
+        layout = generate(heldout_rng(1, 0, k), cfg, 1, 0)
+        assert 1.0 <= np.linalg.norm(layout.starts[0, :2] - layout.targets[0, :2]) <= 7.5  # starts near the target
+        direct = run_scenario(heuristic_actions, ArenaEnv(cfg), layout)
+        assert row["distance"] == pytest.approx(direct["distance"]) and row["policy_calls"] == direct["policy_calls"]
+    assert [r["distance"] for r in rows] != [r["distance"] for r in paper]  # not the paper's suite
+    with pytest.raises(ValueError, match="bad arena value generator='far'; allowed: agnn, short"):
+        evaluate_suite("heuristic", [(1, 0)], 1, workers=1, generator="far")
+    args = ["evaluate-arena", "heuristic", "--generator", "short", "--cases", "1x0", "--scenarios-per-case", "1", "--workers", "1"]
+    assert main([*args, "--max-steps", "50", "--out", str(tmp_path)]) == 0
+    assert "`short` generator, not the paper's suite" in (tmp_path / "arena_side_by_side.md").read_text()
+    assert json.loads((tmp_path / "arena_eval.json").read_text())["generator"] == "short"
 
 
 def test_case_specs_and_refusals():

@@ -113,6 +113,8 @@ def write_side_by_side(out: Path, summaries: dict[str, pd.DataFrame], settings: 
         f"Policies: {', '.join(f'`{s}`' for s in settings['policies'])}; {settings['scenarios_per_case']} test scenarios per case; "
         f"{settings['protocol']} protocol; the paper's columns are its Tables I and II (4,062 scenarios per case).\n\n"
     )
+    if settings.get("generator", "agnn") != "agnn":
+        header += f"Scenarios of the `{settings['generator']}` generator, not the paper's suite: the paper's columns do not apply.\n\n"
     markdown = side_by_side_markdown(table, labels)
     (out / f"{SIDE_BY_SIDE}.md").write_text(header + markdown)
     (out / EVAL_FILE).write_text(json.dumps(settings | {"labels": labels}, indent=2))

@@ -125,8 +125,13 @@ def parse_cases(spec: str) -> list[tuple[int, int]]:
     return cases
 
 
-def suite_config(max_steps: int = 400, physics: dict[str, Any] | None = None, protocol: str = "arena") -> ArenaConfig:
+def suite_config(
+    max_steps: int = 400, physics: dict[str, Any] | None = None, protocol: str = "arena", generator: str = "agnn"
+) -> ArenaConfig:
     """The arena settings of the test suite (the A-GNN test generator: obstacles on the left).
+
+    ``generator="short"`` draws the parking stage's starts instead (1–7.5 m from the target, any
+    heading; not the paper's suite): the same held-out seeds, to score a short-range policy alone.
 
     ``max_steps`` counts steps of the arena's 0.1 s; ``physics`` (a policy's own ``dt`` and
     ``update_order``) keeps the same simulated time. The ``"agnn"`` protocol switches the in-run
@@ -139,7 +144,7 @@ def suite_config(max_steps: int = 400, physics: dict[str, Any] | None = None, pr
         max_steps = max(1, round(max_steps * ArenaConfig().dt / overrides["dt"]))
     if protocol == "agnn":
         overrides["success_speed"] = 0.0
-    return make_arena_config(generator="agnn", obstacle_side="left", max_steps=max_steps, **overrides)
+    return make_arena_config(generator=generator, obstacle_side="left", max_steps=max_steps, **overrides)
 
 
 def load_arena_policy(source: str | Path) -> Any:
@@ -151,9 +156,9 @@ def load_arena_policy(source: str | Path) -> Any:
     return as_policy(source)
 
 
-def policy_config(policy: Any, max_steps: int, protocol: str) -> ArenaConfig:
+def policy_config(policy: Any, max_steps: int, protocol: str, generator: str = "agnn") -> ArenaConfig:
     """The suite's arena settings for ``policy`` (in its own physics where it names one, as the A-GNN does)."""
-    return suite_config(max_steps, getattr(policy, "arena_overrides", None), protocol)
+    return suite_config(max_steps, getattr(policy, "arena_overrides", None), protocol, generator)
 
 
 def final_state_success(sim: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -203,12 +208,18 @@ def run_scenario(policy: Any, env: ArenaEnv, layout: Any, trace: Any = None, pro
 
 
 def plot_scenarios(
-    source: str | Path, cases: list[tuple[int, int]], count: int, out: Path, max_steps: int = 400, protocol: str = "arena"
+    source: str | Path,
+    cases: list[tuple[int, int]],
+    count: int,
+    out: Path,
+    max_steps: int = 400,
+    protocol: str = "arena",
+    generator: str = "agnn",
 ) -> list[Path]:
     """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores)."""
 
     policy = load_arena_policy(source)
-    cfg = policy_config(policy, max_steps, protocol)
+    cfg = policy_config(policy, max_steps, protocol, generator)
     env = ArenaEnv(cfg)
     paths = []
     for n, m in cases:
@@ -222,15 +233,15 @@ def plot_scenarios(
     return paths
 
 
-def evaluate_case(job: tuple[str, tuple[int, int], list[int], int, str]) -> list[dict[str, Any]]:
+def evaluate_case(job: tuple[str, tuple[int, int], list[int], int, str, str]) -> list[dict[str, Any]]:
     """Rows (one per scenario) of test scenarios ``indices`` of one case (a worker job)."""
-    source, (n, m), indices, max_steps, protocol = job
+    source, (n, m), indices, max_steps, protocol, generator = job
     try:
         torch.set_num_threads(1)
     except ImportError:
         pass
     policy = load_arena_policy(source)
-    cfg = policy_config(policy, max_steps, protocol)
+    cfg = policy_config(policy, max_steps, protocol, generator)
     env = ArenaEnv(cfg)
     rows = []
     for k in indices:
@@ -247,18 +258,22 @@ def evaluate_suite(
     workers: int = 2,
     log: Callable[[str], None] = print,
     protocol: str = "arena",
+    generator: str = "agnn",
 ) -> list[dict[str, Any]]:
-    """Per-scenario rows of every case under ``protocol`` (``PROTOCOLS``; deterministic: the same rows on every run)."""
+    """Per-scenario rows of every case under ``protocol`` (``PROTOCOLS``; deterministic: the same rows on every run).
+
+    ``generator="short"`` scores the parking stage's starts instead of the paper's suite (``suite_config``).
+    """
 
     if scenarios_per_case < 1:
         raise ValueError(f"bad scenarios per case {scenarios_per_case}; allowed: an integer >= 1")
     if workers < 1:
         raise ValueError(f"bad workers {workers}; allowed: an integer >= 1")
-    suite_config(max_steps, protocol=protocol)  # a bad step limit or protocol fails here, before any work
+    suite_config(max_steps, protocol=protocol, generator=generator)  # a bad step limit, protocol or generator fails here, before any work
     load_arena_policy(source)  # and so does a bad source
     chunk = max(1, min(scenarios_per_case, 25))
     jobs = [
-        (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps, protocol)
+        (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps, protocol, generator)
         for case in cases
         for i in range(0, scenarios_per_case, chunk)
     ]
