@@ -6,7 +6,7 @@ import torch
 from ray.rllib.core.columns import Columns
 
 from coin_app.algorithms.nav_ppo.config import curriculum_difficulty
-from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations
+from coin_app.algorithms.nav_ppo.warm_start import bc_loss, bc_weight, heuristic_demonstrations
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.generator import generate, training_rng
@@ -148,6 +148,8 @@ def test_warm_start_settings_are_checked_before_any_work():
         build_config("nav_ppo", "arena", {"warm_start": "bc"}, 0)
     with pytest.raises(ValueError, match=r"bad value for 'warm_start_episodes': 0; allowed: an integer >= 1"):
         build_config("nav_ppo", "arena", {"warm_start": "heuristic", "warm_start_episodes": 0}, 0)
+    with pytest.raises(ValueError, match=r"bad value for 'bc_coeff': -1; allowed: a finite number >= 0"):
+        build_config("nav_ppo", "arena", {"bc_coeff": -1}, 0)
 
 
 def _mean_action_error(module, obs: np.ndarray) -> float:
@@ -163,6 +165,8 @@ def test_warm_start_clones_the_driver_into_the_learner_and_the_env_runners(ray_s
         "warm_start_episodes": 30,
         "warm_start_epochs": 20,
         "log_std_init": -1.0,
+        "bc_coeff": 0.5,
+        "bc_steps": 800,
         "train_batch_size_per_learner": 400,
         "minibatch_size": 200,
         "num_epochs": 1,
@@ -176,8 +180,7 @@ def test_warm_start_clones_the_driver_into_the_learner_and_the_env_runners(ray_s
         held_out = heuristic_demonstrations(cfg.env_config["scenario_config"], episodes=6, seed=99, noise=0.3, gamma=0.99).obs
         learner_module = algo.learner_group._learner.module["shared"]
         before = _mean_action_error(learner_module, held_out)
-        result = algo.train()  # the first iteration clones before it samples
-        algo.train()
+        result = algo.train()  # the first iteration clones before it samples (then one small PPO update)
         runner_module = algo.env_runner.module["shared"]
         after = _mean_action_error(learner_module, held_out)
         assert after < 0.5 * before  # the untrained policy's means sit near 0, the driver's actions mostly near +-1
@@ -188,6 +191,23 @@ def test_warm_start_clones_the_driver_into_the_learner_and_the_env_runners(ray_s
             log_std = learner_module.forward_inference({Columns.OBS: torch.as_tensor(held_out)})[Columns.ACTION_DIST_INPUTS][:, 2:]
         assert float(log_std.mean()) == pytest.approx(-1.0, abs=0.3)
         assert 0 < result["warm_start/warm_start_demo_success"] <= 1
+        assert result["bc_weight"] == 0.5 and result["learners"]["shared"]["bc_loss"] >= 0  # the weight at env step 0
         assert 0 <= result["warm_start/action_mse"] < before**2  # the untrained MSE is at least its mean error squared (Jensen)
     finally:
         algo.stop()
+
+
+def test_bc_weight_falls_linearly_to_zero():
+    assert [bc_weight(s, 0.5, 1000) for s in (0, 250, 1000, 4000)] == pytest.approx([0.5, 0.375, 0.0, 0.0])
+    assert bc_weight(10**6, 0.5, 0) == 0.5  # no decay: constant
+
+
+def test_bc_loss_is_the_squared_gap_to_the_drivers_actions_over_unmasked_rows():
+    obs = np.random.default_rng(4).normal(size=(5, 13)).astype(np.float32)
+    offsets = np.array([[0.1, -0.2], [0.3, 0.0], [0.0, 0.5], [-0.4, 0.4], [2.0, 2.0]], np.float32)
+    means = heuristic_actions(obs) + offsets
+    inputs = torch.as_tensor(np.concatenate([means, np.full((5, 2), -1.0)], 1), dtype=torch.float32)
+    want = np.mean([np.mean(o**2) for o in offsets[:4]])  # the last row is masked out
+    mask = torch.tensor([True, True, True, True, False])
+    assert float(bc_loss(torch.as_tensor(obs), inputs, mask)) == pytest.approx(want, rel=1e-5)
+    assert float(bc_loss(torch.as_tensor(obs), inputs)) == pytest.approx(np.mean(offsets**2), rel=1e-5)

@@ -16,8 +16,9 @@ the others, every vehicle here trains the one shared policy (parameter sharing):
 policy for all, without discarding the other vehicles' experience.
 
 Options for the parking stage, off by default (the paper's setting): a lower initial action std
-(``log_std_init``), a start-spread curriculum (``curriculum_steps``) and a warm start that clones
-the scripted driver before the first PPO iteration (``warm_start="heuristic"``, ``warm_start.py``).
+(``log_std_init``), a start-spread curriculum (``curriculum_steps``), a warm start that clones
+the scripted driver before the first PPO iteration (``warm_start="heuristic"``, ``warm_start.py``)
+and an auxiliary loss toward the driver's actions during PPO (``bc_coeff``, ``bc_steps``).
 
 The learner is RLlib's PPO learner with the PPO family's ``precision`` option (``learner.py``):
 "bf16" runs each minibatch's forward pass and loss under bfloat16 autocast.
@@ -38,7 +39,7 @@ from coin_app.algorithms.checkpoint_files import SHARED_MODULE_ID
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import set_on_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
-from coin_app.algorithms.nav_ppo.warm_start import clone, heuristic_demonstrations
+from coin_app.algorithms.nav_ppo.warm_start import bc_weight, clone, heuristic_demonstrations
 from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
@@ -79,6 +80,12 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "warm_start_episodes": (200, "warm start: scenarios the scripted driver drives (every second one with action noise)"),
     "warm_start_noise": (0.3, "warm start: std of the Gaussian noise on the driver's actions in the noisy scenarios"),
     "warm_start_epochs": (10, "warm start: passes over the demonstrations (minibatches of 512, Adam 1e-3)"),
+    "bc_coeff": (
+        0.0,
+        "weight of an auxiliary loss pulling the policy mean toward the scripted driver's actions at each minibatch's "
+        "observations (warm_start.py; not in the paper; 0 = off)",
+    ),
+    "bc_steps": (0, "env steps over which bc_coeff falls linearly to 0 (0 = constant)"),
     "precision": (
         "fp32",
         "learner update precision: 'fp32', or 'bf16' = each minibatch's forward pass and loss under torch.autocast bfloat16 "
@@ -116,6 +123,10 @@ class NavPPO(PPO):
         done = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
         if cfg.get("warm_start", "none") != "none" and done == 0:
             self._warm_start(cfg)
+        if cfg.get("bc_coeff", 0.0) > 0:
+            weight = bc_weight(done, cfg["bc_coeff"], cfg["bc_steps"])
+            self.learner_group.foreach_learner(lambda learner: setattr(learner, "bc_weight", weight))
+            self.metrics.log_value("bc_weight", weight, window=1)
         if cfg.get("curriculum_steps", 0) > 0:
             difficulty = curriculum_difficulty(done, cfg["curriculum_steps"], cfg["curriculum_start"])
             self.env_runner_group.foreach_env_runner(
@@ -148,7 +159,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     check_values(hp)
     precision = hp.pop("precision")
     curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
-    warm = {k: hp.pop(k) for k in ("warm_start", "warm_start_episodes", "warm_start_noise", "warm_start_epochs")}
+    warm = {k: hp.pop(k) for k in ("warm_start", "warm_start_episodes", "warm_start_noise", "warm_start_epochs", "bc_coeff", "bc_steps")}
     warm["log_std_init"] = hp["log_std_init"]
     if curriculum["curriculum_steps"] > 0:
         if stage != "short" or scenario.generator != "short":

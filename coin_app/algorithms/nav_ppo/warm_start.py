@@ -10,6 +10,13 @@ driver's action at each visited state (DART, Laskey et al. 2017). Then, before t
 iteration, the policy's Gaussian mean is fitted to those labels, its log std to ``log_std_init``,
 and the value network to the discounted returns (Eqs. 2–6, the stage's own reward) that followed
 each state. PPO then starts from a policy that parks and has to learn what the driver ignores.
+(With our reward constants PPO unlearned the clone within about 100k env steps: docs/arena/README.md.)
+
+``bc_coeff`` keeps the driver as a teacher during PPO: an auxiliary loss, the squared gap between
+the policy's Gaussian mean and the driver's action at each minibatch's own observations (the
+learner's states labelled by the driver, as in DAgger; Ross et al. 2011), weighted by ``bc_coeff``
+falling linearly to 0 over ``bc_steps`` env steps (``bc_weight``), as in DAPG's decaying
+demonstration term (Rajeswaran et al. 2018).
 """
 
 from __future__ import annotations
@@ -109,3 +116,18 @@ def clone(module: nn.Module, demos: Demonstrations, epochs: int, log_std: float,
             count += len(idx)
         losses = dict(zip(losses, (sums / count).tolist()))
     return losses
+
+
+def bc_weight(env_steps: int, coeff: float, steps: int) -> float:
+    """The auxiliary loss's weight after ``env_steps``: ``coeff`` falling linearly to 0 over ``steps`` (constant when ``steps`` is 0)."""
+    if steps <= 0:
+        return coeff
+    return coeff * max(0.0, 1.0 - env_steps / steps)
+
+
+def bc_loss(obs: torch.Tensor, dist_inputs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean squared gap between the Gaussian means in ``dist_inputs`` (mean, log std) and the driver's actions at ``obs``."""
+    labels = heuristic_actions(obs.detach().float().cpu().numpy())  # the arena's default physics (dt 0.1, friction 0.99)
+    target = torch.as_tensor(labels, dtype=dist_inputs.dtype, device=dist_inputs.device)
+    gap = ((dist_inputs[:, : dist_inputs.shape[1] // 2] - target) ** 2).mean(dim=1)
+    return gap[mask].mean() if mask is not None else gap.mean()
