@@ -7,10 +7,11 @@ import sys
 import numpy as np
 import pytest
 
+from coin_app.evaluation.arena_suite import evaluate_suite, summarize
 from coin_app.sim.arena.config import RewardConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
-from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.heuristic import avoiding_actions, heuristic_actions
 from coin_app.sim.arena.reward import angle_reward, distance_reward, obstacle_reward, step_reward, time_reward
 from coin_app.sim.dynamics import friction_bicycle_step
 
@@ -313,3 +314,40 @@ def test_hovering_near_the_target_earns_less_than_parking_at_any_step():
     weak = RewardConfig(time_scale=0.01, success_reward=50.0)
     per_weak = hover + np.array([time_reward(weak, t, CFG.dt) for t in steps])
     assert (np.concatenate([[0.0], np.cumsum(per_weak[:-1])]) + weak.success_reward).min() < per_weak[:-1].sum() + weak.truncation_reward
+
+
+def _observation(entity_xy, entity_radius=1.0, speed=2.0, target_xy=(20.0, 0.0)) -> np.ndarray:
+    """One vehicle at the origin heading +x, its target ahead and aligned, one obstacle at ``entity_xy`` (m; None: none)."""
+    obs = np.zeros((1, 13))
+    obs[0, 0:2] = np.array(target_xy) / 25.0
+    obs[0, 3] = 1.0  # target heading = the vehicle's
+    obs[0, 4] = speed / 10.0
+    obs[0, 9] = 1.0
+    if entity_xy is not None:
+        obs[0, 6:8] = np.array(entity_xy) / 25.0
+        obs[0, 10] = entity_radius / 3.0
+        obs[0, 12] = 1.0
+    return obs
+
+
+def test_avoiding_driver_swerves_only_from_an_entity_ahead_and_short_of_the_target():
+    plain = heuristic_actions(_observation(None))
+    np.testing.assert_allclose(avoiding_actions(_observation(None)), plain)  # nothing near: the plain driver
+    for elsewhere in ((-5.0, 0.5), (5.0, 6.0), (25.0, 0.5), (30.0, 0.0)):  # behind, off to the side, beyond the target
+        obs = _observation(elsewhere)
+        np.testing.assert_allclose(avoiding_actions(obs), heuristic_actions(obs))
+    # 5 m ahead, 0.5 m to the left: clearance 5.02 - 1 - 1.35 = 2.7 m, inside the look-ahead 4 + 2 m/s: full lock right
+    left = avoiding_actions(_observation((5.0, 0.5)))
+    assert left[0, 0] == -1.0 and left[0, 1] <= heuristic_actions(_observation((5.0, 0.5)))[0, 1]
+    assert avoiding_actions(_observation((5.0, -0.5)))[0, 0] == 1.0  # on the right: full lock left
+    # 2.5 m ahead: clearance 0.15 m, under 0.5 m: full brake as well
+    assert avoiding_actions(_observation((2.5, 0.0)))[0, 1] == -1.0
+    # crawling: at 3 m/s the pedal asks for 2.5 m/s, (2.5 - 0.99 * 3) / 0.1 = -4.7, clipped to -1
+    assert avoiding_actions(_observation((6.0, 0.3), speed=3.0))[0, 1] == -1.0
+
+
+def test_avoiding_driver_collides_less_than_the_plain_one_among_obstacles():
+    plain = summarize(evaluate_suite("heuristic", [(1, 8)], 10, workers=1, log=lambda s: None))
+    avoiding = summarize(evaluate_suite("avoiding", [(1, 8)], 10, workers=1, log=lambda s: None))
+    assert avoiding.collision_rate[0] < plain.collision_rate[0]
+    assert avoiding.success_to_goal_rate[0] > plain.success_to_goal_rate[0]

@@ -10,7 +10,7 @@ from coin_app.algorithms.nav_ppo.warm_start import bc_loss, bc_weight, heuristic
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.generator import generate, training_rng
-from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.heuristic import avoiding_actions, heuristic_actions
 from coin_app.sim.dynamics import wrap_angle
 from coin_app.training import build_config, fresh_module, with_env_runner
 
@@ -141,6 +141,13 @@ def test_demonstrations_label_each_driven_state_with_the_driver_and_its_discount
         brute = sum(r * 0.9**t for t, r in enumerate(rewards[agent]))
         assert demos.returns[row] == pytest.approx(brute, rel=1e-5, abs=1e-4)
     assert demos.success_rate == np.mean([env.sim.succeeded[i] for i in range(2)])
+
+
+def test_demonstrations_of_the_avoiding_driver_carry_its_labels():
+    cfg = make_arena_config(generator="agnn", num_vehicles=4, num_obstacles=8, max_steps=100)  # starts far, obstacles between
+    demos = heuristic_demonstrations(cfg, episodes=1, seed=2, noise=0.0, gamma=0.99, driver="avoiding")
+    np.testing.assert_allclose(demos.actions, avoiding_actions(demos.obs), atol=1e-5)
+    assert not np.allclose(demos.actions, heuristic_actions(demos.obs), atol=1e-3)  # it swerved somewhere
 
 
 def test_warm_start_settings_are_checked_before_any_work():

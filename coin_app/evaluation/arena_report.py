@@ -20,6 +20,7 @@ from typing import Any
 import pandas as pd
 
 from coin_app.evaluation.html_report import STYLE, image_html
+from coin_app.sim.arena.heuristic import DRIVERS
 
 EVAL_FILE = "arena_eval.json"  # the settings of an evaluate-arena run: what marks its directory as a report source
 SIDE_BY_SIDE = "arena_side_by_side"
@@ -43,9 +44,9 @@ PAPER_COLUMNS = (
 
 
 def policy_label(source: str | Path) -> str:
-    """A short name for a policy source: ``heuristic``, ``agnn``, a file's stem, or a checkpoint's run directory."""
+    """A short name for a policy source: a scripted driver's name, ``agnn``, a file's stem, or a checkpoint's run directory."""
     text = str(source)
-    if text in ("heuristic", "agnn"):
+    if text in (*DRIVERS, "agnn"):
         return text
     path = Path(text.rstrip("/"))
     if path.name == "checkpoint" and path.parent.name:

@@ -46,7 +46,7 @@ from coin_app.inference.agnn import AgnnArenaPolicy
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
-from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.heuristic import DRIVERS
 from coin_app.sim.arena.rendering import ArenaTrace, plot_arena_episode
 from coin_app.sim.dynamics import wrap_angle
 
@@ -148,9 +148,9 @@ def suite_config(
 
 
 def load_arena_policy(source: str | Path) -> Any:
-    """``"heuristic"`` (the scripted driver), ``"agnn"`` (the A-GNN baseline) or any policy source of ``as_policy``."""
-    if str(source) == "heuristic":
-        return heuristic_actions
+    """A scripted driver's name (``DRIVERS``), ``"agnn"`` (the A-GNN baseline) or any policy source of ``as_policy``."""
+    if str(source) in DRIVERS:
+        return DRIVERS[str(source)]
     if str(source) == "agnn":
         return AgnnArenaPolicy()
     return as_policy(source)

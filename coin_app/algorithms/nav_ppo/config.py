@@ -74,8 +74,9 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "curriculum_start": (0.2, "stage=short: the start spread (start_difficulty) at env step 0 of a curriculum"),
     "warm_start": (
         "none",
-        "'heuristic' = before the first PPO iteration, clone the scripted arena driver on the stage's scenario mix "
-        "(warm_start.py; not in the paper); 'none' = from scratch (the paper)",
+        "'heuristic' or 'avoiding' = before the first PPO iteration, clone that scripted arena driver (the plain one, or the "
+        "one that swerves from the closest entity) on the stage's scenario mix (warm_start.py; not in the paper); "
+        "'none' = from scratch (the paper)",
     ),
     "warm_start_episodes": (200, "warm start: scenarios the scripted driver drives (every second one with action noise)"),
     "warm_start_noise": (0.3, "warm start: std of the Gaussian noise on the driver's actions in the noisy scenarios"),
@@ -83,7 +84,7 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "bc_coeff": (
         0.0,
         "weight of an auxiliary loss pulling the policy mean toward the scripted driver's actions at each minibatch's "
-        "observations (warm_start.py; not in the paper; 0 = off)",
+        "observations (the warm start's driver, else the plain heuristic; warm_start.py; not in the paper; 0 = off)",
     ),
     "bc_steps": (0, "env steps over which bc_coeff falls linearly to 0 (0 = constant)"),
     "precision": (
@@ -139,10 +140,11 @@ class NavPPO(PPO):
         """Clone the scripted driver into every learner's module (``warm_start.py``) and send the weights to the env runners."""
         scenario, _ = parse_env_config(self.config.env_config)
         scenario = dataclasses.replace(scenario, start_difficulty=1.0)  # the whole start spread, whatever a curriculum's start
+        seed = int(self.config.seed or 0)
         demos = heuristic_demonstrations(
-            scenario, cfg["warm_start_episodes"], int(self.config.seed or 0), cfg["warm_start_noise"], self.config.gamma
+            scenario, cfg["warm_start_episodes"], seed, cfg["warm_start_noise"], self.config.gamma, cfg["warm_start"]
         )
-        epochs, log_std, seed = cfg["warm_start_epochs"], cfg["log_std_init"], int(self.config.seed or 0)
+        epochs, log_std = cfg["warm_start_epochs"], cfg["log_std_init"]
         losses = self.learner_group.foreach_learner(lambda learner: clone(learner.module[SHARED_MODULE_ID], demos, epochs, log_std, seed))
         self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group, inference_only=True)
         first = next(iter(losses)).get()  # every learner fitted the same demonstrations from the same seed

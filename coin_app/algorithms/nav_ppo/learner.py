@@ -12,7 +12,7 @@ from typing import Any
 from ray.rllib.algorithms.ppo.torch.ppo_torch_learner import PPOTorchLearner
 from ray.rllib.core.columns import Columns
 
-from coin_app.algorithms.nav_ppo.warm_start import bc_loss
+from coin_app.algorithms.nav_ppo.warm_start import bc_loss, teacher
 from coin_app.algorithms.ppo_family.agent_order import fix_agent_order
 from coin_app.algorithms.ppo_family.precision import MixedPrecisionLearner
 
@@ -30,7 +30,8 @@ class NavPPOLearner(MixedPrecisionLearner, PPOTorchLearner):
         """PPO's loss, plus ``bc_weight`` times the gap to the scripted driver's actions when that weight is above 0."""
         loss = super().compute_loss_for_module(module_id=module_id, config=config, batch=batch, fwd_out=fwd_out)
         if self.bc_weight > 0:
-            gap = bc_loss(batch[Columns.OBS], fwd_out[Columns.ACTION_DIST_INPUTS], batch.get(Columns.LOSS_MASK))
+            driver = teacher(self.config.learner_config_dict)
+            gap = bc_loss(batch[Columns.OBS], fwd_out[Columns.ACTION_DIST_INPUTS], batch.get(Columns.LOSS_MASK), driver)
             self.metrics.log_value((module_id, "bc_loss"), gap.detach(), window=1)
             loss = loss + self.bc_weight * gap
         return loss

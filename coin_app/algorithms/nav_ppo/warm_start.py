@@ -2,9 +2,10 @@
 
 The paper trains both stages from scratch over 30–40M env steps. On this machine's budgets (under
 1M per stage) PPO from scratch never found the parking manoeuvre (docs/arena/README.md): it
-settles inside d_c, misaligned. With ``warm_start="heuristic"`` the stage first drives
-``warm_start_episodes`` scenarios of its own mix with the scripted driver
-(``coin_app.sim.arena.heuristic``, which ignores obstacles and other vehicles), half of them with
+settles inside d_c, misaligned. With ``warm_start="heuristic"`` (or ``"avoiding"``) the stage first
+drives ``warm_start_episodes`` scenarios of its own mix with that scripted driver
+(``coin_app.sim.arena.heuristic``: the plain one ignores obstacles and other vehicles, the
+avoiding one swerves from the closest entity ahead), half of them with
 Gaussian action noise so that the clone also sees states off the driver's path, labelled with the
 driver's action at each visited state (DART, Laskey et al. 2017). Then, before the first PPO
 iteration, the policy's Gaussian mean is fitted to those labels, its log std to ``log_std_init``,
@@ -12,16 +13,19 @@ and the value network to the discounted returns (Eqs. 2–6, the stage's own rew
 each state. PPO then starts from a policy that parks and has to learn what the driver ignores.
 (With our reward constants PPO unlearned the clone within about 100k env steps: docs/arena/README.md.)
 
-``bc_coeff`` keeps the driver as a teacher during PPO: an auxiliary loss, the squared gap between
-the policy's Gaussian mean and the driver's action at each minibatch's own observations (the
-learner's states labelled by the driver, as in DAgger; Ross et al. 2011), weighted by ``bc_coeff``
-falling linearly to 0 over ``bc_steps`` env steps (``bc_weight``), as in DAPG's decaying
-demonstration term (Rajeswaran et al. 2018).
+``bc_coeff`` keeps a driver as a teacher during PPO (the warm start's; the plain one without a
+warm start): an auxiliary loss, the squared gap between the policy's Gaussian mean and the
+driver's action at each minibatch's own observations (the learner's states labelled by the
+driver, as in DAgger; Ross et al. 2011), weighted by ``bc_coeff`` falling linearly to 0 over
+``bc_steps`` env steps (``bc_weight``), as in DAPG's decaying demonstration term (Rajeswaran et
+al. 2018).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -30,7 +34,7 @@ from torch import nn
 
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.arena.env import ArenaEnv
-from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.heuristic import DRIVERS
 from coin_app.sim.arena.simulator import ArenaSimulator
 
 
@@ -44,10 +48,13 @@ class Demonstrations:
     success_rate: float  # share of the demonstrated vehicles that reached the success state
 
 
-def heuristic_demonstrations(config: ArenaConfig, episodes: int, seed: int, noise: float, gamma: float) -> Demonstrations:
-    """``episodes`` scenarios of ``config``'s mix driven by the scripted driver, every second one with action noise ``noise``."""
+def heuristic_demonstrations(
+    config: ArenaConfig, episodes: int, seed: int, noise: float, gamma: float, driver: str = "heuristic"
+) -> Demonstrations:
+    """``episodes`` scenarios of ``config``'s mix driven by the scripted ``driver``, every second one with action noise ``noise``."""
     if episodes < 1:
         raise ValueError(f"bad value for 'warm_start_episodes': {episodes}; allowed: an integer >= 1")
+    drive = DRIVERS[driver]
     layouts = ArenaEnv(config)
     layouts.reset(seed=seed)  # seeds the scenario stream; the layouts below are drawn from it
     sim = ArenaSimulator(config)
@@ -59,7 +66,7 @@ def heuristic_demonstrations(config: ArenaConfig, episodes: int, seed: int, nois
         sigma = noise if episode % 2 else 0.0
         steps_obs, steps_act, steps_rew, steps_mask = [], [], [], []
         while sim.driving.any():
-            label = heuristic_actions(obs, dt=config.dt, friction=config.friction, max_steer=config.max_steer)
+            label = drive(obs, dt=config.dt, friction=config.friction)
             action = np.clip(label + sigma * rng.standard_normal(label.shape), -1.0, 1.0) if sigma else label
             mask = sim.driving.copy()
             step = sim.step(action)
@@ -125,9 +132,15 @@ def bc_weight(env_steps: int, coeff: float, steps: int) -> float:
     return coeff * max(0.0, 1.0 - env_steps / steps)
 
 
-def bc_loss(obs: torch.Tensor, dist_inputs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean squared gap between the Gaussian means in ``dist_inputs`` (mean, log std) and the driver's actions at ``obs``."""
-    labels = heuristic_actions(obs.detach().float().cpu().numpy())  # the arena's default physics (dt 0.1, friction 0.99)
+def bc_loss(obs: torch.Tensor, dist_inputs: torch.Tensor, mask: torch.Tensor | None = None, driver: str = "heuristic") -> torch.Tensor:
+    """Mean squared gap between the Gaussian means in ``dist_inputs`` (mean, log std) and the ``driver``'s actions at ``obs``."""
+    labels = DRIVERS[driver](obs.detach().float().cpu().numpy())  # the arena's default physics (dt 0.1, friction 0.99)
     target = torch.as_tensor(labels, dtype=dist_inputs.dtype, device=dist_inputs.device)
     gap = ((dist_inputs[:, : dist_inputs.shape[1] // 2] - target) ** 2).mean(dim=1)
     return gap[mask].mean() if mask is not None else gap.mean()
+
+
+def teacher(options: Mapping[str, Any]) -> str:
+    """The scripted driver of the auxiliary loss: the warm start's, or the plain ``"heuristic"`` without a warm start."""
+    name = options.get("warm_start", "none")
+    return "heuristic" if name == "none" else name

@@ -10,15 +10,22 @@ target heading, ``e`` to its left, ``psi`` the vehicle heading relative to the t
 * otherwise **approach**: pure pursuit of the point 10 m behind the target on its line (circling
   there until aligned).
 
-It ignores obstacles and the other vehicles: the arena's reference for tests and a floor for
-learned policies.
+``heuristic_actions`` ignores obstacles and the other vehicles: the arena's reference for tests
+and a floor for learned policies. ``avoiding_actions`` is the same driver with one reflex for the
+closest entity of the observation (nav_ppo's optional teacher): when it lies ahead, in a
+corridor about its own width, closer to the vehicle than the target and within a look-ahead that
+grows with speed, steer at full lock away from it and slow to a crawl (brake when nearly touching).
+
+``DRIVERS`` names both.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from coin_app.sim.arena.observation import POSITION_SCALE, SPEED_SCALE
+from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE
+
+OWN_RADIUS = 0.5 * float(np.hypot(2.5, 1.0))  # the bounding radius of the arena's 2.5 x 1.0 m vehicles
 
 
 def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, friction: float = 0.99, max_steer: float = 0.8) -> np.ndarray:
@@ -43,3 +50,30 @@ def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, fri
     v_des = np.where(line, v_line, v_approach)
     pedal = np.clip((v_des - friction * speed) / dt, -1.0, 1.0)
     return np.stack([steer, pedal], 1)
+
+
+def avoiding_actions(
+    obs: np.ndarray, look: float = 4.0, lateral: float = 1.8, crawl: float = 2.5, dt: float = 0.1, friction: float = 0.99
+) -> np.ndarray:
+    """``heuristic_actions`` with a reflex away from the closest entity ahead (see module doc) for observations (N, 13)."""
+    obs = np.asarray(obs, float).reshape(-1, 13)
+    actions = heuristic_actions(obs, dt=dt, friction=friction)
+    near = obs[:, 6:8] * POSITION_SCALE  # the entity's centre in the vehicle frame
+    speed = obs[:, 4] * SPEED_SCALE
+    distance = np.linalg.norm(near, axis=1)
+    clearance = distance - obs[:, 10] * SIZE_SCALE - OWN_RADIUS
+    ahead = (
+        (obs[:, 12] > 0.5)
+        & (near[:, 0] > 0.0)
+        & (np.abs(near[:, 1]) < obs[:, 10] * SIZE_SCALE + lateral)
+        & (clearance < look + np.abs(speed))
+        & (distance < np.linalg.norm(obs[:, 0:2] * POSITION_SCALE, axis=1))  # not beyond the target
+    )
+    away = np.where(near[:, 1] >= 0.0, -1.0, 1.0)  # full lock to the side the entity is not on
+    crawl_pedal = np.clip((crawl - friction * speed) / dt, -1.0, 1.0)
+    pedal = np.where(ahead, np.minimum(actions[:, 1], crawl_pedal), actions[:, 1])
+    pedal = np.where(ahead & (clearance < 0.5), -1.0, pedal)
+    return np.stack([np.where(ahead, away, actions[:, 0]), pedal], 1)
+
+
+DRIVERS = {"heuristic": heuristic_actions, "avoiding": avoiding_actions}  # the scripted drivers by name
