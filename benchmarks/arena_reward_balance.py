@@ -9,6 +9,7 @@ obstacles) and each behaviour, the mean and median discounted return from the fi
 (``--gamma``, PPO's discount) per vehicle, and the share that parked or collided:
 
 * ``heuristic``: the scripted driver (``coin_app.sim.arena.heuristic``; parks, ignores the others);
+* ``avoiding``: the same with a reflex away from the closest entity ahead;
 * ``still``: zero actions (stays where it starts);
 * ``flee``: full pedal, steering the target behind it.
 
@@ -29,7 +30,7 @@ import numpy as np
 from coin_app.algorithms.nav_ppo.config import STAGES
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
-from coin_app.sim.arena.heuristic import heuristic_actions
+from coin_app.sim.arena.heuristic import avoiding_actions, heuristic_actions
 from coin_app.sim.arena.simulator import ArenaSimulator
 
 MIXES = {"short": STAGES["short"], "short-1x0": STAGES["short"] | {"max_vehicles": None, "max_obstacles": None}, "long": STAGES["long"]}
@@ -46,7 +47,7 @@ def flee(obs: np.ndarray) -> np.ndarray:
     return np.stack([np.clip(1.5 * away / 0.8, -1.0, 1.0), np.ones(len(obs))], 1)
 
 
-BEHAVIOURS = {"heuristic": heuristic_actions, "still": still, "flee": flee}
+BEHAVIOURS = {"heuristic": heuristic_actions, "avoiding": avoiding_actions, "still": still, "flee": flee}
 
 
 def discounted_returns(
