@@ -1,0 +1,86 @@
+"""How close nav_ppo's warm-start clone gets to its scripted driver, and whether the clone parks.
+
+Usage: python benchmarks/arena_clone_quality.py [--driver heuristic|avoiding] [--stage short|long]
+                                                [--episodes 200] [--epochs 10] [--cases 1x0,4x4]
+                                                [--scenarios-per-case 20] [--seed 0]
+
+Runs exactly the warm start of ``--set warm_start=<driver>`` (``coin_app/algorithms/nav_ppo/warm_start.py``)
+on a fresh ``[256, 256]`` nav_ppo module, without PPO: demonstrations of the stage's scenario mix,
+then the clone. Prints the clone's action MSE on its training demonstrations and on 20 held-out
+noiseless scenarios, then the success-to-goal rate of the clone (deterministic) and of the driver
+on the test suite's held-out seeds (``evaluate-arena --generator short`` for the short stage, the
+paper's suite for the long one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from ray.rllib.core.columns import Columns
+
+import coin_app.evaluation.arena_suite as suite
+from coin_app.algorithms.nav_ppo.config import HYPERPARAMETERS, STAGES
+from coin_app.algorithms.nav_ppo.warm_start import clone, heuristic_demonstrations
+from coin_app.sim.arena.config import make_arena_config
+from coin_app.sim.arena.heuristic import DRIVERS
+from coin_app.training import fresh_module
+
+LOG_STD = -1.5  # the initial std e^-1.5 = 0.22 of the warm-start runs in docs/arena/README.md
+
+
+def main() -> None:
+    """Clone, then score the clone and its driver."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--driver", choices=tuple(DRIVERS), default="heuristic")
+    ap.add_argument("--stage", choices=tuple(STAGES), default="short")
+    ap.add_argument("--episodes", type=int, default=HYPERPARAMETERS["warm_start_episodes"][0])
+    ap.add_argument("--epochs", type=int, default=HYPERPARAMETERS["warm_start_epochs"][0])
+    ap.add_argument("--cases", default="1x0,4x4", help="suite cases to score, e.g. 1x0,4x4,8x8")
+    ap.add_argument("--scenarios-per-case", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    if args.episodes < 1 or args.epochs < 0 or args.scenarios_per_case < 1:
+        ap.error(
+            f"--episodes {args.episodes}, --epochs {args.epochs}, --scenarios-per-case {args.scenarios_per_case}: allowed >= 1, >= 0, >= 1"
+        )
+    cases = suite.parse_cases(args.cases)
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    cfg = make_arena_config(**STAGES[args.stage])
+    demos = heuristic_demonstrations(cfg, args.episodes, args.seed, HYPERPARAMETERS["warm_start_noise"][0], 0.99, args.driver)
+    module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD}, seed=args.seed)
+    losses = clone(module, demos, args.epochs, LOG_STD, args.seed)
+    held_out = heuristic_demonstrations(cfg, 20, args.seed + 10_000, 0.0, 0.99, args.driver)
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        """The clone's deterministic actions."""
+        with torch.no_grad():
+            inputs = module.forward_inference({Columns.OBS: torch.as_tensor(np.asarray(obs, np.float32))})[Columns.ACTION_DIST_INPUTS]
+        return inputs[:, :2].clamp(-1.0, 1.0).numpy()
+
+    held_mse = float(((policy(held_out.obs) - held_out.actions) ** 2).mean())
+    print(f"{args.driver} driver, stage {args.stage}: {len(demos.obs)} rows from {args.episodes} scenarios, {args.epochs} epochs")
+    print(f"  clone action MSE: {losses['action_mse']:.3f} on its demonstrations, {held_mse:.3f} on 20 held-out noiseless scenarios")
+    generator = "short" if args.stage == "short" else "agnn"
+    load = suite.load_arena_policy
+    suite.load_arena_policy = lambda source: policy if source == "clone" else load(source)  # the suite's policy loader, in-process
+    try:
+        scores = {}
+        for name in ("clone", args.driver):
+            rows = suite.evaluate_suite(name, cases, args.scenarios_per_case, workers=1, log=lambda s: None, generator=generator)
+            scores[name] = {f"{int(r.vehicles)}x{int(r.obstacles)}": r.success_to_goal_rate for r in suite.summarize(rows).itertuples()}
+    finally:
+        suite.load_arena_policy = load
+    for name, by_case in scores.items():
+        print(f"  {name:9s} success-to-goal ({generator} scenarios): " + " ".join(f"{c} {v:.2f}" for c, v in by_case.items()))
+    print(
+        f"summary ({time.perf_counter() - t0:.0f} s): clone {held_mse:.3f} held-out MSE; success clone/driver "
+        + ", ".join(f"{c} {scores['clone'][c]:.2f}/{scores[args.driver][c]:.2f}" for c in scores["clone"])
+    )
+
+
+if __name__ == "__main__":
+    main()
