@@ -46,7 +46,10 @@ def main() -> None:
         ap.error(
             f"--episodes {args.episodes}, --epochs {args.epochs}, --scenarios-per-case {args.scenarios_per_case}: allowed >= 1, >= 0, >= 1"
         )
-    cases = suite.parse_cases(args.cases)
+    try:
+        cases = suite.parse_cases(args.cases)
+    except ValueError as exc:
+        ap.error(f"--cases: {exc}")
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     cfg = make_arena_config(**STAGES[args.stage])

@@ -87,7 +87,14 @@ def main() -> None:
         key, sep, value = item.partition("=")
         if not sep:
             ap.error(f"--reward {item!r}: allowed: KEY=VALUE")
-        reward[key] = ast.literal_eval(value)
+        try:
+            reward[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            ap.error(f"--reward {item!r}: allowed: KEY=VALUE with a Python literal VALUE")
+    try:
+        make_arena_config(reward=reward)  # unknown keys or bad values fail here, before any work
+    except (ValueError, TypeError) as exc:
+        ap.error(f"--reward: {exc}")
     t0 = time.perf_counter()
     print(f"discounted return per vehicle from step 0 (gamma {args.gamma}), {args.scenarios} scenarios per mix, reward overrides {reward}")
     print(f"{'mix':10s} {'behaviour':10s} {'mean':>8s} {'median':>8s} {'parked':>7s} {'collided':>8s}")
