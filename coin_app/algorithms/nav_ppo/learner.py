@@ -25,13 +25,13 @@ class NavPPOLearner(MixedPrecisionLearner, PPOTorchLearner):
         super().build()
         fix_agent_order(self)
         self.bc_weight = 0.0
+        self.bc_driver = teacher(self.config.learner_config_dict)  # fixed for the run
 
     def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any], fwd_out: dict[str, Any]) -> Any:
         """PPO's loss, plus ``bc_weight`` times the gap to the scripted driver's actions when that weight is above 0."""
         loss = super().compute_loss_for_module(module_id=module_id, config=config, batch=batch, fwd_out=fwd_out)
         if self.bc_weight > 0:
-            driver = teacher(self.config.learner_config_dict)
-            gap = bc_loss(batch[Columns.OBS], fwd_out[Columns.ACTION_DIST_INPUTS], batch.get(Columns.LOSS_MASK), driver)
+            gap = bc_loss(batch[Columns.OBS], fwd_out[Columns.ACTION_DIST_INPUTS], batch.get(Columns.LOSS_MASK), self.bc_driver)
             self.metrics.log_value((module_id, "bc_loss"), gap.detach(), window=1)
             loss = loss + self.bc_weight * gap
         return loss
