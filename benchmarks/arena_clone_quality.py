@@ -2,14 +2,15 @@
 
 Usage: python benchmarks/arena_clone_quality.py [--driver heuristic|avoiding] [--stage short|long]
                                                 [--episodes 200] [--epochs 10] [--cases 1x0,4x4]
-                                                [--scenarios-per-case 20] [--seed 0]
+                                                [--scenarios-per-case 20] [--seed 0] [--lone-fraction 0]
 
 Runs exactly the warm start of ``--set warm_start=<driver>`` (``coin_app/algorithms/nav_ppo/warm_start.py``)
 on a fresh ``[256, 256]`` nav_ppo module, without PPO: demonstrations of the stage's scenario mix,
 then the clone. Prints the clone's action MSE on its training demonstrations and on 20 held-out
 noiseless scenarios, then the success-to-goal rate of the clone (deterministic) and of the driver
 on the test suite's held-out seeds (``evaluate-arena --generator short`` for the short stage, the
-paper's suite for the long one).
+paper's suite for the long one). ``--lone-fraction`` is the arena option of that name for the
+demonstrations' mix (``--set lone_fraction=...`` in training).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ def main() -> None:
     ap.add_argument("--cases", default="1x0,4x4", help="suite cases to score, e.g. 1x0,4x4,8x8")
     ap.add_argument("--scenarios-per-case", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--lone-fraction", type=float, default=0.0, help="share of 1-vehicle, 0-obstacle demonstration scenarios")
     args = ap.parse_args()
     if args.episodes < 1 or args.epochs < 0 or args.scenarios_per_case < 1:
         ap.error(
@@ -48,11 +50,11 @@ def main() -> None:
         )
     try:
         cases = suite.parse_cases(args.cases)
+        cfg = make_arena_config(**STAGES[args.stage], lone_fraction=args.lone_fraction)
     except ValueError as exc:
-        ap.error(f"--cases: {exc}")
+        ap.error(str(exc))
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    cfg = make_arena_config(**STAGES[args.stage])
     demos = heuristic_demonstrations(cfg, args.episodes, args.seed, HYPERPARAMETERS["warm_start_noise"][0], 0.99, args.driver)
     module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD}, seed=args.seed)
     losses = clone(module, demos, args.epochs, LOG_STD, args.seed)
@@ -65,7 +67,10 @@ def main() -> None:
         return inputs[:, :2].clamp(-1.0, 1.0).numpy()
 
     held_mse = float(((policy(held_out.obs) - held_out.actions) ** 2).mean())
-    print(f"{args.driver} driver, stage {args.stage}: {len(demos.obs)} rows from {args.episodes} scenarios, {args.epochs} epochs")
+    print(
+        f"{args.driver} driver, stage {args.stage}: {len(demos.obs)} rows from {args.episodes} scenarios "
+        f"(lone fraction {args.lone_fraction}), {args.epochs} epochs"
+    )
     print(f"  clone action MSE: {losses['action_mse']:.3f} on its demonstrations, {held_mse:.3f} on 20 held-out noiseless scenarios")
     generator = "short" if args.stage == "short" else "agnn"
     load = suite.load_arena_policy

@@ -218,3 +218,25 @@ def test_bc_loss_is_the_squared_gap_to_the_drivers_actions_over_unmasked_rows():
     mask = torch.tensor([True, True, True, True, False])
     assert float(bc_loss(torch.as_tensor(obs), inputs, mask)) == pytest.approx(want, rel=1e-5)
     assert float(bc_loss(torch.as_tensor(obs), inputs)) == pytest.approx(np.mean(offsets**2), rel=1e-5)
+
+
+def test_lone_fraction_mixes_in_single_vehicle_episodes_and_leaves_the_default_stream_unchanged():
+    short = {"generator": "short", "num_vehicles": 1, "max_vehicles": 8, "num_obstacles": 0, "max_obstacles": 8}
+    env = ArenaEnv(make_arena_config(**short))
+    env.reset(seed=5)
+    rng = training_rng(5)  # the default draws: the counts, then the layout, from one stream
+    n, m = int(rng.integers(1, 9)), int(rng.integers(0, 9))
+    expected = generate(rng, env.config, n, m)
+    np.testing.assert_array_equal(env.sim.layout.starts, expected.starts)
+    np.testing.assert_array_equal(env.sim.layout.obstacles, expected.obstacles)
+    always = ArenaEnv(make_arena_config(**short, lone_fraction=1.0))
+    always.reset(seed=3)
+    assert all((len(lay.starts), len(lay.obstacles)) == (1, 0) for lay in (always.draw_layout() for _ in range(20)))
+    mixed = ArenaEnv(make_arena_config(**short, lone_fraction=0.3))
+    mixed.reset(seed=4)
+    lone = np.mean([(len(lay.starts), len(lay.obstacles)) == (1, 0) for lay in (mixed.draw_layout() for _ in range(600))])
+    p = 0.3 + 0.7 / 72  # the lone draws plus the mix's own 1 x 0
+    assert abs(lone - p) < 4 * np.sqrt(p * (1 - p) / 600)
+    for bad in (-0.1, 1.5, float("nan"), True):
+        with pytest.raises(ValueError, match=r"bad arena value lone_fraction=.*; allowed: a number in \[0, 1\]"):
+            make_arena_config(lone_fraction=bad)

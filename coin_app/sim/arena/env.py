@@ -46,8 +46,10 @@ class ArenaEnv:
         self.config = make_arena_config(**{**vars(self.config), "start_difficulty": float(difficulty)})
 
     def draw_layout(self) -> Layout:
-        """The next generated scenario (vehicle and obstacle counts drawn from the config's ranges)."""
+        """The next generated scenario (vehicle and obstacle counts drawn from the config's ranges, or 1 x 0 at ``lone_fraction``)."""
         cfg = self.config
+        if cfg.lone_fraction > 0 and self._rng.random() < cfg.lone_fraction:  # no extra draw at the default 0
+            return generate(self._rng, cfg, 1, 0)
         n = cfg.num_vehicles if cfg.max_vehicles is None else int(self._rng.integers(cfg.num_vehicles, cfg.max_vehicles + 1))
         m = cfg.num_obstacles if cfg.max_obstacles is None else int(self._rng.integers(cfg.num_obstacles, cfg.max_obstacles + 1))
         return generate(self._rng, cfg, n, m)
