@@ -38,6 +38,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# cross products of vectors stacked on a leading axis (x, y, z): a x b = a[_ROLL1] * b[_ROLL2] - a[_ROLL2] * b[_ROLL1]
+_ROLL1, _ROLL2 = np.array([1, 2, 0]), np.array([2, 0, 1])
+_W_ROLL1, _W_ROLL2 = 3 + _ROLL1, 3 + _ROLL2  # the same rows of the angular part of a stacked (v, w)
+# turn_matrices' entries of a flattened 3 x 3 matrix: the diagonal; the off-diagonals' skew axis, sign and product pair
+_DIAGONAL, _DIAG_A, _DIAG_B = np.array([0, 4, 8]), np.array([1, 0, 0]), np.array([2, 2, 1])
+_OFF_DIAGONAL = np.array([1, 2, 3, 5, 6, 7])
+_SKEW_AXIS, _SKEW_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+_PAIR_A, _PAIR_B = np.array([0, 0, 0, 1, 0, 1]), np.array([1, 2, 1, 2, 2, 2])
+
 
 @dataclass(frozen=True)
 class VehicleParams:
@@ -95,20 +104,20 @@ def chassis_basis(heading: np.ndarray, pitch: np.ndarray | float = 0.0, roll: np
 
 
 def turn_matrices(w: np.ndarray, dt: float) -> np.ndarray:
-    """Rotation matrices (n, 3, 3) of turning at world angular velocities ``w`` (n, 3) for ``dt`` (the exponential map)."""
+    """Rotation matrices (n, 3, 3) of turning at world angular velocities ``w`` (n, 3) for ``dt`` (the exponential map).
+
+    Rodrigues' formula ``I + sin(a) [k] + (1 - cos(a)) [k]^2`` about the unit axis ``k``, written
+    entry by entry: the diagonal ``1 - c1 (k_j^2 + k_k^2)``, the off-diagonals ``+-s k_m + c1 k_a k_b``.
+    """
     norm = np.sqrt((w * w).sum(1))
     angle = norm * dt
     k = w / np.maximum(norm, 1e-12)[:, None]
-    kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
-    s, c1 = np.sin(angle), 1.0 - np.cos(angle)
-    return np.stack(
-        [
-            np.stack([1 - c1 * (ky * ky + kz * kz), -s * kz + c1 * kx * ky, s * ky + c1 * kx * kz], -1),
-            np.stack([s * kz + c1 * kx * ky, 1 - c1 * (kx * kx + kz * kz), -s * kx + c1 * ky * kz], -1),
-            np.stack([-s * ky + c1 * kx * kz, s * kx + c1 * ky * kz, 1 - c1 * (kx * kx + ky * ky)], -1),
-        ],
-        -2,
-    )
+    s, c1 = np.sin(angle)[:, None], 1.0 - np.cos(angle)[:, None]
+    sq = k * k
+    out = np.empty((len(w), 9))
+    out[:, _DIAGONAL] = 1 - c1 * (sq[:, _DIAG_A] + sq[:, _DIAG_B])
+    out[:, _OFF_DIAGONAL] = (s * k)[:, _SKEW_AXIS] * _SKEW_SIGN + (c1 * k)[:, _PAIR_A] * k[:, _PAIR_B]
+    return out.reshape(-1, 3, 3)
 
 
 class RaycastVehicles:
@@ -121,6 +130,13 @@ class RaycastVehicles:
         self.vel = np.zeros((n, 3))
         self.ang = np.zeros((n, 3))
         self.inv_inertia = 1.0 / np.asarray(self.p.inertia)
+        # constants of the step, shaped for the stacked (component, vehicle, wheel) arrays
+        self._connection = np.ascontiguousarray(self.p.connection.T[:, None, :])  # (3, 1, 4): right, forward, up
+        self._inv_m = 1.0 / self.p.mass
+        self._inv_inertia = self.inv_inertia[:, None, None]
+        self._inv_mass = np.concatenate([np.full(3, self._inv_m), self.inv_inertia])[:, None]  # (6, 1): of (v, w)
+        self._length_min = self.p.suspension_rest - self.p.suspension_travel
+        self._length_max = self.p.suspension_rest + self.p.suspension_travel
 
     def place(self, slots: np.ndarray, xy: np.ndarray, heading: np.ndarray, speed: np.ndarray | float = 0.0, settled: bool = False) -> None:
         """Put vehicles at ``xy`` and ``heading``, driving straight at ``speed``.
@@ -147,79 +163,94 @@ class RaycastVehicles:
 
         Returns the reported pose of each: position (n, 2) and heading (n,), as MetaDrive reads them.
         The physics runs in the chassis frame (constant connection points, diagonal inertia); the
-        state is kept in the world frame.
+        state is kept in the world frame. Vectors are stacked on a leading axis of 3 (x, y, z)
+        over (vehicle, wheel), so that each line below is one array operation for every
+        component, wheel and vehicle.
         """
         p = self.p
-        dt, g, inv_m = p.physics_dt, p.gravity, 1.0 / p.mass
-        inv_ix, inv_iy, inv_iz = self.inv_inertia
-        rx, ry, hz = p.connection[:, 0], p.connection[:, 1], p.connection[:, 2]  # (4,) chassis frame
+        dt, gdt, ray = p.physics_dt, p.gravity * p.physics_dt, p.suspension_rest + p.wheel_radius
         pos, rot = self.pos[slots], self.rot[slots]
         world_v = self.vel[slots]
+        n = len(pos)
         # MetaDrive's _apply_throttle_brake, once per env step: engine off above the speed limit, brake 2.0 unless braking
         fast = np.sqrt(world_v[:, 0] ** 2 + world_v[:, 1] ** 2) * 3.6 > max_speed_kmh
         pedal = action[:, 1]
         engine = np.where(pedal >= 0.0, np.where(fast, 0.0, p.engine_force * pedal), 0.0)[:, None]
         brake = np.where(pedal >= 0.0, p.coast_brake, -pedal * p.brake_force)[:, None]
+        engine_on, engine_impulse = engine != 0.0, engine * dt
         delta = np.where(p.front[None, :], np.deg2rad(max_steer_deg) * action[:, 0:1], 0.0)  # (n, 4)
-        cos_d, sin_d = np.cos(delta), np.sin(delta)
-        v = np.einsum("nji,nj->ni", rot, world_v)  # chassis-frame velocities
-        w = np.einsum("nji,nj->ni", rot, self.ang[slots])
-        vx, vy, vz, wx, wy, wz = v[:, 0], v[:, 1], v[:, 2], w[:, 0], w[:, 1], w[:, 2]
-        ray = p.suspension_rest + p.wheel_radius
+        # the wheels' heading in the chassis plane; z = -0.0 so that 0 - x keeps the sign of -x exactly
+        wheel_dir = np.stack([np.cos(delta), np.sin(delta), np.full((n, 4), -0.0)])
+        vw = np.empty((6, n))  # chassis-frame linear and angular velocity
+        vw[:3] = np.einsum("nji,nj->ni", rot, world_v).T
+        vw[3:] = np.einsum("nji,nj->ni", rot, self.ang[slots]).T
+        points = np.empty((2, 3, n, 4))  # contact points and the side impulses' points, relative to the centre of mass
+        points[0, :2] = self._connection[:2]
+        dirs = np.empty((2, 3, n, 4))  # each wheel's forward direction and axle on the ground
         shown_pos, shown_fwd = pos[:, :2], rot[:, :2, 1]
         for k in range(substeps):
             if k == substeps - 1:  # Bullet's motion state shows the pose before the last integration
                 shown_pos, shown_fwd = pos[:, :2].copy(), rot[:, :2, 1].copy()
-            nx, ny, nz = rot[:, 2, 0], rot[:, 2, 1], rot[:, 2, 2]  # world up in the chassis frame
-            vx, vy, vz = vx - g * dt * nx, vy - g * dt * ny, vz - g * dt * nz  # gravity
-            world = np.einsum("nij,nj->ni", rot, np.stack([vx, vy, vz], 1))
-            pos = pos + world * dt
-            turn = turn_matrices(np.stack([wx, wy, wz], 1), dt)  # a body-frame turn: R exp([w] dt)
+            vw[:3] -= gdt * rot[:, 2, :].T  # gravity (the world up in the chassis frame)
+            v = np.ascontiguousarray(vw[:3].T)
+            pos = pos + np.einsum("nij,nj->ni", rot, v) * dt
+            turn = turn_matrices(np.ascontiguousarray(vw[3:].T), dt)  # a body-frame turn: R exp([w] dt)
             rot = rot @ turn
-            v = np.einsum("nji,nj->ni", turn, np.stack([vx, vy, vz], 1))  # the same world velocity in the turned frame
-            vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
-            nx, ny, nz = rot[:, 2, 0:1], rot[:, 2, 1:2], rot[:, 2, 2:3]  # (n, 1)
+            vw[:3] = np.einsum("nji,nj->ni", turn, v).T  # the same world velocity in the turned frame
+            up = rot[:, 2, :].T[:, :, None]  # world up in the chassis frame (3, n, 1)
+            nz = up[2]
             # rays straight down the chassis' -z from the connection points to the ground z = 0
-            height = pos[:, 2:3] + nx * rx + ny * ry + nz * hz  # connection points above the ground (n, 4)
+            arm = up * self._connection
+            height = pos[:, 2:3] + arm[0] + arm[1] + arm[2]  # connection points above the ground (n, 4)
             steep = nz > 0.1
-            dist = np.where(steep, height / np.where(steep, nz, 1.0), np.inf)
+            safe_nz = np.where(steep, nz, 1.0)
+            dist = np.where(steep, height / safe_nz, np.inf)
             contact = (dist >= 0.0) & (dist <= ray)
-            length = np.clip(dist - p.wheel_radius, p.suspension_rest - p.suspension_travel, p.suspension_rest + p.suspension_travel)
-            rz = hz - np.where(contact, dist, ray)  # contact points relative to the centre of mass: (rx, ry, rz)
+            length = np.minimum(np.maximum(dist - p.wheel_radius, self._length_min), self._length_max)  # np.clip, bit for bit
+            r = points[0]
+            np.subtract(self._connection[2], np.where(contact, dist, ray), out=r[2])  # contact point heights
+            r1, r2 = r[_ROLL1], r[_ROLL2]
             # suspension: spring and damper along the ray, impulse along world up at the contact
-            cvx, cvy, cvz = _point_velocity(vx, vy, vz, wx, wy, wz, rx, ry, rz)
-            inv_cos = np.where(steep, 1.0 / np.where(steep, nz, 1.0), 10.0)
-            rel_vel = np.where(steep, (nx * cvx + ny * cvy + nz * cvz) * inv_cos, 0.0)
+            cv = _point_velocity(vw, r1, r2)
+            inv_cos = np.where(steep, 1.0 / safe_nz, 10.0)
+            along = up * cv
+            rel_vel = np.where(steep, (along[0] + along[1] + along[2]) * inv_cos, 0.0)
             damping = np.where(rel_vel < 0.0, p.damping_compression, p.damping_relaxation)
             force = (p.suspension_stiffness * (p.suspension_rest - length) * inv_cos - damping * rel_vel) * p.mass
             force = np.where(contact, np.maximum(force, 0.0), 0.0)
             lift = np.minimum(force, p.max_suspension_force) * dt
-            vx, vy, vz, wx, wy, wz = _impulses(vx, vy, vz, wx, wy, wz, lift, nx, ny, nz, rx, ry, rz, inv_m, inv_ix, inv_iy, inv_iz)
+            vw += _impulse_sums(lift * up, r1, r2) * self._inv_mass
             # friction: each wheel's axle and forward direction on the ground
-            ax, ay, az = cos_d - nx * (cos_d * nx + sin_d * ny), sin_d - ny * (cos_d * nx + sin_d * ny), -nz * (cos_d * nx + sin_d * ny)
-            norm = np.sqrt(ax * ax + ay * ay + az * az)
-            ax, ay, az = ax / norm, ay / norm, az / norm
-            fx, fy, fz = ny * az - nz * ay, nz * ax - nx * az, nx * ay - ny * ax  # up x axle
-            cvx, cvy, cvz = _point_velocity(vx, vy, vz, wx, wy, wz, rx, ry, rz)
-            den_side = _denominator(ax, ay, az, rx, ry, rz, inv_m, inv_ix, inv_iy, inv_iz)
-            side = np.where(contact, -p.side_damping * (cvx * ax + cvy * ay + cvz * az) / den_side, 0.0)
-            den_fwd = _denominator(fx, fy, fz, rx, ry, rz, inv_m, inv_ix, inv_iy, inv_iz)
-            stop = -(cvx * fx + cvy * fy + cvz * fz) / den_fwd  # the impulse that stops the contact point (not shared out)
-            rolling = np.where(contact, np.where(engine != 0.0, engine * dt, np.clip(stop, -brake, brake)), 0.0)
+            tilt = wheel_dir[0] * up[0] + wheel_dir[1] * up[1]
+            axle = wheel_dir - up * tilt
+            sq = axle * axle
+            np.divide(axle, np.sqrt(sq[0] + sq[1] + sq[2]), out=dirs[1])
+            axle = dirs[1]
+            np.subtract(up[_ROLL1] * axle[_ROLL2], up[_ROLL2] * axle[_ROLL1], out=dirs[0])  # up x axle
+            cv = _point_velocity(vw, r1, r2)
+            den = _denominator(dirs, r1, r2, self._inv_inertia, self._inv_m)  # (2, n, 4): forward, side
+            along = cv * dirs
+            speed = along[:, 0] + along[:, 1] + along[:, 2]
+            side = np.where(contact, -p.side_damping * speed[1] / den[1], 0.0)
+            stop = -speed[0] / den[0]  # the impulse that stops the contact point (not shared out)
+            rolling = np.where(contact, np.where(engine_on, engine_impulse, np.minimum(np.maximum(stop, -brake), brake)), 0.0)
             limit = force * dt * p.friction_slip
             demand = (rolling * p.forward_skid_factor) ** 2 + side * side
             skidding = contact & (demand > limit * limit)
-            skid = np.where(skidding, limit / np.sqrt(np.where(skidding, demand, 1.0)), 1.0)
-            scale = np.where(skidding.any(1, keepdims=True) & (side != 0.0) & (skid < 1.0), skid, 1.0)
-            rolling, side = rolling * scale, side * scale
+            if skidding.any():
+                skid = np.where(skidding, limit / np.sqrt(np.where(skidding, demand, 1.0)), 1.0)
+                scale = np.where(skidding.any(1, keepdims=True) & (side != 0.0) & (skid < 1.0), skid, 1.0)
+                rolling, side = rolling * scale, side * scale
             # the forward impulse acts at the contact point; the side one with its height over the ground scaled (roll influence)
-            up_part = (1.0 - p.roll_influence) * (nx * rx + ny * ry + nz * rz)
-            sx, sy, sz = rx - up_part * nx, ry - up_part * ny, rz - up_part * nz
-            vx, vy, vz, wx, wy, wz = _impulses(vx, vy, vz, wx, wy, wz, rolling, fx, fy, fz, rx, ry, rz, inv_m, inv_ix, inv_iy, inv_iz)
-            vx, vy, vz, wx, wy, wz = _impulses(vx, vy, vz, wx, wy, wz, side, ax, ay, az, sx, sy, sz, inv_m, inv_ix, inv_iy, inv_iz)
+            across = up * r
+            up_part = (1.0 - p.roll_influence) * (across[0] + across[1] + across[2])
+            np.subtract(r, up_part * up, out=points[1])
+            sums = _impulse_sums(np.stack([rolling, side])[:, None] * dirs, points[:, _ROLL1], points[:, _ROLL2]) * self._inv_mass
+            vw += sums[0]
+            vw += sums[1]
         self.pos[slots], self.rot[slots] = pos, rot
-        self.vel[slots] = np.einsum("nij,nj->ni", rot, np.stack([vx, vy, vz], 1))
-        self.ang[slots] = np.einsum("nij,nj->ni", rot, np.stack([wx, wy, wz], 1))
+        self.vel[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[:3].T))
+        self.ang[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[3:].T))
         return shown_pos, np.arctan2(shown_fwd[:, 1], shown_fwd[:, 0])
 
 
@@ -233,33 +264,22 @@ def equilibrium(params: VehicleParams) -> tuple[float, float, float]:
     return float(probe.pos[0, 2]), float(np.arcsin(probe.rot[0, 2, 1])), float(probe.vel[0, 2])
 
 
-def _point_velocity(
-    vx: np.ndarray, vy: np.ndarray, vz: np.ndarray, wx: np.ndarray, wy: np.ndarray, wz: np.ndarray,
-    rx: np.ndarray, ry: np.ndarray, rz: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """Velocity v + w x r of the chassis at the points r (n, 4), all in the chassis frame."""
-    vx, vy, vz, wx, wy, wz = vx[:, None], vy[:, None], vz[:, None], wx[:, None], wy[:, None], wz[:, None]
-    return vx + wy * rz - wz * ry, vy + wz * rx - wx * rz, vz + wx * ry - wy * rx
+def _point_velocity(vw: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+    """Velocity v + w x r (3, n, 4) of the chassis at the points r, all in the chassis frame.
+
+    ``vw`` (6, n): linear and angular velocity; ``r1``, ``r2``: the points' components rolled by one and two (``r[_ROLL1]``, ``r[_ROLL2]``).
+    """
+    return vw[:3, :, None] + vw[_W_ROLL1, :, None] * r2 - vw[_W_ROLL2, :, None] * r1
 
 
-def _denominator(
-    dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, rx: np.ndarray, ry: np.ndarray, rz: np.ndarray,
-    inv_m: float, inv_ix: float, inv_iy: float, inv_iz: float,
-) -> np.ndarray:  # fmt: skip
-    """Bullet's impulse denominator 1/m + (r x d)^T I^-1 (r x d) for directions d at points r (chassis frame, diagonal I)."""
-    cx, cy, cz = ry * dz - rz * dy, rz * dx - rx * dz, rx * dy - ry * dx
-    return inv_m + cx * cx * inv_ix + cy * cy * inv_iy + cz * cz * inv_iz
+def _denominator(d: np.ndarray, r1: np.ndarray, r2: np.ndarray, inv_inertia: np.ndarray, inv_m: float) -> np.ndarray:
+    """Bullet's impulse denominator 1/m + (r x d)^T I^-1 (r x d) for directions d (..., 3, n, 4) at points r (chassis frame, diagonal I)."""
+    c = r1 * d[..., _ROLL2, :, :] - r2 * d[..., _ROLL1, :, :]
+    q = c * c * inv_inertia
+    return inv_m + q[..., 0, :, :] + q[..., 1, :, :] + q[..., 2, :, :]
 
 
-def _impulses(
-    vx: np.ndarray, vy: np.ndarray, vz: np.ndarray, wx: np.ndarray, wy: np.ndarray, wz: np.ndarray,
-    j: np.ndarray, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, rx: np.ndarray, ry: np.ndarray, rz: np.ndarray,
-    inv_m: float, inv_ix: float, inv_iy: float, inv_iz: float,
-) -> tuple[np.ndarray, ...]:  # fmt: skip
-    """Chassis velocities after impulses of size j (n, 4) along d at the points r (chassis frame)."""
-    px, py, pz = j * dx, j * dy, j * dz
-    tx, ty, tz = ry * pz - rz * py, rz * px - rx * pz, rx * py - ry * px
-    return (
-        vx + px.sum(1) * inv_m, vy + py.sum(1) * inv_m, vz + pz.sum(1) * inv_m,
-        wx + tx.sum(1) * inv_ix, wy + ty.sum(1) * inv_iy, wz + tz.sum(1) * inv_iz,
-    )  # fmt: skip
+def _impulse_sums(impulse: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+    """The impulses (..., 3, n, 4) applied at the points r and their torques r x impulse, each summed over the wheels: (..., 6, n)."""
+    torque = r1 * impulse[..., _ROLL2, :, :] - r2 * impulse[..., _ROLL1, :, :]
+    return np.concatenate([impulse, torque], -3).sum(-1)
