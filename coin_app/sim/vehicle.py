@@ -38,14 +38,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# cross products of vectors stacked on a leading axis (x, y, z): a x b = a[_ROLL1] * b[_ROLL2] - a[_ROLL2] * b[_ROLL1]
-_ROLL1, _ROLL2 = np.array([1, 2, 0]), np.array([2, 0, 1])
-_W_ROLL1, _W_ROLL2 = 3 + _ROLL1, 3 + _ROLL2  # the same rows of the angular part of a stacked (v, w)
-# turn_matrices' entries of a flattened 3 x 3 matrix: the diagonal; the off-diagonals' skew axis, sign and product pair
-_DIAGONAL, _DIAG_A, _DIAG_B = np.array([0, 4, 8]), np.array([1, 0, 0]), np.array([2, 2, 1])
-_OFF_DIAGONAL = np.array([1, 2, 3, 5, 6, 7])
-_SKEW_AXIS, _SKEW_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
-_PAIR_A, _PAIR_B = np.array([0, 0, 0, 1, 0, 1]), np.array([1, 2, 1, 2, 2, 2])
+# cross products of vectors stacked on a leading axis (x, y, z), one gather per factor: with the rolled rows
+# a[_ROLL12] = (a_y, a_z, a_x, a_z, a_x, a_y) and b[_ROLL21] = (b_z, b_x, b_y, b_y, b_z, b_x), d = a[_ROLL12] * b[_ROLL21]
+# gives a x b = d[:3] - d[3:]; r[_ROLL121][:6] and [3:] are r[_ROLL12] and r[_ROLL21] from one gather
+_ROLL12, _ROLL21, _ROLL121 = np.array([1, 2, 0, 2, 0, 1]), np.array([2, 0, 1, 1, 2, 0]), np.array([1, 2, 0, 2, 0, 1, 1, 2, 0])
+_W_ROLL12 = 3 + _ROLL12  # the same rows of the angular part of a stacked (v, w)
+# turn_matrices: the product pairs of its off-diagonal entries, and its entries' rows in row-major matrix order
+_PAIR_A, _PAIR_B = np.array([0, 1, 0]), np.array([1, 2, 2])
+_MATRIX_ORDER = np.array([6, 0, 5, 3, 7, 1, 2, 4, 8])
 
 
 @dataclass(frozen=True)
@@ -106,18 +106,25 @@ def chassis_basis(heading: np.ndarray, pitch: np.ndarray | float = 0.0, roll: np
 def turn_matrices(w: np.ndarray, dt: float) -> np.ndarray:
     """Rotation matrices (n, 3, 3) of turning at world angular velocities ``w`` (n, 3) for ``dt`` (the exponential map).
 
-    Rodrigues' formula ``I + sin(a) [k] + (1 - cos(a)) [k]^2`` about the unit axis ``k``, written
-    entry by entry: the diagonal ``1 - c1 (k_j^2 + k_k^2)``, the off-diagonals ``+-s k_m + c1 k_a k_b``.
+    Rodrigues' formula ``I + sin(a) [k] + (1 - cos(a)) [k]^2`` about the unit axis ``k``: off the diagonal
+    ``c1 k_i k_j -+ s k_m``, on it ``1 - c1 (k_j^2 + k_m^2)`` (s = sin(a), c1 = 1 - cos(a)).
     """
-    norm = np.sqrt((w * w).sum(1))
+    sq = w.T * w.T
+    norm = np.sqrt(sq[0] + sq[1] + sq[2])
     angle = norm * dt
-    k = w / np.maximum(norm, 1e-12)[:, None]
-    s, c1 = np.sin(angle)[:, None], 1.0 - np.cos(angle)[:, None]
-    sq = k * k
-    out = np.empty((len(w), 9))
-    out[:, _DIAGONAL] = 1 - c1 * (sq[:, _DIAG_A] + sq[:, _DIAG_B])
-    out[:, _OFF_DIAGONAL] = (s * k)[:, _SKEW_AXIS] * _SKEW_SIGN + (c1 * k)[:, _PAIR_A] * k[:, _PAIR_B]
-    return out.reshape(-1, 3, 3)
+    k = w.T / np.maximum(norm, 1e-12)  # rows x, y, z
+    s, c1 = np.sin(angle), 1.0 - np.cos(angle)
+    kk = k * k
+    entries = np.empty((9, len(angle)))  # rows: (0,1), (1,2), (2,0), (1,0), (2,1), (0,2), (0,0), (1,1), (2,2)
+    np.add(kk[1], kk[2], out=entries[6])
+    np.add(kk[0], kk[2], out=entries[7])
+    np.add(kk[0], kk[1], out=entries[8])
+    np.subtract(1, c1 * entries[6:], out=entries[6:])
+    pairs = (c1 * k)[_PAIR_A] * k[_PAIR_B]  # c1 kx ky, c1 ky kz, c1 kx kz
+    skew = s * k[_ROLL21[:3]]  # s kz, s kx, s ky
+    np.subtract(pairs, skew, out=entries[:3])
+    np.add(pairs, skew, out=entries[3:6])
+    return entries.T[:, _MATRIX_ORDER].reshape(-1, 3, 3)
 
 
 class RaycastVehicles:
@@ -130,8 +137,8 @@ class RaycastVehicles:
         self.vel = np.zeros((n, 3))
         self.ang = np.zeros((n, 3))
         self.inv_inertia = 1.0 / np.asarray(self.p.inertia)
-        # constants of the step, shaped for the stacked (component, vehicle, wheel) arrays
-        self._connection = np.ascontiguousarray(self.p.connection.T[:, None, :])  # (3, 1, 4): right, forward, up
+        # constants of the step, shaped for the stacked (component, wheel, vehicle) arrays
+        self._connection = np.ascontiguousarray(self.p.connection.T[:, :, None])  # (3, 4, 1): right, forward, up
         self._inv_m = 1.0 / self.p.mass
         self._inv_inertia = self.inv_inertia[:, None, None]
         self._inv_mass = np.concatenate([np.full(3, self._inv_m), self.inv_inertia])[:, None]  # (6, 1): of (v, w)
@@ -163,9 +170,9 @@ class RaycastVehicles:
 
         Returns the reported pose of each: position (n, 2) and heading (n,), as MetaDrive reads them.
         The physics runs in the chassis frame (constant connection points, diagonal inertia); the
-        state is kept in the world frame. Vectors are stacked on a leading axis of 3 (x, y, z)
-        over (vehicle, wheel), so that each line below is one array operation for every
-        component, wheel and vehicle.
+        state is kept in the world frame. Vectors are stacked on a leading axis (x, y, z) over
+        (wheel, vehicle), so that each line below is one array operation for every component,
+        wheel and vehicle.
         """
         p = self.p
         dt, gdt, ray = p.physics_dt, p.gravity * p.physics_dt, p.suspension_rest + p.wheel_radius
@@ -175,79 +182,104 @@ class RaycastVehicles:
         # MetaDrive's _apply_throttle_brake, once per env step: engine off above the speed limit, brake 2.0 unless braking
         fast = np.sqrt(world_v[:, 0] ** 2 + world_v[:, 1] ** 2) * 3.6 > max_speed_kmh
         pedal = action[:, 1]
-        engine = np.where(pedal >= 0.0, np.where(fast, 0.0, p.engine_force * pedal), 0.0)[:, None]
-        brake = np.where(pedal >= 0.0, p.coast_brake, -pedal * p.brake_force)[:, None]
+        engine = np.where(pedal >= 0.0, np.where(fast, 0.0, p.engine_force * pedal), 0.0)
+        brake = np.where(pedal >= 0.0, p.coast_brake, -pedal * p.brake_force)
         engine_on, engine_impulse = engine != 0.0, engine * dt
-        delta = np.where(p.front[None, :], np.deg2rad(max_steer_deg) * action[:, 0:1], 0.0)  # (n, 4)
-        # the wheels' heading in the chassis plane; z = -0.0 so that 0 - x keeps the sign of -x exactly
-        wheel_dir = np.stack([np.cos(delta), np.sin(delta), np.full((n, 4), -0.0)])
+        delta = np.where(p.front[:, None], np.deg2rad(max_steer_deg) * action[:, 0], 0.0)  # (4, n)
+        # the wheels' heading in the chassis plane; z = -0.0 so that -0.0 - x is -x to the bit
+        wheel_dir = np.stack([np.cos(delta), np.sin(delta), np.full((4, n), -0.0)])
         vw = np.empty((6, n))  # chassis-frame linear and angular velocity
         vw[:3] = np.einsum("nji,nj->ni", rot, world_v).T
         vw[3:] = np.einsum("nji,nj->ni", rot, self.ang[slots]).T
-        points = np.empty((2, 3, n, 4))  # contact points and the side impulses' points, relative to the centre of mass
+        up = np.empty((3, 4, n))  # world up in the chassis frame, at every wheel
+        points = np.empty((2, 3, 4, n))  # contact points and the side impulses' points, relative to the centre of mass
         points[0, :2] = self._connection[:2]
-        dirs = np.empty((2, 3, n, 4))  # each wheel's forward direction and axle on the ground
+        r = points[0]
+        dirs = np.empty((2, 3, 4, n))  # each wheel's forward direction and axle on the ground
+        lift_sums = np.empty((6, 4, n))  # the suspension impulses and their torques, per wheel
+        friction_sums = np.empty((2, 6, 4, n))  # the forward and side impulses and their torques, per wheel
+        friction = np.empty((2, 4, n))  # the forward and side impulse sizes
         shown_pos, shown_fwd = pos[:, :2], rot[:, :2, 1]
         for k in range(substeps):
             if k == substeps - 1:  # Bullet's motion state shows the pose before the last integration
                 shown_pos, shown_fwd = pos[:, :2].copy(), rot[:, :2, 1].copy()
-            vw[:3] -= gdt * rot[:, 2, :].T  # gravity (the world up in the chassis frame)
+            vw[:3] -= gdt * rot[:, 2, :].T  # gravity
             v = np.ascontiguousarray(vw[:3].T)
             pos = pos + np.einsum("nij,nj->ni", rot, v) * dt
-            turn = turn_matrices(np.ascontiguousarray(vw[3:].T), dt)  # a body-frame turn: R exp([w] dt)
+            turn = turn_matrices(vw[3:].T, dt)  # a body-frame turn: R exp([w] dt)
             rot = rot @ turn
             vw[:3] = np.einsum("nji,nj->ni", turn, v).T  # the same world velocity in the turned frame
-            up = rot[:, 2, :].T[:, :, None]  # world up in the chassis frame (3, n, 1)
+            up[:] = rot[:, None, 2, :].T
             nz = up[2]
             # rays straight down the chassis' -z from the connection points to the ground z = 0
             arm = up * self._connection
-            height = pos[:, 2:3] + arm[0] + arm[1] + arm[2]  # connection points above the ground (n, 4)
+            height = pos[:, 2] + arm[0] + arm[1] + arm[2]  # connection points above the ground (4, n)
             steep = nz > 0.1
-            safe_nz = np.where(steep, nz, 1.0)
-            dist = np.where(steep, height / safe_nz, np.inf)
+            upright = steep.all()  # the usual case, and then np.where(steep, x, y) is x
+            safe_nz = nz if upright else np.where(steep, nz, 1.0)
+            dist = height / safe_nz if upright else np.where(steep, height / safe_nz, np.inf)
             contact = (dist >= 0.0) & (dist <= ray)
-            length = np.minimum(np.maximum(dist - p.wheel_radius, self._length_min), self._length_max)  # np.clip, bit for bit
-            r = points[0]
-            np.subtract(self._connection[2], np.where(contact, dist, ray), out=r[2])  # contact point heights
-            r1, r2 = r[_ROLL1], r[_ROLL2]
+            grounded = contact.all()  # the usual case, and then np.where(contact, x, y) is x
+            length = np.minimum(np.maximum(dist - p.wheel_radius, self._length_min), self._length_max)  # np.clip to the bit
+            np.subtract(self._connection[2], dist if grounded else np.where(contact, dist, ray), out=r[2])  # contact heights
+            rr = r[_ROLL121]
+            r12, r21 = rr[:6], rr[3:]
             # suspension: spring and damper along the ray, impulse along world up at the contact
-            cv = _point_velocity(vw, r1, r2)
-            inv_cos = np.where(steep, 1.0 / safe_nz, 10.0)
+            cross = vw[_W_ROLL12, None] * r21
+            cv = vw[:3, None] + cross[:3] - cross[3:]  # v + w x r
+            inv_cos = 1.0 / safe_nz if upright else np.where(steep, 1.0 / safe_nz, 10.0)
             along = up * cv
-            rel_vel = np.where(steep, (along[0] + along[1] + along[2]) * inv_cos, 0.0)
+            rel_vel = (along[0] + along[1] + along[2]) * inv_cos
+            if not upright:
+                rel_vel = np.where(steep, rel_vel, 0.0)
             damping = np.where(rel_vel < 0.0, p.damping_compression, p.damping_relaxation)
-            force = (p.suspension_stiffness * (p.suspension_rest - length) * inv_cos - damping * rel_vel) * p.mass
-            force = np.where(contact, np.maximum(force, 0.0), 0.0)
+            force = np.maximum((p.suspension_stiffness * (p.suspension_rest - length) * inv_cos - damping * rel_vel) * p.mass, 0.0)
+            if not grounded:
+                force = np.where(contact, force, 0.0)
             lift = np.minimum(force, p.max_suspension_force) * dt
-            vw += _impulse_sums(lift * up, r1, r2) * self._inv_mass
+            np.multiply(lift, up, out=lift_sums[:3])
+            cross = r12 * lift_sums[_ROLL21]
+            np.subtract(cross[:3], cross[3:], out=lift_sums[3:])
+            vw += lift_sums.sum(1) * self._inv_mass
             # friction: each wheel's axle and forward direction on the ground
             tilt = wheel_dir[0] * up[0] + wheel_dir[1] * up[1]
             axle = wheel_dir - up * tilt
             sq = axle * axle
-            np.divide(axle, np.sqrt(sq[0] + sq[1] + sq[2]), out=dirs[1])
-            axle = dirs[1]
-            np.subtract(up[_ROLL1] * axle[_ROLL2], up[_ROLL2] * axle[_ROLL1], out=dirs[0])  # up x axle
-            cv = _point_velocity(vw, r1, r2)
-            den = _denominator(dirs, r1, r2, self._inv_inertia, self._inv_m)  # (2, n, 4): forward, side
+            axle = np.divide(axle, np.sqrt(sq[0] + sq[1] + sq[2]), out=dirs[1])
+            cross = up[_ROLL12] * axle[_ROLL21]
+            np.subtract(cross[:3], cross[3:], out=dirs[0])  # forward: up x axle
+            cross = vw[_W_ROLL12, None] * r21
+            cv = vw[:3, None] + cross[:3] - cross[3:]
+            # Bullet's impulse denominators 1/m + (r x d)^T I^-1 (r x d) (forward, side)
+            cross = r12 * dirs[:, _ROLL21]
+            moment = cross[:, :3] - cross[:, 3:]
+            q = moment * moment * self._inv_inertia
+            den = self._inv_m + q[:, 0] + q[:, 1] + q[:, 2]
             along = cv * dirs
-            speed = along[:, 0] + along[:, 1] + along[:, 2]
-            side = np.where(contact, -p.side_damping * speed[1] / den[1], 0.0)
-            stop = -speed[0] / den[0]  # the impulse that stops the contact point (not shared out)
-            rolling = np.where(contact, np.where(engine_on, engine_impulse, np.minimum(np.maximum(stop, -brake), brake)), 0.0)
+            slip = along[:, 0] + along[:, 1] + along[:, 2]  # contact point velocity (forward, side)
+            side = -p.side_damping * slip[1] / den[1]
+            stop = -slip[0] / den[0]  # the impulse that stops the contact point (not shared out)
+            rolling = np.where(engine_on, engine_impulse, np.minimum(np.maximum(stop, -brake), brake))  # np.clip to the bit
+            if not grounded:
+                side, rolling = np.where(contact, side, 0.0), np.where(contact, rolling, 0.0)
             limit = force * dt * p.friction_slip
             demand = (rolling * p.forward_skid_factor) ** 2 + side * side
             skidding = contact & (demand > limit * limit)
             if skidding.any():
                 skid = np.where(skidding, limit / np.sqrt(np.where(skidding, demand, 1.0)), 1.0)
-                scale = np.where(skidding.any(1, keepdims=True) & (side != 0.0) & (skid < 1.0), skid, 1.0)
+                scale = np.where(skidding.any(0) & (side != 0.0) & (skid < 1.0), skid, 1.0)
                 rolling, side = rolling * scale, side * scale
             # the forward impulse acts at the contact point; the side one with its height over the ground scaled (roll influence)
             across = up * r
             up_part = (1.0 - p.roll_influence) * (across[0] + across[1] + across[2])
             np.subtract(r, up_part * up, out=points[1])
-            sums = _impulse_sums(np.stack([rolling, side])[:, None] * dirs, points[:, _ROLL1], points[:, _ROLL2]) * self._inv_mass
-            vw += sums[0]
-            vw += sums[1]
+            friction[0], friction[1] = rolling, side
+            impulse = np.multiply(friction[:, None], dirs, out=friction_sums[:, :3])
+            cross = points[:, _ROLL12] * impulse[:, _ROLL21]
+            np.subtract(cross[:, :3], cross[:, 3:], out=friction_sums[:, 3:])
+            total = friction_sums.sum(2) * self._inv_mass
+            vw += total[0]
+            vw += total[1]
         self.pos[slots], self.rot[slots] = pos, rot
         self.vel[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[:3].T))
         self.ang[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[3:].T))
@@ -262,24 +294,3 @@ def equilibrium(params: VehicleParams) -> tuple[float, float, float]:
     for _ in range(30):
         probe.step(np.array([0]), np.zeros((1, 2)))
     return float(probe.pos[0, 2]), float(np.arcsin(probe.rot[0, 2, 1])), float(probe.vel[0, 2])
-
-
-def _point_velocity(vw: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
-    """Velocity v + w x r (3, n, 4) of the chassis at the points r, all in the chassis frame.
-
-    ``vw`` (6, n): linear and angular velocity; ``r1``, ``r2``: the points' components rolled by one and two (``r[_ROLL1]``, ``r[_ROLL2]``).
-    """
-    return vw[:3, :, None] + vw[_W_ROLL1, :, None] * r2 - vw[_W_ROLL2, :, None] * r1
-
-
-def _denominator(d: np.ndarray, r1: np.ndarray, r2: np.ndarray, inv_inertia: np.ndarray, inv_m: float) -> np.ndarray:
-    """Bullet's impulse denominator 1/m + (r x d)^T I^-1 (r x d) for directions d (..., 3, n, 4) at points r (chassis frame, diagonal I)."""
-    c = r1 * d[..., _ROLL2, :, :] - r2 * d[..., _ROLL1, :, :]
-    q = c * c * inv_inertia
-    return inv_m + q[..., 0, :, :] + q[..., 1, :, :] + q[..., 2, :, :]
-
-
-def _impulse_sums(impulse: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
-    """The impulses (..., 3, n, 4) applied at the points r and their torques r x impulse, each summed over the wheels: (..., 6, n)."""
-    torque = r1 * impulse[..., _ROLL2, :, :] - r2 * impulse[..., _ROLL1, :, :]
-    return np.concatenate([impulse, torque], -3).sum(-1)
