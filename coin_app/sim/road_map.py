@@ -109,6 +109,11 @@ class RoadMap:
         d = self.end - self.start
         self.unit = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
         self.unit[self.is_circ] = 0.0
+        # what local_coordinates reads of each lane, gathered in one step: start (2), unit (2), centre (2),
+        # start phase, direction, the arc's middle phase offset, radius
+        self.lane_rows = np.column_stack(
+            [self.start, self.unit, self.center, self.start_phase, self.direction, self.direction * self.angle / 2, self.radius]
+        )
         self.polygons = [np.array(lane["polygon"], dtype=float) for lane in lanes]
         self.centerlines = [np.array(lane["centerline_s_x_y_heading"], dtype=float)[:, 1:3] for lane in lanes]
 
@@ -238,18 +243,16 @@ class RoadMap:
 
     def local_coordinates(self, lane: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lane-local (s, r) of world points ``pos`` (N, 2) on lanes ``lane`` (N,)."""
-        rel = pos - self.start[lane]
-        u = self.unit[lane]
+        row = self.lane_rows[lane]
+        rel = pos - row[:, 0:2]
+        u = row[:, 2:4]
         s_straight = np.einsum("nd,nd->n", rel, u)
         r_straight = rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0]
-        delta = pos - self.center[lane]
-        sp = self.start_phase[lane]
-        direc = self.direction[lane]
-        # wrap around the arc's middle, not its start: MetaDrive wraps around the start,
+        delta = pos - row[:, 4:6]
+        sp, direc, mid, rad = row[:, 6], row[:, 7], row[:, 8], row[:, 9]
+        # wrap around the arc's middle (mid), not its start: MetaDrive wraps around the start,
         # which flips s to negative near the end of its 180-degree U-turn lanes
-        mid = direc * self.angle[lane] / 2
         dphi = mid + wrap_to_pi(np.arctan2(delta[:, 1], delta[:, 0]) - sp - mid)
-        rad = self.radius[lane]
         s_circ = direc * dphi * rad
         r_circ = direc * (np.hypot(delta[:, 0], delta[:, 1]) - rad)
         circ = self.is_circ[lane]

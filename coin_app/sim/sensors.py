@@ -183,7 +183,9 @@ def ego_features(
     ref_last = road_map.road_last_lane[ref_road]
     n_lanes = road_map.road_nlanes[ref_road].astype(float)
     w = road_map.width[ref0]
-    _, r_ref0 = road_map.local_coordinates(ref0, pos)
+    n = len(pos)
+    _, r_both = road_map.local_coordinates(np.concatenate([ref0, lane]), np.concatenate([pos, pos]))  # one call for both
+    r_ref0, r_cur = r_both[:n], r_both[n:]
     dl = r_ref0 + w / 2
     hvec = np.stack([np.cos(heading), np.sin(heading)], 1)
     heading_err = 0.5 + 0.5 * np.einsum("nd,nd->n", hvec, road_map.right_normal(ref_last, pos))
@@ -191,11 +193,15 @@ def ego_features(
     steer_f = (action[:, 0] / STEERING_QUIRK + 1) / 2
     hprev = np.stack([np.cos(heading_prev), np.sin(heading_prev)], 1)
     yaw = np.arccos(np.clip(np.einsum("nd,nd->n", hvec, hprev), 0.0, 1.0)) / dt
-    _, r_cur = road_map.local_coordinates(lane, pos)
     mid = (n_lanes / 2 - 0.5) * w
     span = n_lanes * w
-    nav1, ck1 = checkpoint_features(road_map, ref0, mid, span, pos, heading, navi_dist)
-    nav2, ck2 = checkpoint_features(road_map, road_map.road_first_lane[next_road], mid, span, pos, heading, navi_dist)
+    # both checkpoints in one call: the end of the reference road and of the next one
+    two = np.concatenate
+    nav, ck = checkpoint_features(
+        road_map, two([ref0, road_map.road_first_lane[next_road]]), two([mid, mid]), two([span, span]), two([pos, pos]),
+        two([heading, heading]), navi_dist,
+    )  # fmt: skip
+    nav1, nav2, ck1, ck2 = nav[:n], nav[n:], ck[:n], ck[n:]
     ego = np.stack(
         [
             dl / MAX_LANE_SPAN,

@@ -261,8 +261,15 @@ class DrivingSimulator:
         ref_road = m.route_roads[self.route[idx], self.ref_idx[idx]]
 
         # terminations
+        # lane coordinates on the final lane (arrival) and on the reward lane now and before (progress), in one call
         fl = m.route_final_lane[self.route[idx]]
-        s_f, r_f = m.local_coordinates(fl, pos)
+        lane = self.lane[idx]
+        on_ref = m.lane_road[lane] == ref_road
+        rw_lane = np.where(on_ref, lane, m.road_first_lane[ref_road])
+        s_all, r_all = m.local_coordinates(np.concatenate([fl, rw_lane, rw_lane]), np.concatenate([pos, pos, self.prev_pos[idx]]))
+        n_idx = len(idx)
+        s_f, r_f = s_all[:n_idx], r_all[:n_idx]
+        s_now, s_last = s_all[n_idx : 2 * n_idx], s_all[2 * n_idx :]
         n_ref = m.road_nlanes[ref_road]
         w = m.width[fl]
         length = m.length[fl]
@@ -277,13 +284,8 @@ class DrivingSimulator:
         force = force_env[self.env_of[idx]]
 
         # rewards (MetaDrive: progress on the localised lane if it is a reference lane)
-        lane = self.lane[idx]
-        on_ref = m.lane_road[lane] == ref_road
-        rw_lane = np.where(on_ref, lane, m.road_first_lane[ref_road])
         neg = m.road_negative[ref_road] & (not self.no_sign_quirk)
         sign = np.where(on_ref | ~neg, 1.0, -1.0)
-        s_now, _ = m.local_coordinates(rw_lane, pos)
-        s_last, _ = m.local_coordinates(rw_lane, self.prev_pos[idx])
         reward = cfg.driving_reward * (s_now - s_last) * sign + cfg.speed_reward * (v * 3.6 / cfg.dynamics.max_speed_kmh) * sign
         reward = np.where(arrive, cfg.success_reward, np.where(oor, -cfg.out_of_road_penalty, np.where(crash, -cfg.crash_penalty, reward)))
 
