@@ -36,13 +36,15 @@ def boxes_overlap(
     c, s = np.cos(h1), np.sin(h1)
     dx, dy = c2[:, 0] - c1[:, 0], c2[:, 1] - c1[:, 1]
     tx, ty = c * dx + s * dy, -s * dx + c * dy
-    cd, sd = np.abs(np.cos(h2 - h1)), np.abs(np.sin(h2 - h1))
+    dh = h2 - h1
+    cos_dh, sin_dh = np.cos(dh), np.sin(dh)
+    cd, sd = np.abs(cos_dh), np.abs(sin_dh)
     a1, b1, a2, b2 = half1[:, 0], half1[:, 1], half2[:, 0], half2[:, 1]
     overlap = np.abs(tx) <= a1 + a2 * cd + b2 * sd  # box 1's forward axis
     overlap &= np.abs(ty) <= b1 + a2 * sd + b2 * cd  # box 1's left axis
     # box 2's axes: project the centre offset and box 1 onto them
-    u = np.cos(h2 - h1) * tx + np.sin(h2 - h1) * ty
-    w = -np.sin(h2 - h1) * tx + np.cos(h2 - h1) * ty
+    u = cos_dh * tx + sin_dh * ty
+    w = -sin_dh * tx + cos_dh * ty
     overlap &= np.abs(u) <= a2 + a1 * cd + b1 * sd
     overlap &= np.abs(w) <= b2 + a1 * sd + b1 * cd
     return overlap

@@ -50,15 +50,17 @@ class DrivingEnv:
         if self.episode_over:
             raise RuntimeError("the episode is over (every vehicle is done); call reset() first")
         arr = np.zeros((self.sim.num_slots, schema.ACT_DIM))
-        for aid, a in checked_actions(actions, self.agents).items():
-            arr[self._slot_of[aid]] = a
+        checked = checked_actions(actions, self.agents)
+        if checked:
+            arr[[self._slot_of[aid] for aid in checked]] = np.stack(list(checked.values()))
         return self._unpack(self.sim.step(arr))
 
     def _unpack(self, res: StepResult) -> tuple[dict, dict, dict, dict, dict]:
         """Turn a per-slot step result into PettingZoo-style per-agent dicts."""
         out = result_dicts(res, np.arange(self.sim.num_slots), self._returns, 0)
         status = self.sim.status
-        self._slot_of = {agent_name(int(self.sim.agent_num[s])): int(s) for s in np.nonzero(status == ACTIVE)[0]}
+        active = np.nonzero(status == ACTIVE)[0]
+        self._slot_of = {agent_name(num): s for num, s in zip(self.sim.agent_num[active].tolist(), active.tolist())}
         self.agents = list(self._slot_of)
         self.episode_over = bool(res.episode_over[0])
         return out
@@ -101,23 +103,31 @@ def result_dicts(res: StepResult, slots: np.ndarray, returns: np.ndarray, env: i
     returns[slots[acted]] += res.reward[slots[acted]]
     step = int(res.env_step[env])
     g = float(res.global_reward[env])
-    for slot in slots[acted | spawned]:
-        aid = agent_name(int(res.agent_num[slot]))
+    out = slots[acted | spawned]
+    # per-agent Python values, converted once per array (tolist gives the same bool / float / int as bool(), float(), int())
+    columns = zip(
+        out.tolist(), res.agent_num[out].tolist(), res.acted[out].tolist(), res.spawned[out].tolist(),
+        res.arrive_dest[out].tolist(), res.crash_vehicle[out].tolist(), res.out_of_road[out].tolist(), res.max_step[out].tolist(),
+        res.reward[out].tolist(), res.episode_length[out].tolist(), returns[out].tolist(), res.terminated[out].tolist(),
+        res.truncated[out].tolist(),
+    )  # fmt: skip
+    for slot, num, did_act, is_new, arrive, crash, oor, max_step, reward, ep_len, ep_return, term, trunc in columns:
+        aid = agent_name(num)
         obs[aid] = res.obs[slot]
         infos[aid] = {
-            schema.ARRIVE_DEST: bool(res.arrive_dest[slot]),
-            schema.CRASH_VEHICLE: bool(res.crash_vehicle[slot]),
-            schema.OUT_OF_ROAD: bool(res.out_of_road[slot]),
-            schema.MAX_STEP: bool(res.max_step[slot]),
-            schema.STEP_REWARD: float(res.reward[slot]),
-            schema.EPISODE_LENGTH: int(res.episode_length[slot]) if not res.spawned[slot] else 0,
-            schema.EPISODE_REWARD: float(returns[slot]),
+            schema.ARRIVE_DEST: arrive,
+            schema.CRASH_VEHICLE: crash,
+            schema.OUT_OF_ROAD: oor,
+            schema.MAX_STEP: max_step,
+            schema.STEP_REWARD: reward,
+            schema.EPISODE_LENGTH: ep_len if not is_new else 0,
+            schema.EPISODE_REWARD: ep_return,
             schema.STATE: res.state[slot],
             schema.ENV_STEP: step,
             schema.GLOBAL_REWARD: g,
         }
-        if res.acted[slot]:
-            rewards[aid] = float(res.reward[slot])
-            terms[aid] = bool(res.terminated[slot])
-            truncs[aid] = bool(res.truncated[slot])
+        if did_act:
+            rewards[aid] = reward
+            terms[aid] = term
+            truncs[aid] = trunc
     return obs, rewards, terms, truncs, infos
