@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from coin_app.sim.vehicle import RaycastVehicles, VehicleParams, equilibrium
+from coin_app.sim.vehicle import RaycastVehicles, VehicleParams, chassis_basis, equilibrium, turn_matrices
 
 P = VehicleParams()
 WHEELBASE = P.front_axle + P.rear_axle
@@ -91,3 +91,42 @@ def test_a_car_in_the_air_falls_freely():
     drive(cars, [1.0, 1.0], 5)
     assert cars.pos[0, 2] == pytest.approx(5.0 - 0.5 * P.gravity * 0.5**2, abs=0.06)
     assert np.allclose(cars.vel[0, :2], 0.0) and np.allclose(cars.ang[0], 0.0)
+
+
+def test_fast_paths_for_upright_grounded_cars_match_the_general_path():
+    """A tipped-over car and a car in the air (the general path) change nothing for the other cars (the fast path)."""
+    rng = np.random.default_rng(3)
+    n = 12
+    mixed = RaycastVehicles(n)
+    mixed.place(np.arange(n), rng.uniform(-20, 20, (n, 2)), rng.uniform(-3, 3, n), rng.uniform(0, 20, n), settled=True)
+    mixed.rot[0] = chassis_basis(np.array([0.3]), np.array([2.0]))[0]  # tipped over: its up axis points down
+    mixed.pos[1, 2] = 2.0  # in the air: no wheel reaches the ground
+    alone = RaycastVehicles(n - 2)
+    for name in ("pos", "rot", "vel", "ang"):
+        getattr(alone, name)[:] = getattr(mixed, name)[2:]
+    for action in rng.uniform(-1.0, 1.0, (10, n, 2)):
+        xy, heading = mixed.step(np.arange(n), action)
+        xy_alone, heading_alone = alone.step(np.arange(n - 2), action[2:])
+        np.testing.assert_array_equal(xy[2:], xy_alone)
+        np.testing.assert_array_equal(heading[2:], heading_alone)
+        for name in ("pos", "rot", "vel", "ang"):
+            np.testing.assert_array_equal(getattr(mixed, name)[2:], getattr(alone, name))
+    assert mixed.rot[0, 2, 2] < 0.1  # the tipped car kept the batch on the general path throughout
+
+
+def test_turn_matrices_are_rodrigues_rotations():
+    """turn_matrices(w, dt) rotates by |w| dt about w: it fixes w, is orthonormal and matches the series of exp([w] dt)."""
+    rng = np.random.default_rng(4)
+    w = rng.normal(0.0, 2.0, (20, 3))
+    w[0] = 0.0
+    turn = turn_matrices(w, 0.02)
+    np.testing.assert_allclose(turn @ turn.transpose(0, 2, 1), np.broadcast_to(np.eye(3), turn.shape), atol=1e-14)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", turn, w), w, atol=1e-14)
+    skew = np.zeros((20, 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    skew -= skew.transpose(0, 2, 1)
+    series, term = np.broadcast_to(np.eye(3), turn.shape).copy(), np.broadcast_to(np.eye(3), turn.shape).copy()
+    for k in range(1, 20):
+        term = term @ (skew * 0.02) / k
+        series += term
+    np.testing.assert_allclose(turn, series, atol=1e-14)
