@@ -3,11 +3,13 @@
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from coin_app.evaluation.arena_suite import evaluate_suite, summarize
+from coin_app.inference import load_policy
 from coin_app.sim.arena.config import RewardConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
@@ -351,3 +353,25 @@ def test_avoiding_driver_collides_less_than_the_plain_one_among_obstacles():
     avoiding = summarize(evaluate_suite("avoiding", [(1, 8)], 10, workers=1, log=lambda s: None))
     assert avoiding.collision_rate[0] < plain.collision_rate[0]
     assert avoiding.success_to_goal_rate[0] > plain.success_to_goal_rate[0]
+
+
+def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles():
+    # a fresh interpreter: loading the pair file and its two .npz policies must not import torch or Ray
+    pair = str(Path(__file__).resolve().parents[1] / "docs" / "arena" / "pair" / "nav.json")
+    code = (
+        f"import sys; from coin_app.inference import load_policy; load_policy({pair!r}); "
+        "print(sorted(m for m in ('ray', 'torch') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    policy = load_policy(pair)
+    env = ArenaEnv(make_arena_config(num_vehicles=1, num_obstacles=0))
+    parked = 0
+    for k in range(10):  # the suite's first 10 held-out 1x0 scenarios (docs/arena: 49 of 50 park)
+        obs, _ = env.reset(options={"layout": generate(heldout_rng(1, 0, k), env.config, 1, 0)})
+        while env.agents:
+            obs, _, _, _, _ = env.step(dict(zip(env.agents, policy(np.stack([obs[a] for a in env.agents])))))
+        m = arena_metrics(env.sim)
+        parked += m["success_to_goal_rate"] == 1.0
+        assert m["collisions"] == 0
+    assert parked >= 8
