@@ -95,6 +95,32 @@ def test_log_std_init_shifts_only_the_initial_log_std():
     np.testing.assert_allclose(outs[-1.5][:, 2:] - outs[0.0][:, 2:], -1.5, atol=1e-5)  # std e^-1.5 ~ 0.22 times the default
 
 
+def test_log_std_min_floors_the_log_std_in_every_forward_pass_and_nothing_else():
+    obs = torch.as_tensor(np.random.default_rng(1).normal(size=(32, 13)), dtype=torch.float32)
+    outs = {}
+    for floor in (None, -1.0):
+        torch.manual_seed(4)
+        module = fresh_module("nav_ppo", "arena", {"hidden": 16, "log_std_init": 0.0, "log_std_min": floor}, seed=4)
+        with torch.no_grad():
+            head = module.pi.net.mlp[-1]
+            head.bias[2:] = torch.tensor([-3.0, 0.5])  # steering's log std far below the floor, the pedal's above it
+            outs[floor] = {
+                name: fwd({Columns.OBS: obs})[Columns.ACTION_DIST_INPUTS]
+                for name, fwd in (("inference", module.forward_inference), ("exploration", module.forward_exploration))
+            }
+            outs[floor]["train"] = module.forward_train({Columns.OBS: obs})[Columns.ACTION_DIST_INPUTS]
+    for name, raw in outs[None].items():
+        floored = outs[-1.0][name]
+        np.testing.assert_allclose(floored[:, :2], raw[:, :2], atol=1e-6)  # the means are untouched
+        expected = np.maximum(raw[:, 2:].numpy(), -1.0)  # max(log std, floor), per entry
+        np.testing.assert_allclose(floored[:, 2:], expected, atol=1e-6)
+        assert (raw[:, 2] < -1.0).float().mean() > 0.5  # the floor really binds on steering for most rows
+    with pytest.raises(ValueError, match=r"log_std_min=-0.5 is above log_std_init=-1.5; allowed: a floor at most log_std_init"):
+        build_config("nav_ppo", "arena", {"log_std_init": -1.5, "log_std_min": -0.5}, 0)
+    with pytest.raises(ValueError, match=r"bad value for 'log_std_min': nan; allowed"):
+        build_config("nav_ppo", "arena", {"log_std_min": float("nan")}, 0)
+
+
 def test_a_curriculum_run_moves_every_env_to_the_scheduled_spread(ray_session):
     overrides = {
         "stage": "short",

@@ -194,6 +194,7 @@ RULES: dict[str, Rule] = {
     # nav_ppo
     "stage": choice(*NAV_STAGES),
     "log_std_init": Rule("float", -5.0, 2.0),
+    "log_std_min": Rule("float", -5.0, 2.0, also=(None,)),
     "curriculum_steps": non_negative("int"),
     "curriculum_start": unit(lo_open=True),
     "warm_start": choice(*NAV_WARM_STARTS),

@@ -16,7 +16,7 @@ the others, every vehicle here trains the one shared policy (parameter sharing):
 policy for all, without discarding the other vehicles' experience.
 
 Options for the parking stage, off by default (the paper's setting): a lower initial action std
-(``log_std_init``), a start-spread curriculum (``curriculum_steps``), a warm start that clones
+(``log_std_init``) and a floor under it (``log_std_min``), a start-spread curriculum (``curriculum_steps``), a warm start that clones
 the scripted driver before the first PPO iteration (``warm_start="heuristic"``, ``warm_start.py``)
 and an auxiliary loss toward the driver's actions during PPO (``bc_coeff``, ``bc_steps``).
 
@@ -66,6 +66,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "hidden": (256, "width of the two tanh layers of the separate policy and value networks (paper: 256)"),
     "num_env_runners": (0, "remote env runners (0 = sample in the training process)"),
     "log_std_init": (0.0, "added to the policy's initial log std outputs: the initial action std is about e^x (0: the default init)"),
+    "log_std_min": (
+        None,
+        "floor on the policy's log std in every forward pass: the action std never falls below e^x (None: no floor, the "
+        "paper; at most log_std_init)",
+    ),
     "curriculum_steps": (
         0,
         "stage=short: env steps over which the start spread (start_difficulty) rises linearly from curriculum_start to 1 "
@@ -163,6 +168,9 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
     warm = {k: hp.pop(k) for k in ("warm_start", "warm_start_episodes", "warm_start_noise", "warm_start_epochs", "bc_coeff", "bc_steps")}
     warm["log_std_init"] = hp["log_std_init"]
+    floor = hp.pop("log_std_min")
+    if floor is not None and floor > hp["log_std_init"]:
+        raise ValueError(f"log_std_min={floor} is above log_std_init={hp['log_std_init']}; allowed: a floor at most log_std_init")
     if curriculum["curriculum_steps"] > 0:
         if stage != "short" or scenario.generator != "short":
             raise ValueError(
@@ -170,7 +178,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
                 f"allowed with stage=short (generator 'short'), got stage={stage!r}, generator {scenario.generator!r}"
             )
         scenario = dataclasses.replace(scenario, start_difficulty=curriculum["curriculum_start"])  # the first iteration's spread
-    model = policy_model(hp.pop("hidden"), "torch") | {"log_std_init": hp.pop("log_std_init")}
+    model = policy_model(hp.pop("hidden"), "torch") | {"log_std_init": hp.pop("log_std_init"), "log_std_min": floor}
     config = (
         PPOConfig(algo_class=NavPPO)
         .environment("coin-arena-v0", env_config=env_config_of(scenario))

@@ -14,7 +14,10 @@ and to norm 0.01 in output layers (the policy's (mean, log std) head and every v
 the initial Gaussian means are within ``0.01 ||h||`` of 0 and the log stds near 0. A missing key
 or ``"torch"`` keeps PyTorch's default (nav_ppo, modules saved before the key). ``model_config["log_std_init"]``
 (nav_ppo) is then added to the bias of the head's log-std outputs, so the initial action std is about
-``e^log_std_init`` (0 or missing: unchanged).
+``e^log_std_init`` (0 or missing: unchanged). ``model_config["log_std_min"]`` (nav_ppo) floors the
+log-std outputs of every forward pass (train, exploration, inference) at that value, so the action
+std never falls below ``e^log_std_min`` (None or missing: no floor); below the floor the log std
+gets no gradient, as in SAC's clamp (Haarnoja et al. 2018).
 
 Outputs are fp32 whatever the autocast (``precision.py``): under a bf16 learner update the
 layers compute in bf16, and ``forward_train``'s Gaussian inputs and ``compute_values``' values
@@ -84,10 +87,24 @@ class PPOActorModule(DefaultPPOTorchRLModule):
     def setup_heads(self) -> None:
         """Build a subclass's extra networks (before the initialization); none here."""
 
+    def floored(self, inputs: torch.Tensor) -> torch.Tensor:
+        """Gaussian inputs (mean, log std) with the log std clamped from below at ``log_std_min`` (unchanged without one)."""
+        floor = self.model_config.get("log_std_min")
+        if floor is None:
+            return inputs
+        mean, log_std = inputs.chunk(2, dim=-1)
+        return torch.cat([mean, log_std.clamp(min=float(floor))], dim=-1)
+
+    def _forward(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
+        """RLlib's inference and exploration forward pass, with the log-std floor."""
+        out = super()._forward(batch, **kwargs)
+        out[Columns.ACTION_DIST_INPUTS] = self.floored(out[Columns.ACTION_DIST_INPUTS])
+        return out
+
     def _forward_train(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
-        """RLlib's train forward pass, with the Gaussian inputs in fp32."""
+        """RLlib's train forward pass, with the Gaussian inputs in fp32 and the log-std floor."""
         out = super()._forward_train(batch, **kwargs)
-        out[Columns.ACTION_DIST_INPUTS] = full_precision(out[Columns.ACTION_DIST_INPUTS])
+        out[Columns.ACTION_DIST_INPUTS] = self.floored(full_precision(out[Columns.ACTION_DIST_INPUTS]))
         return out
 
     def compute_values(self, batch: dict[str, Any], embeddings: Any = None) -> torch.Tensor:
