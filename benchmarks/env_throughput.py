@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/env_throughput.py [--steps 300] [--num-envs 1 16] [--scaling]
        python benchmarks/env_throughput.py --backend metadrive|both [--steps 300] [--scenarios ...]
+       python benchmarks/env_throughput.py --against REF [--repeats 5] [--steps 300] [--scenarios ...]
 
 Runs each scenario at its default agent count with uniform random actions and with the
 heuristic driver's traffic, for a single env and for a batch of envs stepped together (the
@@ -18,13 +19,27 @@ and respawns), and prints the ratio native (MetaDrive's car) / MetaDrive. ``--mo
 times the vectorized core with the fitted bicycle instead of MetaDrive's car.
 The native vectorized core (``--num-envs``) is faster still; its table is printed first
 unless the backend is metadrive.
+
+``--against REF`` compares this checkout's native dict env with the same env at a git commit
+(old against new): ``REF`` is checked out into a temporary git worktree, and each measurement runs
+in a fresh child process that imports ``coin_app`` from one tree or the other, the two trees
+alternating ``--repeats`` times per (scenario, policy) so that both see the same machine load. It
+prints each side's median agent-steps/s, the ratio this / REF, and whether the two trees gave the
+same observations, rewards and terminations over the measured steps (a digest of every step).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import os
+import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -70,10 +85,13 @@ def measure(
     return agent_steps / env_time, 1000 * env_time / steps, 1000 * policy_time / steps
 
 
-def measure_dict_env(scenario: str, backend: str, policy: str, steps: int, seed: int = 0) -> tuple[float, float]:
+def measure_dict_env(
+    scenario: str, backend: str, policy: str, steps: int, seed: int = 0, digest: hashlib._Hash | None = None
+) -> tuple[float, float]:
     """(agent-steps/s, mean acting agents) of one env of ``backend`` through the dict API, auto-resetting.
 
     ``backend``: ``metadrive``, ``native`` (its default vehicle, MetaDrive's car) or ``native-bicycle``.
+    With ``digest``, every step's observations, rewards and terminations are fed to it (outside the timed time).
     """
     from coin_app.backends.factory import make_driving_env
 
@@ -81,6 +99,7 @@ def measure_dict_env(scenario: str, backend: str, policy: str, steps: int, seed:
     env = make_driving_env(make_config(scenario, **extra))
     rng = np.random.default_rng(seed)
     agent_steps = 0
+    hashing = 0.0
     try:
         env.reset(seed)
         t0 = time.perf_counter()
@@ -90,14 +109,65 @@ def measure_dict_env(scenario: str, backend: str, policy: str, steps: int, seed:
                 acts = rng.uniform(-1.0, 1.0, (n, 2))
             else:
                 acts = np.stack([rng.uniform(-0.3, 0.3, n), rng.uniform(0.2, 1.0, n)], 1)
-            env.step(dict(zip(env.agents, acts)))
+            out = env.step(dict(zip(env.agents, acts)))
             agent_steps += n
+            if digest is not None:
+                t_hash = time.perf_counter()
+                _feed(digest, out)
+                hashing += time.perf_counter() - t_hash
             if env.episode_over:
                 env.reset(seed + k + 1)
-        elapsed = time.perf_counter() - t0
+        elapsed = time.perf_counter() - t0 - hashing
     finally:
         env.close()
     return agent_steps / elapsed, agent_steps / steps
+
+
+def _feed(digest: hashlib._Hash, step_out: tuple) -> None:
+    """Feed a dict-env step's observations, rewards and terminations (agents in sorted order) to ``digest``."""
+    obs, rewards, terminated = step_out[0], step_out[1], step_out[2]
+    for agent in sorted(obs):
+        digest.update(agent.encode())
+        digest.update(np.ascontiguousarray(obs[agent], dtype=np.float64).tobytes())
+        digest.update(np.float64(rewards[agent]).tobytes())
+        digest.update(bytes([bool(terminated.get(agent, False))]))
+
+
+def _child(scenario: str, policy: str, steps: int) -> None:
+    """Print one native measurement of the ``coin_app`` on ``sys.path`` as a JSON line (``--against``'s child)."""
+    digest = hashlib.sha256()
+    rate, live = measure_dict_env(scenario, "native", policy, steps, digest=digest)
+    print(json.dumps({"rate": rate, "live": live, "digest": digest.hexdigest()}))
+
+
+def against(ref: str, scenarios: list[str], steps: int, repeats: int) -> None:
+    """Print this checkout's native dict env against the same env at git commit ``ref`` (see module doc)."""
+    root = Path(__file__).resolve().parents[1]
+    sha = subprocess.run(["git", "-C", str(root), "rev-parse", "--verify", f"{ref}^{{commit}}"], capture_output=True, text=True)
+    if sha.returncode != 0:
+        raise SystemExit(f"--against: {ref!r} is not a commit of {root}; allowed: a git revision (a sha, branch or tag)")
+    with tempfile.TemporaryDirectory() as tmp:
+        old = Path(tmp) / "ref"
+        subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", "--quiet", str(old), sha.stdout.strip()], check=True)
+        try:
+            head = f"native dict env, this checkout against {ref} ({sha.stdout.strip()[:10]})"
+            print(f"{head}: {steps} steps per run, {repeats} runs each, alternating")
+            print(f"{'scenario':<13}{'agents':>7}{'policy':>9}{'this steps/s':>15}{'ref steps/s':>15}{'ratio':>8}  same results")
+            for sc in scenarios:
+                for pol in ("random", "forward"):
+                    runs: dict[Path, list[dict]] = {root: [], old: []}
+                    for _ in range(repeats):
+                        for tree in (root, old):
+                            env = os.environ | {"PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+                            cmd = [sys.executable, str(Path(__file__).resolve()), "--child", sc, pol, str(steps)]
+                            out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+                            runs[tree].append(json.loads(out.stdout.strip().splitlines()[-1]))
+                    this, base = (statistics.median(r["rate"] for r in runs[t]) for t in (root, old))
+                    same = len({r["digest"] for r in runs[root] + runs[old]}) == 1
+                    cells = f"{this:>15,.0f}{base:>15,.0f}{this / base:>7.2f}x  {'yes' if same else 'NO'}"
+                    print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{pol:>9}{cells}", flush=True)
+        finally:
+            subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(old)], check=False)
 
 
 def _metadrive_child(job: tuple[str, str, int]) -> tuple[float, float]:
@@ -133,7 +203,22 @@ def main() -> None:
     ap.add_argument("--scaling", action="store_true", help="also time one env from 10 to 48 agents")
     ap.add_argument("--backend", default="native", choices=["native", "metadrive", "both"], help="metadrive needs the optional extra")
     ap.add_argument("--model", default="raycast", choices=["raycast", "bicycle"], help="the native vehicle model of the core's table")
+    ap.add_argument("--against", metavar="REF", help="compare this checkout's native dict env with git commit REF's (old vs new)")
+    ap.add_argument("--repeats", type=int, default=5, help="--against: runs per tree and (scenario, policy), alternating")
+    ap.add_argument("--child", nargs=3, metavar=("SCENARIO", "POLICY", "STEPS"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    for name in ("steps", "repeats"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name} {getattr(args, name)}: allowed: an integer >= 1")
+    bad = [s for s in args.scenarios if s not in DEFAULT_NUM_AGENTS]
+    if bad:
+        ap.error(f"--scenarios {' '.join(bad)}: allowed: {', '.join(DEFAULT_NUM_AGENTS)}")
+    if args.child:
+        _child(args.child[0], args.child[1], int(args.child[2]))
+        return
+    if args.against:
+        against(args.against, args.scenarios, args.steps, args.repeats)
+        return
     if args.backend != "native":
         backends = ("native", "native-bicycle", "metadrive") if args.backend == "both" else ("metadrive",)
         print(f"dict-API env, one env per backend, {args.steps} steps per row ('live' = mean acting agents):")
