@@ -124,11 +124,13 @@ def measure_dict_env(
 
 
 def _feed(digest: hashlib._Hash, step_out: tuple) -> None:
-    """Feed a dict-env step's observations, rewards and terminations (agents in sorted order) to ``digest``."""
+    """Feed a dict-env step's observations, rewards and terminations (each dict's agents in sorted order) to ``digest``."""
     obs, rewards, terminated = step_out[0], step_out[1], step_out[2]
-    for agent in sorted(obs):
+    for agent in sorted(obs):  # a vehicle spawned in this step has an observation and no reward yet
         digest.update(agent.encode())
         digest.update(np.ascontiguousarray(obs[agent], dtype=np.float64).tobytes())
+    for agent in sorted(rewards):
+        digest.update(agent.encode())
         digest.update(np.float64(rewards[agent]).tobytes())
         digest.update(bytes([bool(terminated.get(agent, False))]))
 
@@ -160,7 +162,9 @@ def against(ref: str, scenarios: list[str], steps: int, repeats: int) -> None:
                         for tree in (root, old):
                             env = os.environ | {"PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
                             cmd = [sys.executable, str(Path(__file__).resolve()), "--child", sc, pol, str(steps)]
-                            out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+                            out = subprocess.run(cmd, env=env, capture_output=True, text=True)
+                            if out.returncode != 0:
+                                raise SystemExit(f"--against: the child for {tree} failed:\n{out.stderr}")
                             runs[tree].append(json.loads(out.stdout.strip().splitlines()[-1]))
                     this, base = (statistics.median(r["rate"] for r in runs[t]) for t in (root, old))
                     same = len({r["digest"] for r in runs[root] + runs[old]}) == 1
