@@ -1,6 +1,6 @@
 """How close nav_ppo's warm-start clone gets to its scripted driver, and whether the clone parks.
 
-Usage: python benchmarks/arena_clone_quality.py [--driver heuristic|avoiding] [--stage short|long]
+Usage: python benchmarks/arena_clone_quality.py [--driver heuristic|avoiding|planning] [--stage short|long]
                                                 [--episodes 200] [--epochs 10] [--cases 1x0,4x4]
                                                 [--scenarios-per-case 20] [--seed 0] [--lone-fraction 0]
 

@@ -669,7 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
     ea.add_argument(
         "policy",
         nargs="+",
-        help="one or more of: heuristic | avoiding (the scripted drivers) | agnn (the A-GNN baseline's released weights) | "
+        help="one or more of: heuristic | avoiding | planning (the scripted drivers) | agnn (the A-GNN baseline's released weights) | "
         "checkpoint directory | exported .npz | pair .json",
     )
     ea.add_argument("--cases", default="all", help="all (the paper's 24) or e.g. 4x3,20x8")

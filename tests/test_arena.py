@@ -13,8 +13,16 @@ from coin_app.inference import load_policy
 from coin_app.sim.arena.config import RewardConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
-from coin_app.sim.arena.heuristic import avoiding_actions, heuristic_actions
+from coin_app.sim.arena.heuristic import (
+    FOOTPRINT_OFFSET,
+    FOOTPRINT_RADIUS,
+    avoiding_actions,
+    heuristic_actions,
+    planning_actions,
+    rollout_clearance,
+)
 from coin_app.sim.arena.reward import angle_reward, distance_reward, obstacle_reward, step_reward, time_reward
+from coin_app.sim.arena.simulator import ArenaSimulator
 from coin_app.sim.dynamics import friction_bicycle_step
 
 CFG = make_arena_config()
@@ -353,6 +361,50 @@ def test_avoiding_driver_collides_less_than_the_plain_one_among_obstacles():
     avoiding = summarize(evaluate_suite("avoiding", [(1, 8)], 10, workers=1, log=lambda s: None))
     assert avoiding.collision_rate[0] < plain.collision_rate[0]
     assert avoiding.success_to_goal_rate[0] > plain.success_to_goal_rate[0]
+
+
+def test_rollout_clearance_of_a_vehicle_at_rest_and_an_oncoming_vehicle_by_hand():
+    # at rest, steering 0, pedal 0: the vehicle stays at the origin; the entity (bounding radius 1.2 m) starts 8 m ahead
+    # heading back at 3 m/s (relative heading pi: sin 0, cos -1), so after t steps its centre is at 8 - 0.3 t m
+    obs = _observation((8.0, 0.0), entity_radius=1.2, speed=0.0)
+    obs[0, 8:10] = (0.0, -1.0)
+    obs[0, 11] = 0.3
+    got = rollout_clearance(obs, np.zeros((1, 1, 2)), horizon=10)
+    # the front circle at +0.625 m is the closer one: 8 - 3 - 0.625 - 1.2 - r at t = 10
+    assert got[0, 0] == pytest.approx(8.0 - 3.0 - FOOTPRINT_OFFSET - 1.2 - FOOTPRINT_RADIUS)
+    assert rollout_clearance(_observation(None), np.zeros((1, 3, 2)), horizon=5).tolist() == [[math.inf] * 3]
+
+
+def test_planning_driver_keeps_the_plain_action_unless_its_rollout_comes_too_close():
+    for elsewhere in (None, (-5.0, 0.5), (5.0, 8.0)):  # nothing near, behind, far to the side
+        obs = _observation(elsewhere)
+        np.testing.assert_array_equal(planning_actions(obs), heuristic_actions(obs))
+    # a 1 m obstacle 5 m straight ahead at 3 m/s: the plain driver goes straight into it; the filter's choice, driven by
+    # the simulator for the filter's horizon against the real obstacle, never touches it
+    obs = _observation((5.0, 0.0), speed=3.0)
+    plain, planned = heuristic_actions(obs), planning_actions(obs, horizon=15, margin=0.3)
+    assert abs(plain[0, 0]) < 0.05 and not np.allclose(planned, plain)
+    cfg = make_arena_config(num_vehicles=1, num_obstacles=1)
+
+    def contact(action):
+        sim = ArenaSimulator(cfg)
+        layout = Layout(starts=np.array([[0.0, 0.0, 0.0]]), targets=np.array([[20.0, 0.0, 0.0]]), obstacles=np.array([[5.0, 0.0, 1.0]]))
+        sim.reset(layout)
+        sim.speed[:] = 3.0
+        hit = False
+        for _ in range(15):
+            sim.step(action)
+            hit |= bool(sim.contact.any())
+        return hit
+
+    assert contact(plain) and not contact(planned)
+
+
+def test_planning_driver_beats_the_avoiding_one_among_vehicles():
+    avoiding = summarize(evaluate_suite("avoiding", [(6, 0)], 10, workers=1, log=lambda s: None))
+    planning = summarize(evaluate_suite("planning", [(6, 0)], 10, workers=1, log=lambda s: None))
+    assert planning.success_to_goal_rate[0] > avoiding.success_to_goal_rate[0]
+    assert planning.collision_rate[0] < avoiding.collision_rate[0]
 
 
 def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles():

@@ -181,6 +181,7 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     decay = {"lr_decay_start": 20_000, "lr_decay_steps": 20_000, "lr_final_fraction": 0.1}
     guard = {"actor_preact_penalty": 0.01, "actor_preact_threshold": 1.0}  # 10x the quick settings' guard, from |u| = 1
     guard |= {"exploration_noise": 0.1}  # twice the paper's exploration std (the lever adopted after the fourth sweep)
+    guard |= {"train_batch_size_per_learner": 256}  # the paper's minibatch, not the quick settings' 128 (after the fifth sweep)
     for algo in ("cig_td3", "itd3"):
         assert trial_overrides(by_algo[algo]) == registry.quick_settings(algo) | {"precision": "fp32"} | guard | decay
     # TraCo also adds its optional individual critic (its domain critic alone froze the actor at one constant action)
@@ -191,7 +192,8 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     assert "individual_critic" not in trial_overrides(by_algo["cig_td3"]) | trial_overrides(by_algo["ippo"])
     assert trial_overrides(by_algo["ippo"]) == registry.quick_settings("ippo")
     cfg = build_trial_config(by_algo["cig_td3"])
-    assert (cfg.updates_per_env_step, cfg.train_batch_size_per_learner, cfg.env_config["scenario_config"].num_agents) == (1.0, 128, 4)
+    assert (cfg.updates_per_env_step, cfg.train_batch_size_per_learner, cfg.env_config["scenario_config"].num_agents) == (1.0, 256, 4)
+    assert registry.quick_settings("cig_td3")["train_batch_size_per_learner"] == 128
     assert cfg.precision == "fp32" and registry.get("cig_td3").hyperparameters["precision"][0] == "bf16"
     assert (cfg.actor_preact_penalty, cfg.actor_preact_threshold) == (0.01, 1.0)  # the built config carries the stronger guard
     assert cfg.exploration_noise == 0.1 and registry.get("cig_td3").hyperparameters["exploration_noise"][0] == 0.05

@@ -79,8 +79,9 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "curriculum_start": (0.2, "stage=short: the start spread (start_difficulty) at env step 0 of a curriculum"),
     "warm_start": (
         "none",
-        "'heuristic' or 'avoiding' = before the first PPO iteration, clone that scripted arena driver (the plain one, or the "
-        "one that swerves from the closest entity) on the stage's scenario mix (warm_start.py; not in the paper); "
+        "'heuristic', 'avoiding' or 'planning' = before the first PPO iteration, clone that scripted arena driver (the plain "
+        "one, the one that swerves from the closest entity, or the plain one behind a rollout safety filter) on the stage's "
+        "scenario mix (warm_start.py; not in the paper); "
         "'none' = from scratch (the paper)",
     ),
     "warm_start_episodes": (200, "warm start: scenarios the scripted driver drives (every second one with action noise)"),

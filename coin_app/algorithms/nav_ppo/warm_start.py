@@ -2,10 +2,11 @@
 
 The paper trains both stages from scratch over 30–40M env steps. On this machine's budgets (under
 1M per stage) PPO from scratch never found the parking manoeuvre (docs/arena/README.md): it
-settles inside d_c, misaligned. With ``warm_start="heuristic"`` (or ``"avoiding"``) the stage first
-drives ``warm_start_episodes`` scenarios of its own mix with that scripted driver
+settles inside d_c, misaligned. With ``warm_start="heuristic"`` (or ``"avoiding"``, ``"planning"``) the
+stage first drives ``warm_start_episodes`` scenarios of its own mix with that scripted driver
 (``coin_app.sim.arena.heuristic``: the plain one ignores obstacles and other vehicles, the
-avoiding one swerves from the closest entity ahead), half of them with
+avoiding one swerves from the closest entity ahead, the planning one filters the plain one's
+actions by short rollouts against the closest entity), half of them with
 Gaussian action noise so that the clone also sees states off the driver's path, labelled with the
 driver's action at each visited state (DART, Laskey et al. 2017). Then, before the first PPO
 iteration, the policy's Gaussian mean is fitted to those labels, its log std to ``log_std_init``,

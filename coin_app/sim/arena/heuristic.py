@@ -16,7 +16,15 @@ closest entity of the observation (nav_ppo's optional teacher): when it lies ahe
 corridor about its own width, closer to the vehicle than the target and within a look-ahead that
 grows with speed, steer at full lock away from it and slow to a crawl (brake when nearly touching).
 
-``DRIVERS`` names both.
+``planning_actions`` is the plain driver behind a safety filter over short rollouts: it simulates
+a fixed set of constant actions (and the plain driver's own) for ``horizon`` steps with the arena's
+dynamics (Eq. 1), the closest entity moving at its observed speed and heading, and takes the
+plain driver's action if its rollout keeps ``margin`` of clearance, else the admissible action
+closest to it, else the one whose rollout keeps the most clearance (a sampling-based filter in the
+spirit of Wabersich & Zeilinger 2018; nothing of it is in the paper). The vehicle's footprint is two
+circles along its axis; an entity is its bounding circle.
+
+``DRIVERS`` names all three.
 """
 
 from __future__ import annotations
@@ -24,8 +32,14 @@ from __future__ import annotations
 import numpy as np
 
 from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE
+from coin_app.sim.dynamics import friction_bicycle_step
 
 OWN_RADIUS = 0.5 * float(np.hypot(2.5, 1.0))  # the bounding radius of the arena's 2.5 x 1.0 m vehicles
+# the planning filter's footprint: two circles at +-OFFSET along the axis, each covering half the 2.5 x 1.0 m box
+FOOTPRINT_OFFSET = 0.625
+FOOTPRINT_RADIUS = float(np.hypot(0.625, 0.5))
+# the planning filter's constant candidate actions: 7 steering values x 3 pedals (brake, coast, full)
+CANDIDATES = np.array([(st, pd) for st in np.linspace(-1.0, 1.0, 7) for pd in (-1.0, 0.0, 1.0)])
 
 
 def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, friction: float = 0.99, max_steer: float = 0.8) -> np.ndarray:
@@ -76,4 +90,46 @@ def avoiding_actions(
     return np.stack([np.where(ahead, away, actions[:, 0]), pedal], 1)
 
 
-DRIVERS = {"heuristic": heuristic_actions, "avoiding": avoiding_actions}  # the scripted drivers by name
+def rollout_clearance(
+    obs: np.ndarray,
+    actions: np.ndarray,
+    horizon: int,
+    dt: float = 0.1,
+    friction: float = 0.99,
+    wheelbase: float = 2.0,
+    max_steer: float = 0.8,
+    max_pedal: float = 1.0,
+) -> np.ndarray:
+    """(N, K) least clearance over ``horizon`` steps between each vehicle holding action k of ``actions`` (N, K, 2) and its
+    closest entity (moving at its observed speed and heading); inf without an entity."""
+    obs = np.asarray(obs, float).reshape(-1, 13)
+    n, k = actions.shape[:2]
+    speed = np.repeat(obs[:, 4] * SPEED_SCALE, k)
+    pos, heading = np.zeros((n * k, 2)), np.zeros(n * k)  # in the vehicle's own frame
+    steer = actions[..., 0].reshape(-1) * max_steer
+    pedal = actions[..., 1].reshape(-1) * max_pedal
+    centre = np.repeat(obs[:, 6:8] * POSITION_SCALE, k, axis=0)
+    velocity = np.repeat((obs[:, 11] * SPEED_SCALE)[:, None] * np.stack([obs[:, 9], obs[:, 8]], 1), k, axis=0)  # (cos, sin)
+    reach = np.repeat(obs[:, 10] * SIZE_SCALE, k) + FOOTPRINT_RADIUS
+    least = np.full(n * k, np.inf)
+    for t in range(1, horizon + 1):
+        pos, heading, speed = friction_bicycle_step(pos, heading, speed, pedal, steer, dt, wheelbase, friction)
+        other = centre + t * dt * velocity
+        axis = FOOTPRINT_OFFSET * np.stack([np.cos(heading), np.sin(heading)], 1)
+        for sign in (1.0, -1.0):
+            least = np.minimum(least, np.linalg.norm(pos + sign * axis - other, axis=1) - reach)
+    return np.where(np.repeat(obs[:, 12] > 0.5, k), least, np.inf).reshape(n, k)
+
+
+def planning_actions(obs: np.ndarray, horizon: int = 15, margin: float = 0.3, dt: float = 0.1, friction: float = 0.99) -> np.ndarray:
+    """``heuristic_actions`` behind the rollout safety filter of the module doc, for observations (N, 13)."""
+    obs = np.asarray(obs, float).reshape(-1, 13)
+    nominal = heuristic_actions(obs, dt=dt, friction=friction)
+    candidates = np.concatenate([nominal[:, None, :], np.broadcast_to(CANDIDATES, (len(obs), *CANDIDATES.shape))], axis=1)
+    clearance = rollout_clearance(obs, candidates, horizon, dt=dt, friction=friction)
+    gap = ((candidates - nominal[:, None, :]) ** 2).sum(-1)  # the nominal action itself: 0
+    cost = np.where(clearance >= margin, gap, 1e6 - np.minimum(clearance, margin))  # inadmissible: the most clearance first
+    return candidates[np.arange(len(obs)), np.argmin(cost, axis=1)]
+
+
+DRIVERS = {"heuristic": heuristic_actions, "avoiding": avoiding_actions, "planning": planning_actions}  # the scripted drivers by name
