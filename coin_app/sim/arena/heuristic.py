@@ -121,7 +121,7 @@ def rollout_clearance(
     return np.where(np.repeat(obs[:, 12] > 0.5, k), least, np.inf).reshape(n, k)
 
 
-def planning_actions(obs: np.ndarray, horizon: int = 15, margin: float = 0.3, dt: float = 0.1, friction: float = 0.99) -> np.ndarray:
+def planning_actions(obs: np.ndarray, horizon: int = 25, margin: float = 0.6, dt: float = 0.1, friction: float = 0.99) -> np.ndarray:
     """``heuristic_actions`` behind the rollout safety filter of the module doc, for observations (N, 13)."""
     obs = np.asarray(obs, float).reshape(-1, 13)
     nominal = heuristic_actions(obs, dt=dt, friction=friction)
