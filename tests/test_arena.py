@@ -407,9 +407,10 @@ def test_planning_driver_beats_the_avoiding_one_among_vehicles():
     assert planning.collision_rate[0] < avoiding.collision_rate[0]
 
 
-def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles():
+@pytest.mark.parametrize("folder", ["pair", "pair_planning"])
+def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles(folder):
     # a fresh interpreter: loading the pair file and its two .npz policies must not import torch or Ray
-    pair = str(Path(__file__).resolve().parents[1] / "docs" / "arena" / "pair" / "nav.json")
+    pair = str(Path(__file__).resolve().parents[1] / "docs" / "arena" / folder / "nav.json")
     code = (
         f"import sys; from coin_app.inference import load_policy; load_policy({pair!r}); "
         "print(sorted(m for m in ('ray', 'torch') if m in sys.modules))"
@@ -419,7 +420,7 @@ def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles():
     policy = load_policy(pair)
     env = ArenaEnv(make_arena_config(num_vehicles=1, num_obstacles=0))
     parked = 0
-    for k in range(10):  # the suite's first 10 held-out 1x0 scenarios (docs/arena: 49 of 50 park)
+    for k in range(10):  # the suite's first 10 held-out 1x0 scenarios (docs/arena: 49 and 50 of 50 park)
         obs, _ = env.reset(options={"layout": generate(heldout_rng(1, 0, k), env.config, 1, 0)})
         while env.agents:
             obs, _, _, _, _ = env.step(dict(zip(env.agents, policy(np.stack([obs[a] for a in env.agents])))))
