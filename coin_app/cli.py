@@ -32,6 +32,7 @@ from coin_app.evaluation.arena_suite import (
     markdown_table,
     parse_cases,
     plot_scenarios,
+    policy_config,
     summarize,
 )
 from coin_app.evaluation.critic_probe import probe_checkpoint
@@ -330,8 +331,8 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     labels = policy_labels(args.policy)
     if args.scenarios_per_case < 1:
         raise ValueError(f"bad --scenarios-per-case {args.scenarios_per_case}; allowed: an integer >= 1")
-    for source in args.policy:
-        load_arena_policy(source)  # a bad source fails now, before any policy is evaluated
+    for source in args.policy:  # a bad source or entity count fails now, before any policy is evaluated
+        policy_config(load_arena_policy(source), args.max_steps, args.protocol, args.generator, args.observed_entities)
     out = Path(args.out)
     folders = {label: "." if len(labels) == 1 else label for label in labels}  # one policy: its files in --out itself
     print(
@@ -344,7 +345,14 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
         if len(labels) > 1:
             print(f"\n{label} ({source})")
         rows = evaluate_suite(
-            source, cases, args.scenarios_per_case, args.max_steps, args.workers, protocol=args.protocol, generator=args.generator
+            source,
+            cases,
+            args.scenarios_per_case,
+            args.max_steps,
+            args.workers,
+            protocol=args.protocol,
+            generator=args.generator,
+            observed=args.observed_entities,
         )
         where = out / folders[label]
         where.mkdir(parents=True, exist_ok=True)
@@ -356,7 +364,9 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
             header += f"Scenarios of the `{args.generator}` generator, not the paper's suite: the paper's columns do not apply.\n\n"
         (where / "arena_table.md").write_text(header + markdown_table(summary))
         if args.plots:
-            plots = plot_scenarios(source, cases, args.plots, where / "plots", args.max_steps, args.protocol, args.generator)
+            plots = plot_scenarios(
+                source, cases, args.plots, where / "plots", args.max_steps, args.protocol, args.generator, args.observed_entities
+            )
             print(f"  trajectory plots: {len(plots)} in {where / 'plots'}")
     settings = {
         "policies": list(args.policy),
@@ -366,6 +376,7 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
         "max_steps": args.max_steps,
         "protocol": args.protocol,
         "generator": args.generator,
+        "observed_entities": args.observed_entities,
         "command": getattr(args, "command_line", None),
     }
     _, markdown = write_side_by_side(out, summaries, settings)
@@ -690,6 +701,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="agnn",
         help="agnn: the paper's suite (the A-GNN test generator); short: the parking stage's starts (1-7.5 m from the target, "
         "any heading) on the same held-out seeds, to score a short-range policy alone (not comparable with the paper's tables)",
+    )
+    ea.add_argument(
+        "--observed-entities",
+        type=int,
+        default=None,
+        help="entities each vehicle observes, closest first: for scripted drivers (default 1, the paper's); "
+        "learned policies observe what they were trained on",
     )
     ea.add_argument("--workers", type=int, default=2, help="worker processes (one CPU thread each)")
     ea.add_argument("--out", default="runs/arena_eval", help="output directory")

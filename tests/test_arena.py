@@ -8,16 +8,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from coin_app.evaluation.arena_suite import evaluate_suite, summarize
+from coin_app.evaluation.arena_suite import WithMeta, evaluate_suite, policy_config, summarize
 from coin_app.inference import load_policy
+from coin_app.inference.switching import SwitchingPolicy, observed_entities
 from coin_app.sim.arena.config import RewardConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
 from coin_app.sim.arena.heuristic import (
+    CANDIDATES,
     FOOTPRINT_OFFSET,
     FOOTPRINT_RADIUS,
     avoiding_actions,
     heuristic_actions,
+    may_come_near,
     planning_actions,
     rollout_clearance,
 )
@@ -428,3 +431,91 @@ def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles(folder):
         parked += m["success_to_goal_rate"] == 1.0
         assert m["collisions"] == 0
     assert parked >= 8
+
+
+# ---------------------------------------------------------------- several observed entities (our option)
+
+
+def test_observing_several_entities_orders_them_by_clearance_and_pads_absent_ones():
+    starts = [[0, 0, math.pi / 2], [-5, 0, 0], [0, -9, 0]]
+    lay = layout(starts, [[3, 4, 0.5], [-20, 0, 0], [20, -9, 0]], [[0, 10, 1]])
+    one, _ = ArenaEnv(CFG).reset(options={"layout": lay})
+    env = ArenaEnv(make_arena_config(observed_entities=4))
+    assert env.observation_space.shape == (6 + 7 * 4,)
+    obs, _ = env.reset(options={"layout": lay})
+    o = obs["agent0"]
+    np.testing.assert_array_equal(o[:13], one["agent0"])  # the first block is the paper's observation, bit for bit
+    # clearances from the ego (origin, heading +y): vehicle at (-5, 0) 5 - 2 R_VEH; obstacle (0, 10) r 1: 10 - 1 - R_VEH;
+    # vehicle at (0, -9): 9 - 2 R_VEH. The vehicle at (0, -9) lies straight behind: x = -9 in the ego frame
+    assert 5 - 2 * R_VEH < 9 - 2 * R_VEH < 10 - 1 - R_VEH
+    np.testing.assert_allclose(o[13:20], [-9 / 25, 0.0, math.sin(-math.pi / 2), math.cos(-math.pi / 2), R_VEH / 3, 0.0, 1.0], atol=1e-6)
+    np.testing.assert_allclose(o[20:27], [10 / 25, 0.0, 0.0, 1.0, 1 / 3, 0.0, 1.0], atol=1e-6)
+    np.testing.assert_array_equal(o[27:34], [0, 0, 0, 1, 0, 0, 0])  # only three other entities: the fourth block is empty
+    for bad in (0, 17, True, 2.0):
+        with pytest.raises(ValueError, match="observed_entities"):
+            make_arena_config(observed_entities=bad)
+
+
+def _several(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    """Random observations (n, 6 + 7 k): each entity block present or empty, near or far, moving or not."""
+    obs = np.zeros((n, 6 + 7 * k))
+    obs[:, 0:2] = rng.uniform(-0.8, 0.8, (n, 2))
+    head = rng.uniform(-math.pi, math.pi, n)
+    obs[:, 2], obs[:, 3], obs[:, 4] = np.sin(head), np.cos(head), rng.uniform(-0.2, 0.6, n)
+    for b in range(k):
+        block = obs[:, 6 + 7 * b : 13 + 7 * b]
+        h = rng.uniform(-math.pi, math.pi, n)
+        block[:, 0:2] = rng.uniform(-1, 1, (n, 2)) * rng.choice([0.15, 1.0], (n, 1))
+        block[:, 2], block[:, 3] = np.sin(h), np.cos(h)
+        block[:, 4], block[:, 5], block[:, 6] = rng.uniform(0.2, 1.0, n), rng.uniform(0, 0.5, n), rng.random(n) < 0.8
+    return obs
+
+
+def test_planning_driver_checks_every_observed_entity_like_rolling_out_all_of_them():
+    # brute force: every entity block rolled out for every candidate, the least clearance kept, the same choice rule
+    rng = np.random.default_rng(3)
+    for k in (1, 3):
+        obs = _several(rng, 300, k)
+        nominal = heuristic_actions(obs)
+        cand = np.concatenate([nominal[:, None, :], np.broadcast_to(CANDIDATES, (300, *CANDIDATES.shape))], axis=1)
+        views = [np.concatenate([obs[:, :6], obs[:, 6 + 7 * b : 13 + 7 * b]], 1) for b in range(k)]
+        least = np.min([rollout_clearance(v, cand, 25) for v in views], axis=0)
+        cost = np.where(least >= 0.6, ((cand - nominal[:, None]) ** 2).sum(-1), 1e6 - least)
+        np.testing.assert_array_equal(planning_actions(obs), cand[np.arange(300), np.argmin(cost, 1)])
+
+
+def test_pairs_that_cannot_come_near_keep_the_margin_under_every_action():
+    rng = np.random.default_rng(4)
+    obs = _several(rng, 2000, 1)
+    obs[:, 12] = 1.0
+    far = ~may_come_near(obs, 25, 0.6)
+    assert 100 < far.sum() < 1900  # both kinds occur
+    every = np.broadcast_to(CANDIDATES, (int(far.sum()), *CANDIDATES.shape))
+    assert rollout_clearance(obs[far], every, 25).min() >= 0.6
+
+
+def test_several_entities_see_more_and_the_suite_observes_what_a_policy_was_trained_on():
+    # with every vehicle in view the planning driver avoids the collisions the closest-only one meets (15 vehicles, training seeds)
+    cfg1, cfg6 = make_arena_config(), make_arena_config(observed_entities=6)
+    hits = {}
+    for cfg in (cfg1, cfg6):
+        env, hit = ArenaEnv(cfg), 0
+        for k in range(4):
+            obs, _ = env.reset(options={"layout": generate(training_rng(900 + k), cfg, 15, 4)})
+            while env.agents:
+                obs, *_ = env.step(dict(zip(env.agents, planning_actions(np.stack([obs[a] for a in env.agents])))))
+            hit += int(env.sim.collided.sum())
+        hits[cfg.observed_entities] = hit
+    assert hits[6] < hits[1] / 2
+    # the suite's config follows the policy: a learned one's metadata, or the count given for a scripted driver
+    learned = WithMeta(heuristic_actions, {"scenario": "arena", "env_config": {"observed_entities": 6}})
+    assert policy_config(learned, 400, "arena").obs_dim == 6 + 7 * 6
+    assert policy_config(heuristic_actions, 400, "arena", observed=3).observed_entities == 3
+    assert policy_config(heuristic_actions, 400, "arena").observed_entities == 1
+    with pytest.raises(ValueError, match="contradict"):
+        policy_config(learned, 400, "arena", observed=3)
+    paper = WithMeta(heuristic_actions, {"scenario": "arena", "env_config": {}})
+    with pytest.raises(ValueError, match="observes 6 entities"):
+        SwitchingPolicy(learned, paper, 7.5)
+    assert SwitchingPolicy(learned, learned, 7.5).meta["env_config"] == {"observed_entities": 6}
+    assert observed_entities(SwitchingPolicy(paper, paper, 7.5)) == 1

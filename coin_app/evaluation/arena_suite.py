@@ -41,8 +41,10 @@ import numpy as np
 import pandas as pd
 import torch
 
+from coin_app.algorithms.checkpoint_files import read_metadata
 from coin_app.evaluation.policies import as_policy
 from coin_app.inference.agnn import AgnnArenaPolicy
+from coin_app.inference.switching import load_pair, observed_entities
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
@@ -134,7 +136,7 @@ def suite_config(
     heading; not the paper's suite): the same held-out seeds, to score a short-range policy alone.
 
     ``max_steps`` counts steps of the arena's 0.1 s; ``physics`` (a policy's own ``dt`` and
-    ``update_order``) keeps the same simulated time. The ``"agnn"`` protocol switches the in-run
+    ``update_order``, and its ``observed_entities``) keeps the same simulated time. The ``"agnn"`` protocol switches the in-run
     success test off (a speed tolerance of 0 m/s: no vehicle ever parks, as in the A-GNN simulator).
     """
     if protocol not in PROTOCOLS:
@@ -148,17 +150,45 @@ def suite_config(
 
 
 def load_arena_policy(source: str | Path) -> Any:
-    """A scripted driver's name (``DRIVERS``), ``"agnn"`` (the A-GNN baseline) or any policy source of ``as_policy``."""
+    """A scripted driver's name (``DRIVERS``), ``"agnn"`` (the A-GNN baseline) or any policy source of ``as_policy``.
+
+    Learned policies carry their training metadata (``meta``: scenario, env config), so that the
+    suite observes as many entities as each was trained on (``observed_entities``).
+    """
     if str(source) in DRIVERS:
         return DRIVERS[str(source)]
     if str(source) == "agnn":
         return AgnnArenaPolicy()
+    path = Path(source)
+    if path.is_file() and path.suffix == ".json":
+        return load_pair(path, load_arena_policy)
+    if path.is_dir():
+        return WithMeta(as_policy(path), read_metadata(path))
     return as_policy(source)
 
 
-def policy_config(policy: Any, max_steps: int, protocol: str, generator: str = "agnn") -> ArenaConfig:
-    """The suite's arena settings for ``policy`` (in its own physics where it names one, as the A-GNN does)."""
-    return suite_config(max_steps, getattr(policy, "arena_overrides", None), protocol, generator)
+class WithMeta:
+    """A policy with the metadata of the checkpoint it came from (``meta``), calls passed through."""
+
+    def __init__(self, policy: Callable[[np.ndarray], np.ndarray], meta: dict[str, Any]):
+        self.policy, self.meta = policy, dict(meta)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """The wrapped policy's actions for ``obs``."""
+        return self.policy(obs)
+
+
+def policy_config(policy: Any, max_steps: int, protocol: str, generator: str = "agnn", observed: int | None = None) -> ArenaConfig:
+    """The suite's arena settings for ``policy``: in its own physics where it names one (the A-GNN), and observing as many
+    entities as it was trained on, or ``observed`` (scripted drivers; refused if it contradicts a learned policy's own)."""
+    own = observed_entities(policy)
+    if observed is not None and own is not None and observed != own:
+        raise ValueError(f"observed entities {observed} contradict the policy's own {own}; allowed: {own} (or leave it unset)")
+    overrides = dict(getattr(policy, "arena_overrides", None) or {})
+    k = observed if observed is not None else own
+    if k is not None and k != 1:
+        overrides["observed_entities"] = k
+    return suite_config(max_steps, overrides, protocol, generator)
 
 
 def final_state_success(sim: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -215,11 +245,12 @@ def plot_scenarios(
     max_steps: int = 400,
     protocol: str = "arena",
     generator: str = "agnn",
+    observed: int | None = None,
 ) -> list[Path]:
     """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores)."""
 
     policy = load_arena_policy(source)
-    cfg = policy_config(policy, max_steps, protocol, generator)
+    cfg = policy_config(policy, max_steps, protocol, generator, observed)
     env = ArenaEnv(cfg)
     paths = []
     for n, m in cases:
@@ -233,15 +264,15 @@ def plot_scenarios(
     return paths
 
 
-def evaluate_case(job: tuple[str, tuple[int, int], list[int], int, str, str]) -> list[dict[str, Any]]:
+def evaluate_case(job: tuple[str, tuple[int, int], list[int], int, str, str, int | None]) -> list[dict[str, Any]]:
     """Rows (one per scenario) of test scenarios ``indices`` of one case (a worker job)."""
-    source, (n, m), indices, max_steps, protocol, generator = job
+    source, (n, m), indices, max_steps, protocol, generator, observed = job
     try:
         torch.set_num_threads(1)
     except ImportError:
         pass
     policy = load_arena_policy(source)
-    cfg = policy_config(policy, max_steps, protocol, generator)
+    cfg = policy_config(policy, max_steps, protocol, generator, observed)
     env = ArenaEnv(cfg)
     rows = []
     for k in indices:
@@ -259,10 +290,12 @@ def evaluate_suite(
     log: Callable[[str], None] = print,
     protocol: str = "arena",
     generator: str = "agnn",
+    observed: int | None = None,
 ) -> list[dict[str, Any]]:
     """Per-scenario rows of every case under ``protocol`` (``PROTOCOLS``; deterministic: the same rows on every run).
 
-    ``generator="short"`` scores the parking stage's starts instead of the paper's suite (``suite_config``).
+    ``generator="short"`` scores the parking stage's starts instead of the paper's suite (``suite_config``);
+    ``observed`` sets the entities a scripted driver observes (``policy_config``).
     """
 
     if scenarios_per_case < 1:
@@ -270,10 +303,10 @@ def evaluate_suite(
     if workers < 1:
         raise ValueError(f"bad workers {workers}; allowed: an integer >= 1")
     suite_config(max_steps, protocol=protocol, generator=generator)  # a bad step limit, protocol or generator fails here, before any work
-    load_arena_policy(source)  # and so does a bad source
+    policy_config(load_arena_policy(source), max_steps, protocol, generator, observed)  # and so do a bad source or entity count
     chunk = max(1, min(scenarios_per_case, 25))
     jobs = [
-        (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps, protocol, generator)
+        (str(source), case, list(range(i, min(i + chunk, scenarios_per_case))), max_steps, protocol, generator, observed)
         for case in cases
         for i in range(0, scenarios_per_case, chunk)
     ]

@@ -25,9 +25,17 @@ FORMAT = "coin_app.switching.v1"
 
 
 def target_distance(obs: np.ndarray) -> np.ndarray:
-    """Distance (N,) of each vehicle to its target from arena observations (N, 13)."""
+    """Distance (N,) of each vehicle to its target from arena observations (N, 6 + 7 k)."""
     obs = np.asarray(obs, np.float32)
     return np.linalg.norm(obs[:, 0:2], axis=1) * POSITION_SCALE
+
+
+def observed_entities(policy: Any) -> int | None:
+    """The arena entities ``policy`` was trained to observe (its metadata's ``observed_entities``, 1 if unset), None if unknown."""
+    meta = getattr(policy, "meta", None)
+    if not isinstance(meta, dict) or meta.get("scenario") != "arena":
+        return None
+    return int(meta.get("env_config", {}).get("observed_entities", 1))
 
 
 class SwitchingPolicy:
@@ -37,10 +45,18 @@ class SwitchingPolicy:
         if not switch_radius > 0:
             raise ValueError(f"bad switch_radius {switch_radius!r}; allowed: a number of metres > 0")
         self.long, self.short, self.switch_radius = long, short, float(switch_radius)
-        self.meta = {"scenario": "arena", "switch_radius": self.switch_radius}
+        self.meta: dict[str, Any] = {"scenario": "arena", "switch_radius": self.switch_radius}
+        seen = {name: observed_entities(part) for name, part in (("long", long), ("short", short))}
+        if None not in seen.values() and seen["long"] != seen["short"]:
+            raise ValueError(
+                f"the long-range policy observes {seen['long']} entities, the short-range one {seen['short']}; allowed: the same"
+            )
+        k = seen["long"] if seen["long"] is not None else seen["short"]
+        if k is not None and k != 1:
+            self.meta["env_config"] = {"observed_entities": k}
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """Actions (N, 2) for arena observations (N, 13)."""
+        """Actions (N, 2) for arena observations (N, 6 + 7 k)."""
         obs = np.asarray(obs, np.float32)
         near = target_distance(obs) < self.switch_radius
         out = np.zeros((len(obs), 2), np.float32)

@@ -20,6 +20,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+OWN_WIDTH = 6  # observation.py: target (4 numbers), own speed and steering
+ENTITY_WIDTH = 7  # observation.py: one observed entity's block
+
 
 @dataclass(frozen=True)
 class RewardConfig:
@@ -83,12 +86,15 @@ class ArenaConfig:
     # success distance as d falls (generator._short_starts), start heading within d * pi of the target's; 1 = the full
     # spread (uniform heading); nav_ppo's curriculum raises it during training (curriculum_steps)
     start_difficulty: float = 1.0
+    # entities each vehicle observes, the closest first (observation.py): 1 is the paper's (the closest entity only); more
+    # is our option, not the paper's (docs/arena/README.md)
+    observed_entities: int = 1
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     @property
     def obs_dim(self) -> int:
-        """Observation length (see ``observation.py``)."""
-        return 13
+        """Observation length (see ``observation.py``): 6 own numbers and 7 per observed entity (13 in the paper)."""
+        return OWN_WIDTH + ENTITY_WIDTH * self.observed_entities
 
     @property
     def vehicle_pool(self) -> int:
@@ -102,6 +108,7 @@ class ArenaConfig:
 
 
 GENERATORS = ("agnn", "short")
+MAX_OBSERVED_ENTITIES = 16
 UPDATE_ORDERS = ("semi_implicit", "position_first")
 OBSTACLE_SIDES = ("both", "left")
 
@@ -126,6 +133,9 @@ def make_arena_config(**overrides: Any) -> ArenaConfig:
         if key in overrides:
             overrides[key] = tuple(overrides[key])
     cfg = ArenaConfig(reward=reward, **overrides)
+    k = cfg.observed_entities
+    if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= MAX_OBSERVED_ENTITIES):
+        raise _bad("observed_entities", k, f"an integer in [1, {MAX_OBSERVED_ENTITIES}] (1: the paper's closest entity only)")
     for name in ("num_vehicles", "max_steps"):
         v = getattr(cfg, name)
         if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):

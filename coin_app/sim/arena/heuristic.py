@@ -18,7 +18,8 @@ grows with speed, steer at full lock away from it and slow to a crawl (brake whe
 
 ``planning_actions`` is the plain driver behind a safety filter over short rollouts: it simulates
 a fixed set of constant actions (and the plain driver's own) for ``horizon`` steps with the arena's
-dynamics (Eq. 1), the closest entity moving at its observed speed and heading, and takes the
+dynamics (Eq. 1), every observed entity (the paper's observation: the closest one only) moving at
+its observed speed and heading, and takes the
 plain driver's action if its rollout keeps ``margin`` of clearance, else the admissible action
 closest to it, else the one whose rollout keeps the most clearance (a sampling-based filter in the
 spirit of Wabersich & Zeilinger 2018; nothing of it is in the paper). The vehicle's footprint is two
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from coin_app.sim.arena.config import ENTITY_WIDTH, OWN_WIDTH
 from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE
 from coin_app.sim.dynamics import friction_bicycle_step
 
@@ -42,9 +44,28 @@ FOOTPRINT_RADIUS = float(np.hypot(0.625, 0.5))
 CANDIDATES = np.array([(st, pd) for st in np.linspace(-1.0, 1.0, 7) for pd in (-1.0, 0.0, 1.0)])
 
 
+def as_rows(obs: np.ndarray) -> np.ndarray:
+    """Arena observations as float64 rows (N, 6 + 7 k); one observation (6 + 7 k,) becomes one row."""
+    obs = np.asarray(obs, float)
+    rows = obs.reshape(1, -1) if obs.ndim == 1 else obs
+    if rows.ndim != 2 or rows.shape[1] < OWN_WIDTH + ENTITY_WIDTH or (rows.shape[1] - OWN_WIDTH) % ENTITY_WIDTH:
+        raise ValueError(f"arena observations must have shape (N, 6 + 7 k) with k >= 1, got {obs.shape}")
+    return rows
+
+
+def entity_views(obs: np.ndarray) -> list[np.ndarray]:
+    """One paper-layout (N, 13) view per observed entity block of ``obs`` (N, 6 + 7 k): own numbers, then that entity's."""
+    rows = as_rows(obs)
+    k = (rows.shape[1] - OWN_WIDTH) // ENTITY_WIDTH
+    if k == 1:
+        return [rows]
+    own = rows[:, :OWN_WIDTH]
+    return [np.concatenate([own, rows[:, OWN_WIDTH + ENTITY_WIDTH * b : OWN_WIDTH + ENTITY_WIDTH * (b + 1)]], 1) for b in range(k)]
+
+
 def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, friction: float = 0.99, max_steer: float = 0.8) -> np.ndarray:
-    """(steering, pedal) in [-1, 1] for observations (N, 13)."""
-    obs = np.asarray(obs, float).reshape(-1, 13)
+    """(steering, pedal) in [-1, 1] for observations (N, 6 + 7 k) (only the target and own numbers are read)."""
+    obs = as_rows(obs)
     target = obs[:, 0:2] * POSITION_SCALE  # in the vehicle frame
     rel = np.arctan2(obs[:, 2], obs[:, 3])  # target heading in the vehicle frame
     speed = obs[:, 4] * SPEED_SCALE
@@ -69,8 +90,8 @@ def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, fri
 def avoiding_actions(
     obs: np.ndarray, look: float = 4.0, lateral: float = 1.8, crawl: float = 2.5, dt: float = 0.1, friction: float = 0.99
 ) -> np.ndarray:
-    """``heuristic_actions`` with a reflex away from the closest entity ahead (see module doc) for observations (N, 13)."""
-    obs = np.asarray(obs, float).reshape(-1, 13)
+    """``heuristic_actions`` with a reflex away from the closest entity ahead (see module doc) for observations (N, 6 + 7 k)."""
+    obs = entity_views(obs)[0]
     actions = heuristic_actions(obs, dt=dt, friction=friction)
     near = obs[:, 6:8] * POSITION_SCALE  # the entity's centre in the vehicle frame
     speed = obs[:, 4] * SPEED_SCALE
@@ -101,35 +122,63 @@ def rollout_clearance(
     max_pedal: float = 1.0,
 ) -> np.ndarray:
     """(N, K) least clearance over ``horizon`` steps between each vehicle holding action k of ``actions`` (N, K, 2) and its
-    closest entity (moving at its observed speed and heading); inf without an entity."""
-    obs = np.asarray(obs, float).reshape(-1, 13)
+    closest entity (moving at its observed speed and heading); inf without an entity. ``obs`` (N, 13): the paper's layout."""
+    obs = as_rows(obs)
     n, k = actions.shape[:2]
-    speed = np.repeat(obs[:, 4] * SPEED_SCALE, k)
+    speed = np.repeat(obs[:, 4] * SPEED_SCALE, k)  # the rollouts flat, (n * k), for the dynamics
     pos, heading = np.zeros((n * k, 2)), np.zeros(n * k)  # in the vehicle's own frame
     steer = actions[..., 0].reshape(-1) * max_steer
     pedal = actions[..., 1].reshape(-1) * max_pedal
-    centre = np.repeat(obs[:, 6:8] * POSITION_SCALE, k, axis=0)
-    velocity = np.repeat((obs[:, 11] * SPEED_SCALE)[:, None] * np.stack([obs[:, 9], obs[:, 8]], 1), k, axis=0)  # (cos, sin)
-    reach = np.repeat(obs[:, 10] * SIZE_SCALE, k) + FOOTPRINT_RADIUS
-    least = np.full(n * k, np.inf)
+    centre = (obs[:, 6:8] * POSITION_SCALE)[:, None, :]  # (n, 1, 2): broadcast over the k rollouts
+    velocity = ((obs[:, 11] * SPEED_SCALE)[:, None] * np.stack([obs[:, 9], obs[:, 8]], 1))[:, None, :]  # (cos, sin)
+    reach = (obs[:, 10] * SIZE_SCALE)[:, None] + FOOTPRINT_RADIUS
+    least = np.full((n, k), np.inf)
     for t in range(1, horizon + 1):
         pos, heading, speed = friction_bicycle_step(pos, heading, speed, pedal, steer, dt, wheelbase, friction)
         other = centre + t * dt * velocity
-        axis = FOOTPRINT_OFFSET * np.stack([np.cos(heading), np.sin(heading)], 1)
+        axis = (FOOTPRINT_OFFSET * np.stack([np.cos(heading), np.sin(heading)], 1)).reshape(n, k, 2)
+        at = pos.reshape(n, k, 2)
         for sign in (1.0, -1.0):
-            least = np.minimum(least, np.linalg.norm(pos + sign * axis - other, axis=1) - reach)
-    return np.where(np.repeat(obs[:, 12] > 0.5, k), least, np.inf).reshape(n, k)
+            least = np.minimum(least, np.linalg.norm(at + sign * axis - other, axis=2) - reach)
+    return np.where((obs[:, 12] > 0.5)[:, None], least, np.inf)
+
+
+def may_come_near(obs: np.ndarray, horizon: int, margin: float, dt: float = 0.1, max_pedal: float = 1.0) -> np.ndarray:
+    """(N,) whether any rollout of ``horizon`` steps could bring the vehicle within ``margin`` of its entity (obs (N, 13)).
+
+    A bound, not a rollout: the vehicle's speed grows by at most ``max_pedal * dt`` a step, so it travels at most
+    ``T (|v| + horizon max_pedal dt)`` in ``T = horizon dt`` seconds, and the entity at most ``T |v_entity|``; pairs
+    farther apart than that (plus 1 m of slack) keep more than ``margin`` under every action. False without an entity.
+    """
+    obs = as_rows(obs)
+    t = horizon * dt
+    own = t * (np.abs(obs[:, 4] * SPEED_SCALE) + horizon * max_pedal * dt)
+    other = t * np.abs(obs[:, 11] * SPEED_SCALE)
+    gap = np.linalg.norm(obs[:, 6:8] * POSITION_SCALE, axis=1) - obs[:, 10] * SIZE_SCALE - FOOTPRINT_RADIUS - FOOTPRINT_OFFSET
+    return (obs[:, 12] > 0.5) & (gap - own - other < margin + 1.0)
 
 
 def planning_actions(obs: np.ndarray, horizon: int = 25, margin: float = 0.6, dt: float = 0.1, friction: float = 0.99) -> np.ndarray:
-    """``heuristic_actions`` behind the rollout safety filter of the module doc, for observations (N, 13)."""
-    obs = np.asarray(obs, float).reshape(-1, 13)
-    nominal = heuristic_actions(obs, dt=dt, friction=friction)
-    candidates = np.concatenate([nominal[:, None, :], np.broadcast_to(CANDIDATES, (len(obs), *CANDIDATES.shape))], axis=1)
-    clearance = rollout_clearance(obs, candidates, horizon, dt=dt, friction=friction)
+    """``heuristic_actions`` behind the rollout safety filter of the module doc, for observations (N, 6 + 7 k).
+
+    With several observed entities a rollout's clearance is its least over all of them. Only the
+    (vehicle, entity) pairs that ``may_come_near`` are rolled out: the others cannot change an
+    action (their clearance stays above the margin), so the actions are those of rolling out all.
+    """
+    views = entity_views(obs)
+    n = len(views[0])
+    nominal = heuristic_actions(views[0], dt=dt, friction=friction)
+    candidates = np.concatenate([nominal[:, None, :], np.broadcast_to(CANDIDATES, (n, *CANDIDATES.shape))], axis=1)
+    clearance = np.full(candidates.shape[:2], np.inf)
+    pairs = np.concatenate(views)  # (k N, 13): entity block b of vehicle i at row b N + i
+    vehicle = np.tile(np.arange(n), len(views))
+    near = may_come_near(pairs, horizon, margin, dt)
+    if near.any():
+        least = rollout_clearance(pairs[near], candidates[vehicle[near]], horizon, dt=dt, friction=friction)
+        np.minimum.at(clearance, vehicle[near], least)
     gap = ((candidates - nominal[:, None, :]) ** 2).sum(-1)  # the nominal action itself: 0
-    cost = np.where(clearance >= margin, gap, 1e6 - np.minimum(clearance, margin))  # inadmissible: the most clearance first
-    return candidates[np.arange(len(obs)), np.argmin(cost, axis=1)]
+    cost = np.where(clearance >= margin, gap, 1e6 - clearance)  # inadmissible: the most clearance first
+    return candidates[np.arange(n), np.argmin(cost, axis=1)]
 
 
 DRIVERS = {"heuristic": heuristic_actions, "avoiding": avoiding_actions, "planning": planning_actions}  # the scripted drivers by name

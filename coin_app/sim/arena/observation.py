@@ -1,7 +1,8 @@
-"""The arena observation (paper §III-C): the vehicle's own frame, its target, and the one closest entity.
+"""The arena observation (paper §III-C): the vehicle's own frame, its target, and the closest entities.
 
-13 numbers per vehicle, in its own frame (x forward, y left; positions / 25 m, speeds / 10 m/s,
-the top steady-state speed at full pedal and friction 0.99):
+6 numbers per vehicle and 7 per observed entity, in its own frame (x forward, y left; positions
+/ 25 m, speeds / 10 m/s, the top steady-state speed at full pedal and friction 0.99); with the
+paper's one entity (``observed_entities=1``) 13 numbers:
 
     0-1   target position (x, y)
     2-3   target heading relative to the vehicle's (sin, cos)
@@ -11,10 +12,13 @@ the top steady-state speed at full pedal and friction 0.99):
     8-9   its heading relative to the vehicle's (sin, cos); (0, 1) for an obstacle (a circle)
     10    its size: bounding radius / 3 m (obstacle: its radius; vehicle: half its diagonal)
     11    its speed (0 for an obstacle or a parked vehicle)
-    12    1 if there is any other entity, else 0 (then 6-11 are 0, 0, 0, 1, 0, 0)
+    12    1 if there is such an entity, else 0 (then 6-11 are 0, 0, 0, 1, 0, 0)
 
+With ``observed_entities=k > 1`` (our option, not the paper's) blocks 13-19, 20-26, ... hold the
+second, third, ... closest entities in the same layout, absent ones as (0, 0, 0, 1, 0, 0, 0).
 "Closest" is by clearance between bounding circles, so a large obstacle counts as near
-before its centre does. Parked (succeeded) vehicles are entities like any other.
+before its centre does (ties: vehicles first, by index). Parked (succeeded) vehicles are
+entities like any other.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+
+from coin_app.sim.arena.config import ENTITY_WIDTH, OWN_WIDTH
 
 POSITION_SCALE = 25.0
 SPEED_SCALE = 10.0
@@ -36,30 +42,36 @@ def to_frame(points: np.ndarray, pos: np.ndarray, heading: np.ndarray) -> np.nda
 
 
 def observe(sim: Any) -> np.ndarray:
-    """Observations (N, 13) of every vehicle of an ``ArenaSimulator``."""
+    """Observations (N, obs_dim) of every vehicle of an ``ArenaSimulator`` (``obs_dim`` = 6 + 7 per observed entity)."""
     cfg, layout = sim.config, sim.layout
     n, m = sim.num_vehicles, len(layout.obstacles)
-    out = np.zeros((n, 13), np.float32)
+    out = np.zeros((n, cfg.obs_dim), np.float32)
     out[:, 0:2] = to_frame(layout.targets[:, :2], sim.pos, sim.heading) / POSITION_SCALE
     rel = layout.targets[:, 2] - sim.heading
     out[:, 2], out[:, 3] = np.sin(rel), np.cos(rel)
     out[:, 4] = sim.speed / SPEED_SCALE
     out[:, 5] = sim.steer / cfg.max_steer
-    out[:, 9] = 1.0
-    if n + m <= 1:
+    blocks = out[:, OWN_WIDTH:].reshape(n, cfg.observed_entities, ENTITY_WIDTH)  # a view: writes land in out
+    blocks[:, :, 3] = 1.0
+    k = min(cfg.observed_entities, n + m - 1)
+    if k <= 0:
         return out
-    j = np.argmin(
-        sim.clearance, axis=1
-    )  # the step's clearances (ArenaSimulator.entity_clearance)  # (N,) index among vehicles, then obstacles
+    # the step's clearances (ArenaSimulator.entity_clearance), (N, N + M): index among vehicles, then obstacles
+    if k == 1:
+        order = np.argmin(sim.clearance, axis=1)[:, None]
+    else:
+        order = np.argsort(sim.clearance, axis=1, kind="stable")[:, :k]
     centres = np.concatenate([sim.pos, layout.obstacles[:, :2]])
     headings = np.concatenate([sim.heading, np.zeros(m)])
     radii = np.concatenate([np.full(n, cfg.vehicle_radius), layout.obstacles[:, 2]])
     speeds = np.concatenate([sim.speed, np.zeros(m)])
-    vehicle = j < n
-    out[:, 6:8] = to_frame(centres[j], sim.pos, sim.heading) / POSITION_SCALE
-    rel = np.where(vehicle, headings[j] - sim.heading, 0.0)
-    out[:, 8], out[:, 9] = np.sin(rel), np.cos(rel)
-    out[:, 10] = radii[j] / SIZE_SCALE
-    out[:, 11] = speeds[j] / SPEED_SCALE
-    out[:, 12] = 1.0
+    for b in range(k):
+        j = order[:, b]
+        vehicle = j < n
+        blocks[:, b, 0:2] = to_frame(centres[j], sim.pos, sim.heading) / POSITION_SCALE
+        rel = np.where(vehicle, headings[j] - sim.heading, 0.0)
+        blocks[:, b, 2], blocks[:, b, 3] = np.sin(rel), np.cos(rel)
+        blocks[:, b, 4] = radii[j] / SIZE_SCALE
+        blocks[:, b, 5] = speeds[j] / SPEED_SCALE
+        blocks[:, b, 6] = 1.0
     return out
