@@ -6,11 +6,12 @@ import torch
 from ray.rllib.core.columns import Columns
 
 from coin_app.algorithms.nav_ppo.config import curriculum_difficulty
-from coin_app.algorithms.nav_ppo.warm_start import bc_loss, bc_weight, heuristic_demonstrations
+from coin_app.algorithms.nav_ppo.warm_start import TeacherLabels, bc_loss, bc_weight, heuristic_demonstrations
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.generator import generate, training_rng
-from coin_app.sim.arena.heuristic import avoiding_actions, heuristic_actions
+from coin_app.sim.arena.heuristic import DRIVERS, avoiding_actions, heuristic_actions, planning_actions
+from coin_app.sim.arena.simulator import ArenaSimulator
 from coin_app.sim.dynamics import wrap_angle
 from coin_app.training import build_config, fresh_module, with_env_runner
 
@@ -244,6 +245,32 @@ def test_bc_loss_is_the_squared_gap_to_the_drivers_actions_over_unmasked_rows():
     mask = torch.tensor([True, True, True, True, False])
     assert float(bc_loss(torch.as_tensor(obs), inputs, mask)) == pytest.approx(want, rel=1e-5)
     assert float(bc_loss(torch.as_tensor(obs), inputs)) == pytest.approx(np.mean(offsets**2), rel=1e-5)
+
+
+def test_teacher_labels_are_the_drivers_own_and_each_row_is_computed_once_per_batch(monkeypatch):
+    cfg = make_arena_config(observed_entities=3, num_vehicles=6, num_obstacles=4)
+    sim = ArenaSimulator(cfg)
+    obs = [sim.reset(generate(training_rng(s), cfg, 6, 4)) for s in range(8)]
+    batch = np.concatenate(obs)  # 48 rows of real observations, 3 entities each
+    computed = []
+
+    def counting(rows):
+        computed.append(len(rows))
+        return planning_actions(rows)
+
+    monkeypatch.setitem(DRIVERS, "planning", counting)
+    labels = TeacherLabels("planning")
+    # each row's label equals the driver's on that row alone: batching changes nothing
+    first = labels(batch[:30])
+    np.testing.assert_array_equal(first, np.concatenate([planning_actions(row[None]) for row in batch[:30]]))
+    computed.clear()
+    order = np.random.default_rng(0).permutation(48)
+    np.testing.assert_array_equal(labels(batch[order])[np.argsort(order)][:30], first)  # a later epoch, reshuffled
+    assert computed == [18]  # only the 18 rows not seen before
+    labels.clear()
+    computed.clear()
+    labels(batch[:5])
+    assert computed == [5]  # a new batch: everything again
 
 
 def test_lone_fraction_mixes_in_single_vehicle_episodes_and_leaves_the_default_stream_unchanged():

@@ -132,7 +132,7 @@ class NavPPO(PPO):
             self._warm_start(cfg)
         if cfg.get("bc_coeff", 0.0) > 0:
             weight = bc_weight(done, cfg["bc_coeff"], cfg["bc_steps"])
-            self.learner_group.foreach_learner(lambda learner: setattr(learner, "bc_weight", weight))
+            self.learner_group.foreach_learner(lambda learner: learner.set_bc_weight(weight))
             self.metrics.log_value("bc_weight", weight, window=1)
         if cfg.get("curriculum_steps", 0) > 0:
             difficulty = curriculum_difficulty(done, cfg["curriculum_steps"], cfg["curriculum_start"])

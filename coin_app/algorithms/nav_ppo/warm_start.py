@@ -6,7 +6,7 @@ settles inside d_c, misaligned. With ``warm_start="heuristic"`` (or ``"avoiding"
 stage first drives ``warm_start_episodes`` scenarios of its own mix with that scripted driver
 (``coin_app.sim.arena.heuristic``: the plain one ignores obstacles and other vehicles, the
 avoiding one swerves from the closest entity ahead, the planning one filters the plain one's
-actions by short rollouts against the closest entity), half of them with
+actions by short rollouts against every observed entity), half of them with
 Gaussian action noise so that the clone also sees states off the driver's path, labelled with the
 driver's action at each visited state (DART, Laskey et al. 2017). Then, before the first PPO
 iteration, the policy's Gaussian mean is fitted to those labels, its log std to ``log_std_init``,
@@ -133,9 +133,40 @@ def bc_weight(env_steps: int, coeff: float, steps: int) -> float:
     return coeff * max(0.0, 1.0 - env_steps / steps)
 
 
-def bc_loss(obs: torch.Tensor, dist_inputs: torch.Tensor, mask: torch.Tensor | None = None, driver: str = "heuristic") -> torch.Tensor:
+class TeacherLabels:
+    """A scripted driver's actions at observations, each distinct observation row computed once until ``clear``.
+
+    PPO revisits every row of a training batch once per epoch (10 by default), and the planning
+    driver's rollouts cost far more than a minibatch's update, so the learner keeps the labels of
+    one batch; a row's label does not depend on the other rows it is computed with, so the
+    labels are those of computing every minibatch afresh.
+    """
+
+    def __init__(self, driver: str):
+        self.driver = DRIVERS[driver]
+        self.cache: dict[bytes, np.ndarray] = {}
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Actions (N, 2) of the driver at observations (N, obs_dim)."""
+        rows = np.ascontiguousarray(obs, dtype=np.float32)
+        keys = [row.tobytes() for row in rows]
+        missing = [i for i, key in enumerate(keys) if key not in self.cache]
+        if missing:
+            for i, action in zip(missing, self.driver(rows[missing])):
+                self.cache[keys[i]] = action
+        return np.stack([self.cache[key] for key in keys]) if keys else np.zeros((0, 2))
+
+    def clear(self) -> None:
+        """Forget every label (a new training batch)."""
+        self.cache.clear()
+
+
+def bc_loss(
+    obs: torch.Tensor, dist_inputs: torch.Tensor, mask: torch.Tensor | None = None, driver: str | TeacherLabels = "heuristic"
+) -> torch.Tensor:
     """Mean squared gap between the Gaussian means in ``dist_inputs`` (mean, log std) and the ``driver``'s actions at ``obs``."""
-    labels = DRIVERS[driver](obs.detach().float().cpu().numpy())  # the arena's default physics (dt 0.1, friction 0.99)
+    label = DRIVERS[driver] if isinstance(driver, str) else driver
+    labels = label(obs.detach().float().cpu().numpy())  # the arena's default physics (dt 0.1, friction 0.99)
     target = torch.as_tensor(labels, dtype=dist_inputs.dtype, device=dist_inputs.device)
     gap = ((dist_inputs[:, : dist_inputs.shape[1] // 2] - target) ** 2).mean(dim=1)
     return gap[mask].mean() if mask is not None else gap.mean()
