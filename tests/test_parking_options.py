@@ -273,6 +273,13 @@ def test_teacher_labels_are_the_drivers_own_and_each_row_is_computed_once_per_ba
     assert computed == [5]  # a new batch: everything again
 
 
+def test_demonstrations_label_every_driving_row_with_the_drivers_own_action():
+    cfg = make_arena_config(generator="short", num_vehicles=2, max_vehicles=6, max_obstacles=4, observed_entities=2)
+    demos = heuristic_demonstrations(cfg, 4, 3, 0.3, 0.99, "planning")
+    assert demos.obs.shape[1] == 6 + 7 * 2
+    np.testing.assert_allclose(demos.actions, planning_actions(demos.obs), atol=1e-6)  # labels are noiseless, rows float32
+
+
 def test_lone_fraction_mixes_in_single_vehicle_episodes_and_leaves_the_default_stream_unchanged():
     short = {"generator": "short", "num_vehicles": 1, "max_vehicles": 8, "num_obstacles": 0, "max_obstacles": 8}
     env = ArenaEnv(make_arena_config(**short))

@@ -67,7 +67,8 @@ def heuristic_demonstrations(
         sigma = noise if episode % 2 else 0.0
         steps_obs, steps_act, steps_rew, steps_mask = [], [], [], []
         while sim.driving.any():
-            label = drive(obs, dt=config.dt, friction=config.friction)
+            label = np.zeros((len(obs), 2))  # parked vehicles' rows: ignored by the step, masked out below
+            label[sim.driving] = drive(obs[sim.driving], dt=config.dt, friction=config.friction)
             action = np.clip(label + sigma * rng.standard_normal(label.shape), -1.0, 1.0) if sigma else label
             mask = sim.driving.copy()
             step = sim.step(action)
