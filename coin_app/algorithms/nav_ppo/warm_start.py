@@ -166,8 +166,8 @@ def bc_loss(
     obs: torch.Tensor, dist_inputs: torch.Tensor, mask: torch.Tensor | None = None, driver: str | TeacherLabels = "heuristic"
 ) -> torch.Tensor:
     """Mean squared gap between the Gaussian means in ``dist_inputs`` (mean, log std) and the ``driver``'s actions at ``obs``."""
-    label = DRIVERS[driver] if isinstance(driver, str) else driver
-    labels = label(obs.detach().float().cpu().numpy())  # the arena's default physics (dt 0.1, friction 0.99)
+    labeller = DRIVERS[driver] if isinstance(driver, str) else driver
+    labels = labeller(obs.detach().float().cpu().numpy())  # the arena's default physics (dt 0.1, friction 0.99)
     target = torch.as_tensor(labels, dtype=dist_inputs.dtype, device=dist_inputs.device)
     gap = ((dist_inputs[:, : dist_inputs.shape[1] // 2] - target) ** 2).mean(dim=1)
     return gap[mask].mean() if mask is not None else gap.mean()

@@ -57,10 +57,7 @@ def observe(sim: Any) -> np.ndarray:
     if k <= 0:
         return out
     # the step's clearances (ArenaSimulator.entity_clearance), (N, N + M): index among vehicles, then obstacles
-    if k == 1:
-        order = np.argmin(sim.clearance, axis=1)[:, None]
-    else:
-        order = np.argsort(sim.clearance, axis=1, kind="stable")[:, :k]
+    order = np.argsort(sim.clearance, axis=1, kind="stable")[:, :k]  # stable: ties go to the lower index, as argmin's
     centres = np.concatenate([sim.pos, layout.obstacles[:, :2]])
     headings = np.concatenate([sim.heading, np.zeros(m)])
     radii = np.concatenate([np.full(n, cfg.vehicle_radius), layout.obstacles[:, 2]])
