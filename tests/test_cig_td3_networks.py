@@ -65,6 +65,50 @@ def test_mlp_actor_twinq_shapes_and_ranges():
     assert torch.equal(q.q1_only(obs, act), q1)
 
 
+def test_critic_feature_norm_divides_the_last_hidden_features_by_their_norm():
+    """Penultimate normalization by hand: the same weights, features / ||features||, then the output layer."""
+    torch.manual_seed(0)
+    plain = TwinQ(O, A, (16, 16))
+    normed = TwinQ(O, A, (16, 16), feature_norm=True)
+    normed.load_state_dict(plain.state_dict())  # the option adds no parameter
+    obs, act = torch.randn(5, O) * 3, torch.rand(5, A)
+    x = torch.cat([obs, act], -1)
+    for net, q in zip((plain.q1_net, plain.q2_net), normed(obs, act)):
+        h = torch.relu(net[2](torch.relu(net[0](x))))
+        expected = (h / h.norm(dim=-1, keepdim=True)) @ net[4].weight[0] + net[4].bias[0]
+        assert torch.allclose(q, expected, atol=1e-6)
+    assert torch.equal(normed.q1_only(obs, act), normed(obs, act)[0])
+    # scaling the last hidden layer's weights and biases leaves a normalized critic unchanged, not a plain one
+    for net in (plain.q1_net, normed.q1_net):
+        with torch.no_grad():
+            net[2].weight.mul_(4.0)
+            net[2].bias.mul_(4.0)
+    assert torch.allclose(normed.q1_only(obs, act), normed(obs, act)[0])
+    q_before = TwinQ(O, A, (16, 16), feature_norm=True)
+    q_before.load_state_dict(plain.state_dict())
+    with torch.no_grad():
+        q_before.q1_net[2].weight.div_(4.0)
+        q_before.q1_net[2].bias.div_(4.0)
+    assert torch.allclose(normed.q1_only(obs, act), q_before.q1_only(obs, act), atol=1e-5)
+    torch.manual_seed(0)
+    unscaled_plain = TwinQ(O, A, (16, 16))
+    assert not torch.allclose(plain.q1_only(obs, act), unscaled_plain.q1_only(obs, act))
+    # the central critic's branches: every value head sees unit-norm features
+    critic = make_critic(feature_norm=True)
+    base = make_critic()
+    base.load_state_dict(critic.state_dict())
+    x = make_inputs()
+    seen = []
+    hook = critic.q1_branch.head.register_forward_hook(lambda m, inp, out: seen.append(inp[0]))
+    q1 = critic.q1(**x)
+    hook.remove()
+    assert torch.allclose(seen[0].norm(dim=-1), torch.ones(B), atol=1e-5)
+    assert torch.allclose(q1, seen[0] @ critic.q1_branch.head.weight[0] + critic.q1_branch.head.bias[0], atol=1e-6)
+    assert not torch.allclose(q1, base.q1(**x))
+    with pytest.raises(ValueError, match="feature_norm"):
+        make_critic(feature_norm=1)
+
+
 # ---------------------------------------------------------------- GAT attention
 def expected_adjacency(x, radius=None, scale=1.0):
     """Independent adjacency: valid receivers see valid nodes (within the radius); nothing else."""

@@ -160,6 +160,7 @@ RULES: dict[str, Rule] = {
     "update_order": choice(*UPDATE_ORDERS),
     "actor_preact_penalty": non_negative(),
     "actor_preact_threshold": non_negative(),
+    "critic_feature_norm": BOOL,
     # TraCo's domain critic
     "baseline_lr": positive("float", 1.0),
     "domain_radius": positive(),

@@ -108,6 +108,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     # guards against the saturated full-brake freeze of TD3-family actors (README "TD3 freeze"); all off = the paper
     "actor_preact_penalty": (0.0, "weight w of w * mean(max(|u| - actor_preact_threshold, 0)^2) over the actor's pre-tanh outputs u"),
     "actor_preact_threshold": (0.0, "pre-tanh magnitude the penalty starts at (0 = the plain penalty w * mean(u^2))"),
+    "critic_feature_norm": (
+        False,
+        "divide every critic's last hidden features by their L2 norm before its output layer (the penultimate "
+        "normalization of Bjorck et al., 2022, against seed-to-seed variance; not in COIN or its code)",
+    ),
     "actor_start_steps": (0, "env steps after the warm-up before the actor's first update (the critics learn the warm-up data first)"),
     "exploration_noise_initial": (
         None,
@@ -250,6 +255,7 @@ class CigTd3Config(AlgorithmConfig):
         return super()._model_config_auto_includes | {
             "hidden": self.hidden,
             "actor_layers": self.actor_layers,
+            "critic_feature_norm": self.critic_feature_norm,
             "position_scale": load_map(scenario.scenario).scale if scenario else 1.0,
             "exploration_noise": self.exploration_noise,
             "exploration_noise_initial": self.exploration_noise_initial,

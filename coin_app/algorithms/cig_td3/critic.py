@@ -46,7 +46,7 @@ import torch
 from torch import Tensor, nn
 
 from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, Graph, GraphModule, build_graph
-from coin_app.algorithms.cig_td3.individual import full_precision, mlp
+from coin_app.algorithms.cig_td3.individual import full_precision, mlp, q_head
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES, PairAttention, PairCVAE
 from coin_app.sim import schema
 
@@ -81,7 +81,9 @@ class CentralCriticConfig:
     ``gat_heads * node_width -> node_width``) and ``gat_init`` "xavier" (gain 1.414) | "default"
     (``nn.Linear``'s) GAT initialization, both as the official code where the paper is silent
     (``docs/decisions.md`` §2; ``gat_heads=1, gat_init="default"`` is the single-head GAT used before
-    issue #27); both are validated for every ``global_module`` and used by "gat" only.
+    issue #27); both are validated for every ``global_module`` and used by "gat" only;
+    ``feature_norm`` divides each branch's features ``[h_ego, obs MLP]`` by their L2 norm before its
+    output layer (:func:`~coin_app.algorithms.cig_td3.individual.q_head`; not in COIN).
     """
 
     obs_dim: int
@@ -100,6 +102,7 @@ class CentralCriticConfig:
     cvae_decoder_layers: int = 2
     gat_heads: int = 2
     gat_init: str = "xavier"
+    feature_norm: bool = False
 
     def __post_init__(self) -> None:
         """Validate every field; raise ValueError naming the bad value and what is allowed."""
@@ -133,8 +136,9 @@ class CentralCriticConfig:
             raise ValueError(f"position_scale={self.position_scale!r} is invalid: must be a finite float > 0 (metres per state unit)")
         if not _is_real(self.leaky_slope) or not 0 <= self.leaky_slope < 1:
             raise ValueError(f"leaky_slope={self.leaky_slope!r} is invalid: must be a float in [0, 1)")
-        if not isinstance(self.detach_latent, bool):
-            raise ValueError(f"detach_latent={self.detach_latent!r} is invalid: must be a bool")
+        for name in ("detach_latent", "feature_norm"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}={getattr(self, name)!r} is invalid: must be a bool")
 
 
 class CriticBranch(nn.Module):
@@ -147,11 +151,12 @@ class CriticBranch(nn.Module):
         self.graph = GraphModule(cfg.global_module, cfg.node_width, cfg.leaky_slope, cfg.gat_heads, cfg.gat_init)
         self.obs_mlp = mlp([obs_in, cfg.hidden, cfg.hidden], nn.ReLU, nn.ReLU)
         self.head = nn.Linear(cfg.node_width + cfg.hidden, 1)
+        self.feature_norm = cfg.feature_norm
 
     def forward(self, node_x: Tensor, obs_x: Tensor, graph: Graph) -> Tensor:
         """Packed node inputs (P, node_in), obs_x (B, obs_in) -> value (B,)."""
         g = self.graph(self.node_mlp(node_x), graph)
-        return self.head(torch.cat([g, self.obs_mlp(obs_x)], -1)).squeeze(-1)
+        return q_head(torch.cat([g, self.obs_mlp(obs_x)], -1), self.head, self.feature_norm).squeeze(-1)
 
 
 class CriticOutputs(NamedTuple):

@@ -15,10 +15,13 @@ from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from coin_app.sim import schema
 
-__all__ = ["Actor", "TwinQ", "full_precision", "mlp"]
+__all__ = ["Actor", "TwinQ", "full_precision", "mlp", "q_head"]
+
+FEATURE_NORM_EPS = 1e-6  # floor of the penultimate features' L2 norm in q_head (an all-zero ReLU layer stays finite)
 
 
 def mlp(sizes: Sequence[int], activation: Callable[[], nn.Module], out_activation: Callable[[], nn.Module] | None = None) -> nn.Sequential:
@@ -40,6 +43,13 @@ def full_precision(x: Tensor) -> Tensor:
     return x.to(torch.promote_types(x.dtype, torch.float32))
 
 
+def q_head(features: Tensor, head: nn.Module, feature_norm: bool) -> Tensor:
+    """``head(features)``, the features first divided by their L2 norm when ``feature_norm`` (Bjorck et al., 2022)."""
+    if feature_norm:
+        features = F.normalize(features, dim=-1, eps=FEATURE_NORM_EPS)
+    return head(features)
+
+
 class Actor(nn.Module):
     """Deterministic policy mu_theta(o): MLP with ReLU, tanh output in [-1, 1]."""
 
@@ -57,18 +67,30 @@ class Actor(nn.Module):
 
 
 class TwinQ(nn.Module):
-    """Local (individual) twin critic Q^l_1, Q^l_2 on [o, a] (paper Eqs. 7-8)."""
+    """Local (individual) twin critic Q^l_1, Q^l_2 on [o, a] (paper Eqs. 7-8).
 
-    def __init__(self, obs_dim: int, act_dim: int = schema.ACT_DIM, hidden: Sequence[int] = (256, 256)) -> None:
+    ``feature_norm``: the last hidden layer's features are divided by their L2 norm before the
+    output layer (the penultimate normalization of Bjorck et al., 2022, "Is high variance
+    unavoidable in RL?"; not in COIN). The parameters are the same either way.
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int = schema.ACT_DIM, hidden: Sequence[int] = (256, 256), feature_norm: bool = False) -> None:
         super().__init__()
+        self.feature_norm = feature_norm
         self.q1_net = mlp([obs_dim + act_dim, *hidden, 1], nn.ReLU)
         self.q2_net = mlp([obs_dim + act_dim, *hidden, 1], nn.ReLU)
+
+    def _q(self, net: nn.Sequential, x: Tensor) -> Tensor:
+        """One critic's value (B,) for inputs x (B, O+A)."""
+        if not self.feature_norm:
+            return net(x).squeeze(-1)
+        return q_head(net[:-1](x), net[-1], True).squeeze(-1)
 
     def forward(self, obs: Tensor, act: Tensor) -> tuple[Tensor, Tensor]:
         """(q1, q2), each of shape (B,)."""
         x = torch.cat([obs, act], -1)
-        return self.q1_net(x).squeeze(-1), self.q2_net(x).squeeze(-1)
+        return self._q(self.q1_net, x), self._q(self.q2_net, x)
 
     def q1_only(self, obs: Tensor, act: Tensor) -> Tensor:
         """Q1 of shape (B,) (actor loss)."""
-        return self.q1_net(torch.cat([obs, act], -1)).squeeze(-1)
+        return self._q(self.q1_net, torch.cat([obs, act], -1))

@@ -39,7 +39,8 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
         if self.inference_only:
             return
         mc = self.model_config
-        self.local_q = TwinQ(obs_dim, act_dim, (hidden, hidden))
+        norm = bool(mc.get("critic_feature_norm", False))
+        self.local_q = TwinQ(obs_dim, act_dim, (hidden, hidden), norm)
         if mc.get("global_critic", True):
             self.central = CentralCritic(
                 CentralCriticConfig(
@@ -55,6 +56,7 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
                     gat_heads=int(mc.get("gat_heads", 2)),
                     gat_init=str(mc.get("gat_init", "xavier")),
                     position_scale=float(mc.get("position_scale", 1.0)),
+                    feature_norm=norm,
                 )
             )
 

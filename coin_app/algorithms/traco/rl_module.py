@@ -42,7 +42,7 @@ class TracoTorchRLModule(CigTd3TorchRLModule):
         if mc.get("counterfactual_baseline", True):
             self.baseline = CounterfactualBaseline(obs_dim, schema.STATE_DIM, act_dim, hidden, **attention)
         if mc.get("individual_critic", False):
-            self.local_q = TwinQ(obs_dim, act_dim, (hidden, hidden))
+            self.local_q = TwinQ(obs_dim, act_dim, (hidden, hidden), bool(mc.get("critic_feature_norm", False)))
 
     def get_non_inference_attributes(self) -> list[str]:
         """Everything but the actor stays on the learner."""

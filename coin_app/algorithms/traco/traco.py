@@ -51,6 +51,7 @@ SHARED_KEYS = (
     "update_order",
     "actor_preact_penalty",
     "actor_preact_threshold",
+    "critic_feature_norm",  # TraCo's individual critic only; its attention critics stay as they are
     "actor_start_steps",
     "exploration_noise_initial",
     "exploration_noise_decay_steps",
