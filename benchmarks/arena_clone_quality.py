@@ -3,6 +3,7 @@
 Usage: python benchmarks/arena_clone_quality.py [--driver heuristic|avoiding|planning] [--stage short|long]
                                                 [--episodes 200] [--epochs 10] [--cases 1x0,4x4]
                                                 [--scenarios-per-case 20] [--seed 0] [--lone-fraction 0]
+                                                [--observed-entities 1] [--rounds 1]
 
 Runs exactly the warm start of ``--set warm_start=<driver>`` (``coin_app/algorithms/nav_ppo/warm_start.py``)
 on a fresh ``[256, 256]`` nav_ppo module, without PPO: demonstrations of the stage's scenario mix,
@@ -10,7 +11,10 @@ then the clone. Prints the clone's action MSE on its training demonstrations and
 noiseless scenarios, then the success-to-goal rate of the clone (deterministic) and of the driver
 on the test suite's held-out seeds (``evaluate-arena --generator short`` for the short stage, the
 paper's suite for the long one). ``--lone-fraction`` is the arena option of that name for the
-demonstrations' mix (``--set lone_fraction=...`` in training).
+demonstrations' mix (``--set lone_fraction=...`` in training); ``--rounds R`` adds R - 1 DAgger
+rounds (``--set warm_start_rounds=R``); ``--observed-entities K`` the arena
+option ``observed_entities`` (the K closest entities in every observation, for the driver, its
+demonstrations, the clone and both scores; 1 is the paper's).
 """
 
 from __future__ import annotations
@@ -18,13 +22,11 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
 import torch
-from ray.rllib.core.columns import Columns
 
 import coin_app.evaluation.arena_suite as suite
 from coin_app.algorithms.nav_ppo.config import HYPERPARAMETERS, STAGES
-from coin_app.algorithms.nav_ppo.warm_start import clone, heuristic_demonstrations
+from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations, module_policy, warm_start
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.heuristic import DRIVERS
 from coin_app.training import fresh_module
@@ -43,42 +45,47 @@ def main() -> None:
     ap.add_argument("--scenarios-per-case", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--lone-fraction", type=float, default=0.0, help="share of 1-vehicle, 0-obstacle demonstration scenarios")
+    ap.add_argument("--observed-entities", type=int, default=1, help="entities each vehicle observes (1: the paper's)")
+    ap.add_argument("--rounds", type=int, default=1, help="warm-start rounds: 1 = cloning, R > 1 adds R - 1 DAgger rounds")
     args = ap.parse_args()
-    if args.episodes < 1 or args.epochs < 0 or args.scenarios_per_case < 1:
+    if args.episodes < 1 or args.epochs < 0 or args.scenarios_per_case < 1 or args.rounds < 1:
         ap.error(
-            f"--episodes {args.episodes}, --epochs {args.epochs}, --scenarios-per-case {args.scenarios_per_case}: allowed >= 1, >= 0, >= 1"
+            f"--episodes {args.episodes}, --epochs {args.epochs}, --scenarios-per-case {args.scenarios_per_case}, --rounds {args.rounds}: "
+            "allowed >= 1, >= 0, >= 1, >= 1"
         )
     try:
         cases = suite.parse_cases(args.cases)
-        cfg = make_arena_config(**STAGES[args.stage], lone_fraction=args.lone_fraction)
+        arena = {"lone_fraction": args.lone_fraction, "observed_entities": args.observed_entities}
+        cfg = make_arena_config(**STAGES[args.stage], **arena)
     except ValueError as exc:
         ap.error(str(exc))
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    demos = heuristic_demonstrations(cfg, args.episodes, args.seed, HYPERPARAMETERS["warm_start_noise"][0], 0.99, args.driver)
-    module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD}, seed=args.seed)
-    losses = clone(module, demos, args.epochs, LOG_STD, args.seed)
+    module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD, **arena}, seed=args.seed)
+    noise = HYPERPARAMETERS["warm_start_noise"][0]
+    losses, rounds = warm_start(module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds)
+    rows = sum(len(r.obs) for r in rounds)
     held_out = heuristic_demonstrations(cfg, 20, args.seed + 10_000, 0.0, 0.99, args.driver)
-
-    def policy(obs: np.ndarray) -> np.ndarray:
-        """The clone's deterministic actions."""
-        with torch.no_grad():
-            inputs = module.forward_inference({Columns.OBS: torch.as_tensor(np.asarray(obs, np.float32))})[Columns.ACTION_DIST_INPUTS]
-        return inputs[:, :2].clamp(-1.0, 1.0).numpy()
-
+    policy = module_policy(module)
     held_mse = float(((policy(held_out.obs) - held_out.actions) ** 2).mean())
     print(
-        f"{args.driver} driver, stage {args.stage}: {len(demos.obs)} rows from {args.episodes} scenarios "
-        f"(lone fraction {args.lone_fraction}), {args.epochs} epochs"
+        f"{args.driver} driver, stage {args.stage}: {rows} rows from {args.rounds} x {args.episodes} scenarios "
+        f"(lone fraction {args.lone_fraction}, {args.observed_entities} observed entities), {args.epochs} epochs"
     )
     print(f"  clone action MSE: {losses['action_mse']:.3f} on its demonstrations, {held_mse:.3f} on 20 held-out noiseless scenarios")
+    print(
+        "  success while collecting, by round (round 0 the driver, then the clone; half the scenarios noisy): "
+        + ", ".join(f"{r.success_rate:.3f}" for r in rounds)
+    )
     generator = "short" if args.stage == "short" else "agnn"
     load = suite.load_arena_policy
     suite.load_arena_policy = lambda source: policy if source == "clone" else load(source)  # the suite's policy loader, in-process
     try:
         scores = {}
         for name in ("clone", args.driver):
-            rows = suite.evaluate_suite(name, cases, args.scenarios_per_case, workers=1, log=lambda s: None, generator=generator)
+            rows = suite.evaluate_suite(
+                name, cases, args.scenarios_per_case, workers=1, log=lambda s: None, generator=generator, observed=args.observed_entities
+            )
             scores[name] = {f"{int(r.vehicles)}x{int(r.obstacles)}": r.success_to_goal_rate for r in suite.summarize(rows).itertuples()}
     finally:
         suite.load_arena_policy = load

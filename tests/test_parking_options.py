@@ -6,7 +6,15 @@ import torch
 from ray.rllib.core.columns import Columns
 
 from coin_app.algorithms.nav_ppo.config import curriculum_difficulty
-from coin_app.algorithms.nav_ppo.warm_start import TeacherLabels, bc_loss, bc_weight, heuristic_demonstrations
+from coin_app.algorithms.nav_ppo.warm_start import (
+    ROUND_SEED_STRIDE,
+    TeacherLabels,
+    bc_loss,
+    bc_weight,
+    heuristic_demonstrations,
+    module_policy,
+    warm_start,
+)
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.generator import generate, training_rng
@@ -278,6 +286,42 @@ def test_demonstrations_label_every_driving_row_with_the_drivers_own_action():
     demos = heuristic_demonstrations(cfg, 4, 3, 0.3, 0.99, "planning")
     assert demos.obs.shape[1] == 6 + 7 * 2
     np.testing.assert_allclose(demos.actions, planning_actions(demos.obs), atol=1e-6)  # labels are noiseless, rows float32
+
+
+def test_an_actor_drives_while_the_driver_labels_the_states_it_visits():
+    cfg = make_arena_config(generator="short", num_vehicles=2, num_obstacles=1, max_steps=30)
+    standing = heuristic_demonstrations(cfg, 1, 5, 0.0, 0.9, "heuristic", actor=lambda obs: np.zeros((len(obs), 2)))
+    driven = heuristic_demonstrations(cfg, 1, 5, 0.0, 0.9, "heuristic")
+    # a vehicle that never touches its pedals stays where it started: every row repeats its first observation
+    assert len(standing.obs) == 2 * 30 and standing.success_rate == 0.0
+    np.testing.assert_allclose(standing.obs[0::2], np.repeat(standing.obs[:1], 30, 0), atol=1e-6)
+    np.testing.assert_allclose(standing.obs[:2], driven.obs[:2], atol=1e-6)  # the same scenario as the driver's own
+    np.testing.assert_allclose(standing.actions, heuristic_actions(standing.obs), atol=1e-6)  # the driver's labels
+    assert not np.allclose(standing.actions, 0.0)
+    assert not np.allclose(standing.obs[2:4], driven.obs[2:4])  # the driver, driving, moved
+
+
+def test_dagger_rounds_add_the_clones_own_states_labelled_by_the_driver():
+    cfg = make_arena_config(generator="short", num_vehicles=2, num_obstacles=1, max_steps=40)
+    torch.manual_seed(0)  # the modules' initial weights
+    module = fresh_module("nav_ppo", "arena", {"stage": "short", "hidden": 32}, seed=0)
+    losses, rounds = warm_start(module, cfg, "heuristic", 4, 0.3, 3, -1.0, 7, 0.99, rounds=3)
+    assert len(rounds) == 3 and set(losses) == {"action_mse", "log_std_mse", "value_mse"}
+    first = heuristic_demonstrations(cfg, 4, 7, 0.3, 0.99, "heuristic")
+    np.testing.assert_array_equal(rounds[0].obs, first.obs)  # round 0: the driver's own demonstrations
+    for r in rounds[1:]:
+        np.testing.assert_allclose(r.actions, heuristic_actions(r.obs), atol=1e-6)  # labels: always the driver's
+    # round 2 was driven by the clone as round 1 left it: replay it with a module refitted the same way
+    torch.manual_seed(0)
+    again = fresh_module("nav_ppo", "arena", {"stage": "short", "hidden": 32}, seed=0)
+    warm_start(again, cfg, "heuristic", 4, 0.3, 3, -1.0, 7, 0.99, rounds=2)
+    replay = heuristic_demonstrations(cfg, 4, 7 + 2 * ROUND_SEED_STRIDE, 0.3, 0.99, "heuristic", module_policy(again))
+    np.testing.assert_array_equal(replay.obs, rounds[2].obs)
+    assert not np.array_equal(rounds[2].obs[: len(rounds[0].obs)], rounds[0].obs[: len(rounds[2].obs)])
+    with pytest.raises(ValueError, match=r"bad value for 'warm_start_rounds': 0; allowed: an integer >= 1"):
+        warm_start(module, cfg, "heuristic", 4, 0.3, 3, -1.0, 7, 0.99, rounds=0)
+    with pytest.raises(ValueError, match=r"bad value for 'warm_start_rounds': 0"):
+        build_config("nav_ppo", "arena", {"warm_start": "heuristic", "warm_start_rounds": 0}, 0)
 
 
 def test_lone_fraction_mixes_in_single_vehicle_episodes_and_leaves_the_default_stream_unchanged():

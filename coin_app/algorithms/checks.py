@@ -202,6 +202,7 @@ RULES: dict[str, Rule] = {
     "warm_start_episodes": positive("int"),
     "warm_start_noise": non_negative(),
     "warm_start_epochs": non_negative("int"),
+    "warm_start_rounds": positive("int"),
     "bc_coeff": non_negative(),
     "bc_steps": non_negative("int"),
 }

@@ -39,7 +39,7 @@ from coin_app.algorithms.checkpoint_files import SHARED_MODULE_ID
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import set_on_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
-from coin_app.algorithms.nav_ppo.warm_start import bc_weight, clone, heuristic_demonstrations
+from coin_app.algorithms.nav_ppo.warm_start import bc_weight, warm_start
 from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
@@ -87,6 +87,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     "warm_start_episodes": (200, "warm start: scenarios the scripted driver drives (every second one with action noise)"),
     "warm_start_noise": (0.3, "warm start: std of the Gaussian noise on the driver's actions in the noisy scenarios"),
     "warm_start_epochs": (10, "warm start: passes over the demonstrations (minibatches of 512, Adam 1e-3)"),
+    "warm_start_rounds": (
+        1,
+        "warm start: 1 = clone the driver's demonstrations; R > 1 = then R - 1 DAgger rounds, each as many scenarios driven "
+        "by the clone, labelled by the driver, added to the demonstrations and fitted again (warm_start.py)",
+    ),
     "bc_coeff": (
         0.0,
         "weight of an auxiliary loss pulling the policy mean toward the scripted driver's actions at each minibatch's "
@@ -147,14 +152,28 @@ class NavPPO(PPO):
         scenario, _ = parse_env_config(self.config.env_config)
         scenario = dataclasses.replace(scenario, start_difficulty=1.0)  # the whole start spread, whatever a curriculum's start
         seed = int(self.config.seed or 0)
-        demos = heuristic_demonstrations(
-            scenario, cfg["warm_start_episodes"], seed, cfg["warm_start_noise"], self.config.gamma, cfg["warm_start"]
-        )
-        epochs, log_std = cfg["warm_start_epochs"], cfg["log_std_init"]
-        losses = self.learner_group.foreach_learner(lambda learner: clone(learner.module[SHARED_MODULE_ID], demos, epochs, log_std, seed))
+        options = {
+            "driver": cfg["warm_start"],
+            "episodes": cfg["warm_start_episodes"],
+            "noise": cfg["warm_start_noise"],
+            "epochs": cfg["warm_start_epochs"],
+            "log_std": cfg["log_std_init"],
+            "seed": seed,
+            "gamma": self.config.gamma,
+            "rounds": cfg["warm_start_rounds"],
+        }
+
+        def fit(learner: Any) -> tuple[dict[str, float], list[tuple[float, int]]]:
+            losses, rounds = warm_start(learner.module[SHARED_MODULE_ID], scenario, **options)
+            return losses, [(demos.success_rate, len(demos.obs)) for demos in rounds]
+
+        # every learner runs the same seeded warm start (the demonstrations are generated in the learner's process)
+        losses, rounds = next(iter(self.learner_group.foreach_learner(fit))).get()
         self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group, inference_only=True)
-        first = next(iter(losses)).get()  # every learner fitted the same demonstrations from the same seed
-        for key, value in {"warm_start_demo_success": demos.success_rate, "warm_start_samples": len(demos.obs), **first}.items():
+        stats = {"warm_start_demo_success": rounds[0][0], "warm_start_samples": sum(n for _, n in rounds), **losses}
+        if len(rounds) > 1:
+            stats["warm_start_clone_success"] = rounds[-1][0]  # the clone driving the last DAgger round (half with noise)
+        for key, value in stats.items():
             self.metrics.log_value(f"warm_start/{key}", value, window=1)
 
 
@@ -167,7 +186,8 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     check_values(hp)
     precision = hp.pop("precision")
     curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
-    warm = {k: hp.pop(k) for k in ("warm_start", "warm_start_episodes", "warm_start_noise", "warm_start_epochs", "bc_coeff", "bc_steps")}
+    warm_keys = ("warm_start", "warm_start_episodes", "warm_start_noise", "warm_start_epochs", "warm_start_rounds", "bc_coeff", "bc_steps")
+    warm = {k: hp.pop(k) for k in warm_keys}
     warm["log_std_init"] = hp["log_std_init"]
     floor = hp.pop("log_std_min")
     if floor is not None and floor > hp["log_std_init"]:

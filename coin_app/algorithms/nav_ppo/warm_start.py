@@ -8,7 +8,11 @@ stage first drives ``warm_start_episodes`` scenarios of its own mix with that sc
 avoiding one swerves from the closest entity ahead, the planning one filters the plain one's
 actions by short rollouts against every observed entity), half of them with
 Gaussian action noise so that the clone also sees states off the driver's path, labelled with the
-driver's action at each visited state (DART, Laskey et al. 2017). Then, before the first PPO
+driver's action at each visited state (DART, Laskey et al. 2017). With ``warm_start_rounds`` R > 1
+the clone then drives R - 1 more rounds of as many fresh scenarios itself (the same noise rule),
+its states labelled by the driver and added to the demonstrations, and is fitted again after each
+round (DAgger, Ross et al. 2011): the clone learns the driver's answer in the states its own
+mistakes lead to. Then, before the first PPO
 iteration, the policy's Gaussian mean is fitted to those labels, its log std to ``log_std_init``,
 and the value network to the discounted returns (Eqs. 2–6, the stage's own reward) that followed
 each state. PPO then starts from a policy that parks and has to learn what the driver ignores.
@@ -24,7 +28,7 @@ al. 2018).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,10 +53,23 @@ class Demonstrations:
     success_rate: float  # share of the demonstrated vehicles that reached the success state
 
 
+ROUND_SEED_STRIDE = 1_000_003  # DAgger round r draws its scenarios and noise from seed + r * this (rounds never share seeds)
+
+
 def heuristic_demonstrations(
-    config: ArenaConfig, episodes: int, seed: int, noise: float, gamma: float, driver: str = "heuristic"
+    config: ArenaConfig,
+    episodes: int,
+    seed: int,
+    noise: float,
+    gamma: float,
+    driver: str = "heuristic",
+    actor: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Demonstrations:
-    """``episodes`` scenarios of ``config``'s mix driven by the scripted ``driver``, every second one with action noise ``noise``."""
+    """``episodes`` scenarios of ``config``'s mix labelled by the scripted ``driver``, every second one with action noise ``noise``.
+
+    The driver also drives, unless ``actor`` (observations -> actions) is given: then the actor
+    drives and the driver only labels the states it visits (a DAgger round).
+    """
     if episodes < 1:
         raise ValueError(f"bad value for 'warm_start_episodes': {episodes}; allowed: an integer >= 1")
     drive = DRIVERS[driver]
@@ -69,7 +86,8 @@ def heuristic_demonstrations(
         while sim.driving.any():
             label = np.zeros((len(obs), 2))  # parked vehicles' rows: ignored by the step, masked out below
             label[sim.driving] = drive(obs[sim.driving], dt=config.dt, friction=config.friction)
-            action = np.clip(label + sigma * rng.standard_normal(label.shape), -1.0, 1.0) if sigma else label
+            acted = label if actor is None else np.where(sim.driving[:, None], actor(obs), 0.0)
+            action = np.clip(acted + sigma * rng.standard_normal(label.shape), -1.0, 1.0) if sigma else acted
             mask = sim.driving.copy()
             step = sim.step(action)
             steps_obs.append(obs)
@@ -125,6 +143,53 @@ def clone(module: nn.Module, demos: Demonstrations, epochs: int, log_std: float,
             count += len(idx)
         losses = dict(zip(losses, (sums / count).tolist()))
     return losses
+
+
+def module_policy(module: nn.Module) -> Callable[[np.ndarray], np.ndarray]:
+    """The PPO module's deterministic actions at observations: its Gaussian mean, clipped to the action box [-1, 1]."""
+    device = next(module.parameters()).device
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        """Actions (N, 2) for observations (N, obs_dim)."""
+        with torch.no_grad():
+            batch = {Columns.OBS: torch.as_tensor(np.asarray(obs, np.float32), device=device)}
+            inputs = module.forward_inference(batch)[Columns.ACTION_DIST_INPUTS]
+        return inputs[:, : inputs.shape[1] // 2].clamp(-1.0, 1.0).cpu().numpy()
+
+    return act
+
+
+def joined(a: Demonstrations, b: Demonstrations) -> Demonstrations:
+    """Both sets of rows; the success rate is ``b``'s (the newest round's)."""
+    return Demonstrations(
+        *(np.concatenate([x, y]) for x, y in ((a.obs, b.obs), (a.actions, b.actions), (a.returns, b.returns))), b.success_rate
+    )
+
+
+def warm_start(
+    module: nn.Module,
+    config: ArenaConfig,
+    driver: str,
+    episodes: int,
+    noise: float,
+    epochs: int,
+    log_std: float,
+    seed: int,
+    gamma: float,
+    rounds: int = 1,
+) -> tuple[dict[str, float], list[Demonstrations]]:
+    """Clone ``driver`` into ``module`` (round 0), then ``rounds - 1`` DAgger rounds; (final fit's MSEs, each round's new rows)."""
+    if rounds < 1:
+        raise ValueError(f"bad value for 'warm_start_rounds': {rounds}; allowed: an integer >= 1")
+    new = [heuristic_demonstrations(config, episodes, seed, noise, gamma, driver)]
+    demos = new[0]
+    losses = clone(module, demos, epochs, log_std, seed)
+    for r in range(1, rounds):
+        round_seed = seed + r * ROUND_SEED_STRIDE
+        new.append(heuristic_demonstrations(config, episodes, round_seed, noise, gamma, driver, module_policy(module)))
+        demos = joined(demos, new[-1])
+        losses = clone(module, demos, epochs, log_std, round_seed)
+    return losses, new
 
 
 def bc_weight(env_steps: int, coeff: float, steps: int) -> float:
