@@ -331,8 +331,12 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     labels = policy_labels(args.policy)
     if args.scenarios_per_case < 1:
         raise ValueError(f"bad --scenarios-per-case {args.scenarios_per_case}; allowed: an integer >= 1")
-    for source in args.policy:  # a bad source or entity count fails now, before any policy is evaluated
-        policy_config(load_arena_policy(source), args.max_steps, args.protocol, args.generator, args.observed_entities)
+    observes = {  # a bad source or entity count fails now, before any policy is evaluated
+        source: policy_config(
+            load_arena_policy(source), args.max_steps, args.protocol, args.generator, args.observed_entities
+        ).observed_entities
+        for source in args.policy
+    }
     out = Path(args.out)
     folders = {label: "." if len(labels) == 1 else label for label in labels}  # one policy: its files in --out itself
     print(
@@ -360,6 +364,10 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
         summaries[label] = summary = summarize(rows)
         summary.to_csv(where / "arena_cases.csv", index=False)
         header = f"Policy: `{source}`; {args.scenarios_per_case} test scenarios per case; {args.protocol} protocol.\n\n"
+        if observes[source] != 1:
+            header += (
+                f"Each vehicle observes its {observes[source]} closest entities (`observed_entities`; the paper's observation: 1).\n\n"
+            )
         if args.generator != "agnn":
             header += f"Scenarios of the `{args.generator}` generator, not the paper's suite: the paper's columns do not apply.\n\n"
         (where / "arena_table.md").write_text(header + markdown_table(summary))

@@ -90,3 +90,11 @@ def test_evaluate_arena_refuses_a_bad_policy_before_evaluating_any(tmp_path, cap
     assert "missing.npz" in capsys.readouterr().err and not out.exists()
     assert main(["evaluate-arena", "heuristic", "--cases", "1x0", "--scenarios-per-case", "0", "--out", str(out)]) != 0
     assert "bad --scenarios-per-case 0; allowed: an integer >= 1" in capsys.readouterr().err and not out.exists()
+
+
+def test_evaluate_arena_tables_say_how_many_entities_a_policy_observed(tmp_path):
+    common = ["--cases", "1x0", "--scenarios-per-case", "1", "--workers", "1"]
+    assert main(["evaluate-arena", "heuristic", *common, "--observed-entities", "3", "--out", str(tmp_path / "k3")]) == 0
+    assert main(["evaluate-arena", "heuristic", *common, "--out", str(tmp_path / "k1")]) == 0
+    assert "observes its 3 closest entities" in (tmp_path / "k3" / "arena_table.md").read_text()
+    assert "closest entities" not in (tmp_path / "k1" / "arena_table.md").read_text()  # the paper's observation: nothing to say
