@@ -63,7 +63,8 @@ def main() -> None:
     t0 = time.perf_counter()
     module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD, **arena}, seed=args.seed)
     noise = HYPERPARAMETERS["warm_start_noise"][0]
-    losses, rounds = warm_start(module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds)
+    log = lambda line: print(line, flush=True)  # noqa: E731
+    losses, rounds = warm_start(module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds, log)
     rows = sum(len(r.obs) for r in rounds)
     held_out = heuristic_demonstrations(cfg, 20, args.seed + 10_000, 0.0, 0.99, args.driver)
     policy = module_policy(module)

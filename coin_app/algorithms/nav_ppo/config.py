@@ -106,6 +106,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
 }
 
 
+def progress(line: str) -> None:
+    """One progress line of a long phase on standard output (the warm start's rounds)."""
+    print(line, flush=True)
+
+
 def stage_of(algo_cfg: Mapping[str, Any]) -> str:
     """The training stage of nav_ppo's ``--set`` values (default ``"long"``); a ValueError if it is not one of ``STAGES``."""
     stage = algo_cfg.get("stage", HYPERPARAMETERS["stage"][0])
@@ -164,7 +169,7 @@ class NavPPO(PPO):
         }
 
         def fit(learner: Any) -> tuple[dict[str, float], list[tuple[float, int]]]:
-            losses, rounds = warm_start(learner.module[SHARED_MODULE_ID], scenario, **options)
+            losses, rounds = warm_start(learner.module[SHARED_MODULE_ID], scenario, **options, log=progress)
             return losses, [(demos.success_rate, len(demos.obs)) for demos in rounds]
 
         # every learner runs the same seeded warm start (the demonstrations are generated in the learner's process)

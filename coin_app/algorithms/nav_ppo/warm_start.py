@@ -177,18 +177,28 @@ def warm_start(
     seed: int,
     gamma: float,
     rounds: int = 1,
+    log: Callable[[str], None] | None = None,
 ) -> tuple[dict[str, float], list[Demonstrations]]:
-    """Clone ``driver`` into ``module`` (round 0), then ``rounds - 1`` DAgger rounds; (final fit's MSEs, each round's new rows)."""
+    """Clone ``driver`` into ``module`` (round 0), then ``rounds - 1`` DAgger rounds; (final fit's MSEs, each round's new rows).
+
+    ``log`` receives one line per round (rows, success while collecting, the fit's action MSE).
+    """
     if rounds < 1:
         raise ValueError(f"bad value for 'warm_start_rounds': {rounds}; allowed: an integer >= 1")
-    new = [heuristic_demonstrations(config, episodes, seed, noise, gamma, driver)]
-    demos = new[0]
-    losses = clone(module, demos, epochs, log_std, seed)
-    for r in range(1, rounds):
+    new: list[Demonstrations] = []
+    demos: Demonstrations | None = None
+    for r in range(rounds):
         round_seed = seed + r * ROUND_SEED_STRIDE
-        new.append(heuristic_demonstrations(config, episodes, round_seed, noise, gamma, driver, module_policy(module)))
-        demos = joined(demos, new[-1])
+        actor = module_policy(module) if r else None  # round 0: the driver drives
+        new.append(heuristic_demonstrations(config, episodes, round_seed, noise, gamma, driver, actor))
+        demos = new[-1] if demos is None else joined(demos, new[-1])
         losses = clone(module, demos, epochs, log_std, round_seed)
+        if log is not None:
+            who = "the clone" if r else driver
+            log(
+                f"warm start round {r + 1}/{rounds}: {len(new[-1].obs)} rows driven by {who} (success {new[-1].success_rate:.3f}), "
+                f"fit on {len(demos.obs)} rows, action MSE {losses['action_mse']:.4f}"
+            )
     return losses, new
 
 
