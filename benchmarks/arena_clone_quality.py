@@ -25,7 +25,7 @@ import time
 import torch
 
 import coin_app.evaluation.arena_suite as suite
-from coin_app.algorithms.nav_ppo.config import HYPERPARAMETERS, STAGES
+from coin_app.algorithms.nav_ppo.config import HYPERPARAMETERS, STAGES, progress
 from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations, module_policy, warm_start
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.heuristic import DRIVERS
@@ -63,8 +63,9 @@ def main() -> None:
     t0 = time.perf_counter()
     module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD, **arena}, seed=args.seed)
     noise = HYPERPARAMETERS["warm_start_noise"][0]
-    log = lambda line: print(line, flush=True)  # noqa: E731
-    losses, rounds = warm_start(module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds, log)
+    losses, rounds = warm_start(
+        module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds, progress
+    )
     rows = sum(len(r.obs) for r in rounds)
     held_out = heuristic_demonstrations(cfg, 20, args.seed + 10_000, 0.0, 0.99, args.driver)
     policy = module_policy(module)
