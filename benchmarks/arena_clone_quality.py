@@ -25,8 +25,9 @@ import time
 import torch
 
 import coin_app.evaluation.arena_suite as suite
+from coin_app.algorithms.checkpoints import actor_policy
 from coin_app.algorithms.nav_ppo.config import HYPERPARAMETERS, STAGES, progress
-from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations, module_policy, warm_start
+from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations, warm_start
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.heuristic import DRIVERS
 from coin_app.training import fresh_module
@@ -68,7 +69,7 @@ def main() -> None:
     )
     rows = sum(len(r.obs) for r in rounds)
     held_out = heuristic_demonstrations(cfg, 20, args.seed + 10_000, 0.0, 0.99, args.driver)
-    policy = module_policy(module)
+    policy = actor_policy(module)
     held_mse = float(((policy(held_out.obs) - held_out.actions) ** 2).mean())
     print(
         f"{args.driver} driver, stage {args.stage}: {rows} rows from {args.rounds} x {args.episodes} scenarios "

@@ -5,6 +5,7 @@ import pytest
 import torch
 from ray.rllib.core.columns import Columns
 
+from coin_app.algorithms.checkpoints import actor_policy
 from coin_app.algorithms.nav_ppo.config import curriculum_difficulty
 from coin_app.algorithms.nav_ppo.warm_start import (
     ROUND_SEED_STRIDE,
@@ -12,7 +13,6 @@ from coin_app.algorithms.nav_ppo.warm_start import (
     bc_loss,
     bc_weight,
     heuristic_demonstrations,
-    module_policy,
     warm_start,
 )
 from coin_app.sim.arena.config import make_arena_config
@@ -315,7 +315,7 @@ def test_dagger_rounds_add_the_clones_own_states_labelled_by_the_driver():
     torch.manual_seed(0)
     again = fresh_module("nav_ppo", "arena", {"stage": "short", "hidden": 32}, seed=0)
     warm_start(again, cfg, "heuristic", 4, 0.3, 3, -1.0, 7, 0.99, rounds=2)
-    replay = heuristic_demonstrations(cfg, 4, 7 + 2 * ROUND_SEED_STRIDE, 0.3, 0.99, "heuristic", module_policy(again))
+    replay = heuristic_demonstrations(cfg, 4, 7 + 2 * ROUND_SEED_STRIDE, 0.3, 0.99, "heuristic", actor_policy(again))
     np.testing.assert_array_equal(replay.obs, rounds[2].obs)
     assert not np.array_equal(rounds[2].obs[: len(rounds[0].obs)], rounds[0].obs[: len(rounds[2].obs)])
     with pytest.raises(ValueError, match=r"bad value for 'warm_start_rounds': 0; allowed: an integer >= 1"):

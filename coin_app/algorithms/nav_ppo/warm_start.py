@@ -37,6 +37,7 @@ import torch
 from ray.rllib.core.columns import Columns
 from torch import nn
 
+from coin_app.algorithms.checkpoints import actor_policy
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.heuristic import DRIVERS
@@ -145,20 +146,6 @@ def clone(module: nn.Module, demos: Demonstrations, epochs: int, log_std: float,
     return losses
 
 
-def module_policy(module: nn.Module) -> Callable[[np.ndarray], np.ndarray]:
-    """The PPO module's deterministic actions at observations: its Gaussian mean, clipped to the action box [-1, 1]."""
-    device = next(module.parameters()).device
-
-    def act(obs: np.ndarray) -> np.ndarray:
-        """Actions (N, 2) for observations (N, obs_dim)."""
-        with torch.no_grad():
-            batch = {Columns.OBS: torch.as_tensor(np.asarray(obs, np.float32), device=device)}
-            inputs = module.forward_inference(batch)[Columns.ACTION_DIST_INPUTS]
-        return inputs[:, : inputs.shape[1] // 2].clamp(-1.0, 1.0).cpu().numpy()
-
-    return act
-
-
 def joined(a: Demonstrations, b: Demonstrations) -> Demonstrations:
     """Both sets of rows; the success rate is ``b``'s (the newest round's)."""
     return Demonstrations(
@@ -189,7 +176,7 @@ def warm_start(
     demos: Demonstrations | None = None
     for r in range(rounds):
         round_seed = seed + r * ROUND_SEED_STRIDE
-        actor = module_policy(module) if r else None  # round 0: the driver drives
+        actor = actor_policy(module) if r else None  # round 0: the driver drives; then the clone, as evaluation runs it
         new.append(heuristic_demonstrations(config, episodes, round_seed, noise, gamma, driver, actor))
         demos = new[-1] if demos is None else joined(demos, new[-1])
         losses = clone(module, demos, epochs, log_std, round_seed)
