@@ -3,7 +3,7 @@
 Usage: python benchmarks/arena_clone_quality.py [--driver heuristic|avoiding|planning] [--stage short|long]
                                                 [--episodes 200] [--epochs 10] [--cases 1x0,4x4]
                                                 [--scenarios-per-case 20] [--seed 0] [--lone-fraction 0]
-                                                [--observed-entities 1] [--rounds 1]
+                                                [--observed-entities 1] [--rounds 1] [--weight 1]
 
 Runs exactly the warm start of ``--set warm_start=<driver>`` (``coin_app/algorithms/nav_ppo/warm_start.py``)
 on a fresh ``[256, 256]`` nav_ppo module, without PPO: demonstrations of the stage's scenario mix,
@@ -12,7 +12,8 @@ noiseless scenarios, then the success-to-goal rate of the clone (deterministic) 
 on the test suite's held-out seeds (``evaluate-arena --generator short`` for the short stage, the
 paper's suite for the long one). ``--lone-fraction`` is the arena option of that name for the
 demonstrations' mix (``--set lone_fraction=...`` in training); ``--rounds R`` adds R - 1 DAgger
-rounds (``--set warm_start_rounds=R``); ``--observed-entities K`` the arena
+rounds (``--set warm_start_rounds=R``); ``--weight W`` weighs the rows where the driver's filter acted
+(``--set warm_start_weight=W``); ``--observed-entities K`` the arena
 option ``observed_entities`` (the K closest entities in every observation, for the driver, its
 demonstrations, the clone and both scores; 1 is the paper's).
 """
@@ -48,11 +49,12 @@ def main() -> None:
     ap.add_argument("--lone-fraction", type=float, default=0.0, help="share of 1-vehicle, 0-obstacle demonstration scenarios")
     ap.add_argument("--observed-entities", type=int, default=1, help="entities each vehicle observes (1: the paper's)")
     ap.add_argument("--rounds", type=int, default=1, help="warm-start rounds: 1 = cloning, R > 1 adds R - 1 DAgger rounds")
+    ap.add_argument("--weight", type=float, default=1.0, help="warm_start_weight: weight of the rows where the driver's filter acted")
     args = ap.parse_args()
-    if args.episodes < 1 or args.epochs < 0 or args.scenarios_per_case < 1 or args.rounds < 1:
+    if args.episodes < 1 or args.epochs < 0 or args.scenarios_per_case < 1 or args.rounds < 1 or not args.weight > 0:
         ap.error(
-            f"--episodes {args.episodes}, --epochs {args.epochs}, --scenarios-per-case {args.scenarios_per_case}, --rounds {args.rounds}: "
-            "allowed >= 1, >= 0, >= 1, >= 1"
+            f"--episodes {args.episodes}, --epochs {args.epochs}, --scenarios-per-case {args.scenarios_per_case}, --rounds {args.rounds}, "
+            f"--weight {args.weight}: allowed >= 1, >= 0, >= 1, >= 1, > 0"
         )
     try:
         cases = suite.parse_cases(args.cases)
@@ -65,7 +67,7 @@ def main() -> None:
     module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD, **arena}, seed=args.seed)
     noise = HYPERPARAMETERS["warm_start_noise"][0]
     losses, rounds = warm_start(
-        module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds, progress
+        module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds, progress, args.weight
     )
     rows = sum(len(r.obs) for r in rounds)
     held_out = heuristic_demonstrations(cfg, 20, args.seed + 10_000, 0.0, 0.99, args.driver)

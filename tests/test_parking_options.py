@@ -12,7 +12,9 @@ from coin_app.algorithms.nav_ppo.warm_start import (
     TeacherLabels,
     bc_loss,
     bc_weight,
+    clone,
     heuristic_demonstrations,
+    intervention_weights,
     warm_start,
 )
 from coin_app.sim.arena.config import make_arena_config
@@ -344,3 +346,33 @@ def test_lone_fraction_mixes_in_single_vehicle_episodes_and_leaves_the_default_s
     for bad in (-0.1, 1.5, float("nan"), True):
         with pytest.raises(ValueError, match=r"bad arena value lone_fraction=.*; allowed: a number in \[0, 1\]"):
             make_arena_config(lone_fraction=bad)
+
+
+def test_intervention_weights_mark_exactly_the_rows_the_filter_changed():
+    cfg = make_arena_config(num_vehicles=4, num_obstacles=3, observed_entities=2, max_steps=60)
+    demos = heuristic_demonstrations(cfg, 2, 3, 0.0, 0.99, "planning")
+    changed = np.abs(heuristic_actions(demos.obs) - demos.actions).max(axis=1) > 1e-6  # the plain driver: the filter's nominal
+    assert 0 < changed.sum() < len(changed)  # some rows filtered, most not
+    weights = intervention_weights(demos, 4.0)
+    np.testing.assert_array_equal(weights, np.where(changed, 4.0, 1.0))
+    plain = heuristic_demonstrations(cfg, 2, 3, 0.0, 0.99, "heuristic")
+    np.testing.assert_array_equal(intervention_weights(plain, 4.0), np.ones(len(plain.obs)))  # the plain driver never intervenes
+
+
+def test_weighted_clone_loss_is_the_weighted_mean_of_the_row_errors():
+    cfg = make_arena_config(generator="short", num_vehicles=2, num_obstacles=1, max_steps=30)
+    demos = heuristic_demonstrations(cfg, 2, 5, 0.3, 0.99, "heuristic")
+    assert len(demos.obs) < 512  # one minibatch: the reported loss is that batch's
+    module = fresh_module("nav_ppo", "arena", {"stage": "short", "hidden": 16}, seed=0)
+    with torch.no_grad():
+        inputs = module.forward_train({Columns.OBS: torch.as_tensor(demos.obs)})[Columns.ACTION_DIST_INPUTS]
+    errors = ((inputs[:, :2].numpy() - demos.actions) ** 2).mean(axis=1)
+    weights = np.where(np.arange(len(errors)) % 3 == 0, 5.0, 1.0).astype(np.float32)
+    losses = clone(module, demos, 1, -1.0, 0, lr=0.0, weights=weights)  # lr 0: the weights stay, the loss is the initial one
+    assert losses["action_mse"] == pytest.approx(float((weights * errors).sum() / weights.sum()), rel=1e-5)
+    assert losses["action_mse"] != pytest.approx(float(errors.mean()), rel=1e-3)
+    assert clone(module, demos, 1, -1.0, 0, lr=0.0)["action_mse"] == pytest.approx(float(errors.mean()), rel=1e-5)
+    with pytest.raises(ValueError, match=r"bad value for 'warm_start_weight': 0"):
+        build_config("nav_ppo", "arena", {"warm_start": "planning", "warm_start_weight": 0}, 0)
+    with pytest.raises(ValueError, match=r"bad value for 'warm_start_weight': 0.0; allowed: a number > 0"):
+        warm_start(module, cfg, "heuristic", 1, 0.3, 1, -1.0, 0, 0.99, weight=0.0)

@@ -203,6 +203,7 @@ RULES: dict[str, Rule] = {
     "warm_start_noise": non_negative(),
     "warm_start_epochs": non_negative("int"),
     "warm_start_rounds": positive("int"),
+    "warm_start_weight": positive(),
     "bc_coeff": non_negative(),
     "bc_steps": non_negative("int"),
 }

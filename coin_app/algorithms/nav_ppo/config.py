@@ -92,6 +92,11 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         "warm start: 1 = clone the driver's demonstrations; R > 1 = then R - 1 DAgger rounds, each as many scenarios driven "
         "by the clone, labelled by the driver, added to the demonstrations and fitted again (warm_start.py)",
     ),
+    "warm_start_weight": (
+        1.0,
+        "warm start: weight of the rows where the driver's label differs from the plain heuristic's action (the avoiding "
+        "driver's reflex, the planning driver's safety filter) in the clone's action loss (1 = all rows alike; warm_start.py)",
+    ),
     "bc_coeff": (
         0.0,
         "weight of an auxiliary loss pulling the policy mean toward the scripted driver's actions at each minibatch's "
@@ -166,6 +171,7 @@ class NavPPO(PPO):
             "seed": seed,
             "gamma": self.config.gamma,
             "rounds": cfg["warm_start_rounds"],
+            "weight": cfg["warm_start_weight"],
         }
 
         def fit(learner: Any) -> tuple[dict[str, float], list[tuple[float, int]]]:
@@ -191,7 +197,16 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     check_values(hp)
     precision = hp.pop("precision")
     curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
-    warm_keys = ("warm_start", "warm_start_episodes", "warm_start_noise", "warm_start_epochs", "warm_start_rounds", "bc_coeff", "bc_steps")
+    warm_keys = (
+        "warm_start",
+        "warm_start_episodes",
+        "warm_start_noise",
+        "warm_start_epochs",
+        "warm_start_rounds",
+        "warm_start_weight",
+        "bc_coeff",
+        "bc_steps",
+    )
     warm = {k: hp.pop(k) for k in warm_keys}
     warm["log_std_init"] = hp["log_std_init"]
     floor = hp.pop("log_std_min")

@@ -12,7 +12,9 @@ driver's action at each visited state (DART, Laskey et al. 2017). With ``warm_st
 the clone then drives R - 1 more rounds of as many fresh scenarios itself (the same noise rule),
 its states labelled by the driver and added to the demonstrations, and is fitted again after each
 round (DAgger, Ross et al. 2011): the clone learns the driver's answer in the states its own
-mistakes lead to. Then, before the first PPO
+mistakes lead to. With ``warm_start_weight`` W the rows where the driver's label differs from the plain
+driver's action (the avoiding driver's reflex, the planning driver's filter: the rows that decide
+collisions, about a quarter of the planning driver's) count W times in the action loss. Then, before the first PPO
 iteration, the policy's Gaussian mean is fitted to those labels, its log std to ``log_std_init``,
 and the value network to the discounted returns (Eqs. 2–6, the stage's own reward) that followed
 each state. PPO then starts from a policy that parks and has to learn what the driver ignores.
@@ -54,6 +56,7 @@ class Demonstrations:
     success_rate: float  # share of the demonstrated vehicles that reached the success state
 
 
+INTERVENTION_TOLERANCE = 1e-6  # a label farther than this from the plain driver's action is an intervention
 ROUND_SEED_STRIDE = 1_000_003  # DAgger round r draws its scenarios and noise from seed + r * this (rounds never share seeds)
 
 
@@ -115,10 +118,32 @@ def heuristic_demonstrations(
     )
 
 
-def clone(module: nn.Module, demos: Demonstrations, epochs: int, log_std: float, seed: int, lr: float = 1e-3) -> dict[str, float]:
-    """Fit a PPO module to ``demos``: Gaussian mean to the actions, log std to ``log_std``, values to the returns; final MSEs."""
+def intervention_weights(demos: Demonstrations, weight: float, dt: float = 0.1, friction: float = 0.99) -> np.ndarray:
+    """Per-row weights (T,): ``weight`` where the label differs from the plain driver's action at that state, else 1.
+
+    Those are the rows where the avoiding driver's reflex or the planning driver's safety filter
+    acted; they decide collisions, and the plain driver's own rows far outnumber them.
+    """
+    changed = np.abs(DRIVERS["heuristic"](demos.obs, dt=dt, friction=friction) - demos.actions).max(axis=1) > INTERVENTION_TOLERANCE
+    return np.where(changed, weight, 1.0).astype(np.float32)
+
+
+def clone(
+    module: nn.Module,
+    demos: Demonstrations,
+    epochs: int,
+    log_std: float,
+    seed: int,
+    lr: float = 1e-3,
+    weights: np.ndarray | None = None,
+) -> dict[str, float]:
+    """Fit a PPO module to ``demos``: Gaussian mean to the actions, log std to ``log_std``, values to the returns; final MSEs.
+
+    ``weights`` (T,) weigh each row's action error (the action MSE is then the weighted mean); None weighs all alike.
+    """
     device = next(module.parameters()).device
     obs, actions, returns = (torch.as_tensor(x, device=device) for x in (demos.obs, demos.actions, demos.returns))
+    row_weights = None if weights is None else torch.as_tensor(weights, device=device)
     optimizer = torch.optim.Adam(module.parameters(), lr)
     generator = torch.Generator().manual_seed(seed)
     minibatch = 512
@@ -132,8 +157,9 @@ def clone(module: nn.Module, demos: Demonstrations, epochs: int, log_std: float,
             batch = {Columns.OBS: obs[idx]}
             inputs = module.forward_train(batch)[Columns.ACTION_DIST_INPUTS]
             mean, log_stds = inputs.chunk(2, dim=-1)
+            gap = (mean - actions[idx]) ** 2
             terms = (
-                ((mean - actions[idx]) ** 2).mean(),
+                gap.mean() if row_weights is None else (gap.mean(dim=1) * row_weights[idx]).sum() / row_weights[idx].sum(),
                 ((log_stds - log_std) ** 2).mean(),
                 ((module.compute_values(batch) - returns[idx]) ** 2).mean(),
             )
@@ -165,13 +191,18 @@ def warm_start(
     gamma: float,
     rounds: int = 1,
     log: Callable[[str], None] | None = None,
+    weight: float = 1.0,
 ) -> tuple[dict[str, float], list[Demonstrations]]:
     """Clone ``driver`` into ``module`` (round 0), then ``rounds - 1`` DAgger rounds; (final fit's MSEs, each round's new rows).
+
+    ``weight`` weighs the rows where the driver's label differs from the plain driver's (``intervention_weights``).
 
     ``log`` receives one line per round (rows, success while collecting, the fit's action MSE).
     """
     if rounds < 1:
         raise ValueError(f"bad value for 'warm_start_rounds': {rounds}; allowed: an integer >= 1")
+    if not weight > 0:
+        raise ValueError(f"bad value for 'warm_start_weight': {weight}; allowed: a number > 0")
     new: list[Demonstrations] = []
     demos: Demonstrations | None = None
     for r in range(rounds):
@@ -179,7 +210,8 @@ def warm_start(
         actor = actor_policy(module) if r else None  # round 0: the driver drives; then the clone, as evaluation runs it
         new.append(heuristic_demonstrations(config, episodes, round_seed, noise, gamma, driver, actor))
         demos = new[-1] if demos is None else joined(demos, new[-1])
-        losses = clone(module, demos, epochs, log_std, round_seed)
+        weights = intervention_weights(demos, weight, config.dt, config.friction) if weight != 1.0 else None
+        losses = clone(module, demos, epochs, log_std, round_seed, weights=weights)
         if log is not None:
             who = "the clone" if r else driver
             log(
