@@ -75,9 +75,13 @@ def main() -> None:
     held_mse = float(((policy(held_out.obs) - held_out.actions) ** 2).mean())
     print(
         f"{args.driver} driver, stage {args.stage}: {rows} rows from {args.rounds} x {args.episodes} scenarios "
-        f"(lone fraction {args.lone_fraction}, {args.observed_entities} observed entities), {args.epochs} epochs"
+        f"(lone fraction {args.lone_fraction}, {args.observed_entities} observed entities), {args.epochs} epochs, "
+        f"intervention weight {args.weight}"
     )
-    print(f"  clone action MSE: {losses['action_mse']:.3f} on its demonstrations, {held_mse:.3f} on 20 held-out noiseless scenarios")
+    weighted = " (weighted)" if args.weight != 1.0 else ""
+    print(
+        f"  clone action MSE: {losses['action_mse']:.3f} on its demonstrations{weighted}, {held_mse:.3f} on 20 held-out noiseless scenarios"
+    )
     print(
         "  success while collecting, by round (round 0 the driver, then the clone; half the scenarios noisy): "
         + ", ".join(f"{r.success_rate:.3f}" for r in rounds)
