@@ -55,7 +55,7 @@ def test_the_released_weights_load_exactly_and_every_tensor_is_used(model):
         for name, buf in model.named_buffers():
             if name.endswith("running_mean"):
                 buf += 1.0
-                if torch.allclose(model(x, src, dst), ref):
+                if torch.equal(model(x, src, dst), ref):  # exact: the outputs sit near tanh's 1, where a change is ~1e-6
                     stale.append(name)
                 buf -= 1.0
     assert stale == []
