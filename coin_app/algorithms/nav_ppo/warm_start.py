@@ -205,12 +205,15 @@ def warm_start(
         raise ValueError(f"bad value for 'warm_start_weight': {weight}; allowed: a number > 0")
     new: list[Demonstrations] = []
     demos: Demonstrations | None = None
+    weights: np.ndarray | None = None  # the rows' weights, each row's computed once, in the rows' order
     for r in range(rounds):
         round_seed = seed + r * ROUND_SEED_STRIDE
         actor = actor_policy(module) if r else None  # round 0: the driver drives; then the clone, as evaluation runs it
         new.append(heuristic_demonstrations(config, episodes, round_seed, noise, gamma, driver, actor))
         demos = new[-1] if demos is None else joined(demos, new[-1])
-        weights = intervention_weights(demos, weight, config.dt, config.friction) if weight != 1.0 else None
+        if weight != 1.0:
+            fresh = intervention_weights(new[-1], weight, config.dt, config.friction)
+            weights = fresh if weights is None else np.concatenate([weights, fresh])
         losses = clone(module, demos, epochs, log_std, round_seed, weights=weights)
         if log is not None:
             who = "the clone" if r else driver
