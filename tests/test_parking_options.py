@@ -9,6 +9,7 @@ from coin_app.algorithms.checkpoints import actor_policy
 from coin_app.algorithms.nav_ppo.config import curriculum_difficulty
 from coin_app.algorithms.nav_ppo.warm_start import (
     ROUND_SEED_STRIDE,
+    Demonstrations,
     TeacherLabels,
     bc_loss,
     bc_weight,
@@ -376,3 +377,12 @@ def test_weighted_clone_loss_is_the_weighted_mean_of_the_row_errors():
         build_config("nav_ppo", "arena", {"warm_start": "planning", "warm_start_weight": 0}, 0)
     with pytest.raises(ValueError, match=r"bad value for 'warm_start_weight': 0.0; allowed: a number > 0"):
         warm_start(module, cfg, "heuristic", 1, 0.3, 1, -1.0, 0, 0.99, weight=0.0)
+
+
+def test_intervention_weights_on_hand_built_rows():
+    obs = heuristic_demonstrations(make_arena_config(num_vehicles=2, num_obstacles=1, max_steps=20), 1, 1, 0.0, 0.99, "heuristic").obs[:6]
+    actions = heuristic_actions(obs).astype(np.float32)
+    actions[1, 0] += 0.5  # a swerve
+    actions[4, 1] = -1.0 if actions[4, 1] > -0.5 else 1.0  # a brake (or a push)
+    demos = Demonstrations(obs, actions, np.zeros(len(obs), np.float32), 1.0)
+    np.testing.assert_array_equal(intervention_weights(demos, 3.0), [1.0, 3.0, 1.0, 1.0, 3.0, 1.0])
