@@ -3,7 +3,7 @@
 Usage: python benchmarks/arena_clone_quality.py [--driver heuristic|avoiding|planning] [--stage short|long]
                                                 [--episodes 200] [--epochs 10] [--cases 1x0,4x4]
                                                 [--scenarios-per-case 20] [--seed 0] [--lone-fraction 0]
-                                                [--observed-entities 1] [--rounds 1] [--weight 1]
+                                                [--observed-entities 1] [--candidate-features] [--rounds 1] [--weight 1]
 
 Runs exactly the warm start of ``--set warm_start=<driver>`` (``coin_app/algorithms/nav_ppo/warm_start.py``)
 on a fresh ``[256, 256]`` nav_ppo module, without PPO: demonstrations of the stage's scenario mix,
@@ -15,7 +15,8 @@ demonstrations' mix (``--set lone_fraction=...`` in training); ``--rounds R`` ad
 rounds (``--set warm_start_rounds=R``); ``--weight W`` weighs the rows where the driver's filter acted
 (``--set warm_start_weight=W``); ``--observed-entities K`` the arena
 option ``observed_entities`` (the K closest entities in every observation, for the driver, its
-demonstrations, the clone and both scores; 1 is the paper's).
+demonstrations, the clone and both scores; 1 is the paper's); ``--candidate-features`` the arena option
+``candidate_features`` (the clearance of the planning filter's candidate rollouts in every observation).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--lone-fraction", type=float, default=0.0, help="share of 1-vehicle, 0-obstacle demonstration scenarios")
     ap.add_argument("--observed-entities", type=int, default=1, help="entities each vehicle observes (1: the paper's)")
+    ap.add_argument("--candidate-features", action="store_true", help="the arena option candidate_features=True (not the paper's)")
     ap.add_argument("--rounds", type=int, default=1, help="warm-start rounds: 1 = cloning, R > 1 adds R - 1 DAgger rounds")
     ap.add_argument("--weight", type=float, default=1.0, help="warm_start_weight: weight of the rows where the driver's filter acted")
     args = ap.parse_args()
@@ -59,6 +61,7 @@ def main() -> None:
     try:
         cases = suite.parse_cases(args.cases)
         arena = {"lone_fraction": args.lone_fraction, "observed_entities": args.observed_entities}
+        arena |= {"candidate_features": True} if args.candidate_features else {}
         cfg = make_arena_config(**STAGES[args.stage], **arena)
     except ValueError as exc:
         ap.error(str(exc))
@@ -71,11 +74,12 @@ def main() -> None:
     )
     rows = sum(len(r.obs) for r in rounds)
     held_out = heuristic_demonstrations(cfg, 20, args.seed + 10_000, 0.0, 0.99, args.driver)
-    policy = actor_policy(module)
+    policy = suite.WithMeta(actor_policy(module), {"scenario": "arena", "env_config": arena})  # the suite observes as it trained
     held_mse = float(((policy(held_out.obs) - held_out.actions) ** 2).mean())
     print(
         f"{args.driver} driver, stage {args.stage}: {rows} rows from {args.rounds} x {args.episodes} scenarios "
-        f"(lone fraction {args.lone_fraction}, {args.observed_entities} observed entities), {args.epochs} epochs, "
+        f"(lone fraction {args.lone_fraction}, {args.observed_entities} observed entities"
+        f"{', candidate features' if args.candidate_features else ''}), {args.epochs} epochs, "
         f"intervention weight {args.weight}"
     )
     weighted = " (weighted)" if args.weight != 1.0 else ""

@@ -332,9 +332,7 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
     if args.scenarios_per_case < 1:
         raise ValueError(f"bad --scenarios-per-case {args.scenarios_per_case}; allowed: an integer >= 1")
     observes = {  # a bad source or entity count fails now, before any policy is evaluated
-        source: policy_config(
-            load_arena_policy(source), args.max_steps, args.protocol, args.generator, args.observed_entities
-        ).observed_entities
+        source: policy_config(load_arena_policy(source), args.max_steps, args.protocol, args.generator, args.observed_entities)
         for source in args.policy
     }
     out = Path(args.out)
@@ -364,9 +362,13 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
         summaries[label] = summary = summarize(rows)
         summary.to_csv(where / "arena_cases.csv", index=False)
         header = f"Policy: `{source}`; {args.scenarios_per_case} test scenarios per case; {args.protocol} protocol.\n\n"
-        if observes[source] != 1:
+        if observes[source].observed_entities != 1:
+            k = observes[source].observed_entities
+            header += f"Each vehicle observes its {k} closest entities (`observed_entities`; the paper's observation: 1).\n\n"
+        if observes[source].candidate_features:
             header += (
-                f"Each vehicle observes its {observes[source]} closest entities (`observed_entities`; the paper's observation: 1).\n\n"
+                "Each vehicle also observes the clearance of the planning filter's 22 candidate rollouts "
+                "(`candidate_features`; not in the paper's observation).\n\n"
             )
         if args.generator != "agnn":
             header += f"Scenarios of the `{args.generator}` generator, not the paper's suite: the paper's columns do not apply.\n\n"

@@ -10,12 +10,14 @@ import pytest
 
 from coin_app.evaluation.arena_suite import WithMeta, evaluate_suite, policy_config, summarize
 from coin_app.inference import load_policy
-from coin_app.inference.switching import SwitchingPolicy, observed_entities
+from coin_app.inference.switching import SwitchingPolicy, observation_options, observed_entities
 from coin_app.sim.arena.config import RewardConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, Layout, generate, heldout_rng, training_rng
 from coin_app.sim.arena.heuristic import (
     CANDIDATES,
+    CLEARANCE_CAP,
+    FILTER_MARGIN,
     FOOTPRINT_OFFSET,
     FOOTPRINT_RADIUS,
     avoiding_actions,
@@ -24,6 +26,7 @@ from coin_app.sim.arena.heuristic import (
     planning_actions,
     rollout_clearance,
 )
+from coin_app.sim.arena.observation import layout_of
 from coin_app.sim.arena.reward import angle_reward, distance_reward, obstacle_reward, step_reward, time_reward
 from coin_app.sim.arena.simulator import ArenaSimulator
 from coin_app.sim.dynamics import friction_bicycle_step
@@ -519,3 +522,57 @@ def test_several_entities_see_more_and_the_suite_observes_what_a_policy_was_trai
         SwitchingPolicy(learned, paper, 7.5)
     assert SwitchingPolicy(learned, learned, 7.5).meta["env_config"] == {"observed_entities": 6}
     assert observed_entities(SwitchingPolicy(paper, paper, 7.5)) == 1
+
+
+# ---------------------------------------------------------------- candidate features (our option, not the paper's)
+
+
+def test_an_observation_width_names_its_layout_and_other_widths_are_refused():
+    for k in range(1, 17):
+        assert layout_of(6 + 7 * k) == (k, False)
+        assert layout_of(6 + 7 * k + 44) == (k, True)
+    for width in (0, 6, 12, 14, 6 + 7 + 43, 6 + 7 + 45):
+        with pytest.raises(ValueError, match=f"got {width}"):
+            layout_of(width)
+    assert make_arena_config(observed_entities=3, candidate_features=True).obs_dim == 6 + 21 + 44
+    with pytest.raises(ValueError, match="candidate_features=1; allowed: True or False"):
+        make_arena_config(candidate_features=1)
+
+
+def test_candidate_features_are_the_capped_clearances_of_rolling_out_every_candidate_against_every_entity():
+    plain_cfg = make_arena_config(observed_entities=3)
+    cfg = make_arena_config(observed_entities=3, candidate_features=True)
+    envs = {c.candidate_features: ArenaEnv(c) for c in (plain_cfg, cfg)}
+    layout = generate(training_rng(31), cfg, 8, 4)
+    obs = {flag: env.reset(options={"layout": layout})[0] for flag, env in envs.items()}
+    seen = 0
+    for _ in range(30):
+        rows = np.stack([obs[True][a] for a in envs[True].agents])
+        base = np.stack([obs[False][a] for a in envs[False].agents])
+        assert rows.shape[1] == 6 + 21 + 44
+        np.testing.assert_array_equal(rows[:, :27], base)  # the paper's part is untouched
+        # brute force: every candidate (the plain driver's action first) against every present entity, no pruning
+        cand = np.concatenate([heuristic_actions(base)[:, None], np.broadcast_to(CANDIDATES, (len(base), 21, 2))], 1)
+        views = [np.concatenate([base[:, :6], base[:, 6 + 7 * b : 13 + 7 * b]], 1) for b in range(3)]
+        least = np.min([rollout_clearance(v, cand, 25) for v in views], axis=0)
+        np.testing.assert_allclose(rows[:, 27:49], np.minimum(least, CLEARANCE_CAP) / CLEARANCE_CAP, atol=1e-6)
+        np.testing.assert_array_equal(rows[:, 49:], least >= FILTER_MARGIN)
+        seen += int((least < FILTER_MARGIN).sum())
+        # the drivers read past the features: the same actions with and without them
+        actions = planning_actions(rows)
+        np.testing.assert_array_equal(actions, planning_actions(base))
+        for flag, env in envs.items():
+            obs[flag] = env.step(dict(zip(env.agents, actions)))[0]
+    assert seen > 0  # some candidates were inadmissible
+
+
+def test_the_suite_and_the_switching_policy_carry_the_candidate_features():
+    featured = WithMeta(heuristic_actions, {"scenario": "arena", "env_config": {"observed_entities": 6, "candidate_features": True}})
+    plain = WithMeta(heuristic_actions, {"scenario": "arena", "env_config": {"observed_entities": 6}})
+    assert policy_config(featured, 400, "arena").obs_dim == 6 + 42 + 44
+    assert policy_config(plain, 400, "arena").obs_dim == 6 + 42
+    pair = SwitchingPolicy(featured, featured, 7.5)
+    assert pair.meta["env_config"] == {"observed_entities": 6, "candidate_features": True}
+    assert observation_options(pair) == {"observed_entities": 6, "candidate_features": True}
+    with pytest.raises(ValueError, match="6 entities and the candidate features, the short-range one 6 entities;"):
+        SwitchingPolicy(featured, plain, 7.5)

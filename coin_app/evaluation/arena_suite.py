@@ -44,7 +44,7 @@ import torch
 from coin_app.algorithms.checkpoint_files import read_metadata
 from coin_app.evaluation.policies import as_policy
 from coin_app.inference.agnn import AgnnArenaPolicy
-from coin_app.inference.switching import load_pair, observed_entities
+from coin_app.inference.switching import load_pair, observation_options, observed_entities
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
@@ -180,7 +180,8 @@ class WithMeta:
 
 def policy_config(policy: Any, max_steps: int, protocol: str, generator: str = "agnn", observed: int | None = None) -> ArenaConfig:
     """The suite's arena settings for ``policy``: in its own physics where it names one (the A-GNN), and observing as many
-    entities as it was trained on, or ``observed`` (scripted drivers; refused if it contradicts a learned policy's own)."""
+    entities as it was trained on, or ``observed`` (scripted drivers; refused if it contradicts a learned policy's own),
+    with the candidate features where it was trained with them."""
     own = observed_entities(policy)
     if observed is not None and own is not None and observed != own:
         raise ValueError(f"observed entities {observed} contradict the policy's own {own}; allowed: {own} (or leave it unset)")
@@ -188,6 +189,8 @@ def policy_config(policy: Any, max_steps: int, protocol: str, generator: str = "
     k = observed if observed is not None else own
     if k is not None and k != 1:
         overrides["observed_entities"] = k
+    if (observation_options(policy) or {}).get("candidate_features"):
+        overrides["candidate_features"] = True  # the planning filter's candidate clearances, as the policy was trained
     return suite_config(max_steps, overrides, protocol, generator)
 
 

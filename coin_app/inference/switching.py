@@ -25,17 +25,33 @@ FORMAT = "coin_app.switching.v1"
 
 
 def target_distance(obs: np.ndarray) -> np.ndarray:
-    """Distance (N,) of each vehicle to its target from arena observations (N, 6 + 7 k)."""
+    """Distance (N,) of each vehicle to its target from arena observations (N, 6 + 7 k [+ 44])."""
     obs = np.asarray(obs, np.float32)
     return np.linalg.norm(obs[:, 0:2], axis=1) * POSITION_SCALE
 
 
-def observed_entities(policy: Any) -> int | None:
-    """The arena entities ``policy`` was trained to observe (its metadata's ``observed_entities``, 1 if unset), None if unknown."""
+PAPER_OBSERVATION = {"observed_entities": 1, "candidate_features": False}  # the arena keys of an observation's layout
+
+
+def observation_options(policy: Any) -> dict[str, Any] | None:
+    """The arena observation keys ``policy`` was trained with (its metadata's env config; ``PAPER_OBSERVATION`` where unset),
+    None if unknown."""
     meta = getattr(policy, "meta", None)
     if not isinstance(meta, dict) or meta.get("scenario") != "arena":
         return None
-    return int(meta.get("env_config", {}).get("observed_entities", 1))
+    env = meta.get("env_config", {})
+    return {"observed_entities": int(env.get("observed_entities", 1)), "candidate_features": bool(env.get("candidate_features", False))}
+
+
+def observed_entities(policy: Any) -> int | None:
+    """The arena entities ``policy`` was trained to observe (its metadata's ``observed_entities``, 1 if unset), None if unknown."""
+    options = observation_options(policy)
+    return None if options is None else options["observed_entities"]
+
+
+def _describe(options: dict[str, Any]) -> str:
+    """``"6 entities"`` or ``"6 entities and the candidate features"``."""
+    return f"{options['observed_entities']} entities" + (" and the candidate features" if options["candidate_features"] else "")
 
 
 class SwitchingPolicy:
@@ -46,17 +62,16 @@ class SwitchingPolicy:
             raise ValueError(f"bad switch_radius {switch_radius!r}; allowed: a number of metres > 0")
         self.long, self.short, self.switch_radius = long, short, float(switch_radius)
         self.meta: dict[str, Any] = {"scenario": "arena", "switch_radius": self.switch_radius}
-        seen = {name: observed_entities(part) for name, part in (("long", long), ("short", short))}
+        seen = {name: observation_options(part) for name, part in (("long", long), ("short", short))}
         if None not in seen.values() and seen["long"] != seen["short"]:
-            raise ValueError(
-                f"the long-range policy observes {seen['long']} entities, the short-range one {seen['short']}; allowed: the same"
-            )
-        k = seen["long"] if seen["long"] is not None else seen["short"]
-        if k is not None and k != 1:
-            self.meta["env_config"] = {"observed_entities": k}
+            long_sees, short_sees = (_describe(seen[name]) for name in ("long", "short"))
+            raise ValueError(f"the long-range policy observes {long_sees}, the short-range one {short_sees}; allowed: the same")
+        options = seen["long"] if seen["long"] is not None else seen["short"]
+        if options is not None and options != PAPER_OBSERVATION:
+            self.meta["env_config"] = {k: v for k, v in options.items() if v != PAPER_OBSERVATION[k]}
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """Actions (N, 2) for arena observations (N, 6 + 7 k)."""
+        """Actions (N, 2) for arena observations (N, 6 + 7 k [+ 44])."""
         obs = np.asarray(obs, np.float32)
         near = target_distance(obs) < self.switch_radius
         out = np.zeros((len(obs), 2), np.float32)

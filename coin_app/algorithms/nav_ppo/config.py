@@ -110,6 +110,9 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
     ),
 }
 
+# the learner's keys (its learner_config_dict): the warm start's and the teacher loss's, named by their prefixes
+WARM_KEYS = tuple(k for k in HYPERPARAMETERS if k.startswith(("warm_start", "bc_")))
+
 
 def progress(line: str) -> None:
     """One progress line of a long phase on standard output (the warm start's rounds)."""
@@ -197,17 +200,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     check_values(hp)
     precision = hp.pop("precision")
     curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
-    warm_keys = (
-        "warm_start",
-        "warm_start_episodes",
-        "warm_start_noise",
-        "warm_start_epochs",
-        "warm_start_rounds",
-        "warm_start_weight",
-        "bc_coeff",
-        "bc_steps",
-    )
-    warm = {k: hp.pop(k) for k in warm_keys}
+    warm = {k: hp.pop(k) for k in WARM_KEYS}
     warm["log_std_init"] = hp["log_std_init"]
     floor = hp.pop("log_std_min")
     if floor is not None and floor > hp["log_std_init"]:

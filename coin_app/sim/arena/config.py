@@ -22,6 +22,10 @@ from typing import Any
 
 OWN_WIDTH = 6  # observation.py: target (4 numbers), own speed and steering
 ENTITY_WIDTH = 7  # observation.py: one observed entity's block
+# observation.py: the optional candidate features, a capped clearance and an admissibility flag for each of the planning
+# filter's 22 candidate actions (heuristic.CANDIDATES and the plain driver's own); 44 = 2 (mod 7), so an observation's
+# width tells whether they are there (observation.layout_of)
+CANDIDATE_WIDTH = 44
 
 
 @dataclass(frozen=True)
@@ -89,12 +93,16 @@ class ArenaConfig:
     # entities each vehicle observes, the closest first (observation.py): 1 is the paper's (the closest entity only); more
     # is our option, not the paper's (docs/arena/README.md)
     observed_entities: int = 1
+    # each vehicle also observes the clearance of the planning filter's candidate rollouts (observation.py; our option, not
+    # the paper's: False is the paper's observation)
+    candidate_features: bool = False
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     @property
     def obs_dim(self) -> int:
-        """Observation length (see ``observation.py``): 6 own numbers and 7 per observed entity (13 in the paper)."""
-        return OWN_WIDTH + ENTITY_WIDTH * self.observed_entities
+        """Observation length (see ``observation.py``): 6 own numbers, 7 per observed entity (13 in the paper), and 44 with
+        the candidate features."""
+        return OWN_WIDTH + ENTITY_WIDTH * self.observed_entities + (CANDIDATE_WIDTH if self.candidate_features else 0)
 
     @property
     def vehicle_pool(self) -> int:
@@ -136,6 +144,8 @@ def make_arena_config(**overrides: Any) -> ArenaConfig:
     k = cfg.observed_entities
     if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= MAX_OBSERVED_ENTITIES):
         raise _bad("observed_entities", k, f"an integer in [1, {MAX_OBSERVED_ENTITIES}] (1: the paper's closest entity only)")
+    if not isinstance(cfg.candidate_features, bool):
+        raise _bad("candidate_features", cfg.candidate_features, "True or False (False: the paper's observation)")
     for name in ("num_vehicles", "max_steps"):
         v = getattr(cfg, name)
         if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):

@@ -25,6 +25,10 @@ closest to it, else the one whose rollout keeps the most clearance (a sampling-b
 spirit of Wabersich & Zeilinger 2018; nothing of it is in the paper). The vehicle's footprint is two
 circles along its axis; an entity is its bounding circle.
 
+``candidate_features`` turns the filter's rollouts into observation numbers (the arena's
+``candidate_features`` option, ``observation.py``). Every driver accepts observations with or
+without them and reads only the own numbers and the entity blocks.
+
 ``DRIVERS`` names all three.
 """
 
@@ -33,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from coin_app.sim.arena.config import ENTITY_WIDTH, OWN_WIDTH
-from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE
+from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE, layout_of
 from coin_app.sim.dynamics import friction_bicycle_step
 
 OWN_RADIUS = 0.5 * float(np.hypot(2.5, 1.0))  # the bounding radius of the arena's 2.5 x 1.0 m vehicles
@@ -42,22 +46,26 @@ FOOTPRINT_OFFSET = 0.625
 FOOTPRINT_RADIUS = float(np.hypot(0.625, 0.5))
 # the planning filter's constant candidate actions: 7 steering values x 3 pedals (brake, coast, full)
 CANDIDATES = np.array([(st, pd) for st in np.linspace(-1.0, 1.0, 7) for pd in (-1.0, 0.0, 1.0)])
+FILTER_HORIZON = 25  # steps of each candidate rollout (2.5 s at dt 0.1), chosen on training scenarios (docs/arena/README.md)
+FILTER_MARGIN = 0.6  # m of clearance a rollout must keep to be admissible
+CLEARANCE_CAP = 3.0  # m: the candidate features' clearances are capped here (every margin of interest is below it)
 
 
 def as_rows(obs: np.ndarray) -> np.ndarray:
-    """Arena observations as float64 rows (N, 6 + 7 k); one observation (6 + 7 k,) becomes one row."""
+    """Arena observations as float64 rows (N, 6 + 7 k [+ 44]); one observation becomes one row (``observation.layout_of``)."""
     obs = np.asarray(obs, float)
     rows = obs.reshape(1, -1) if obs.ndim == 1 else obs
-    if rows.ndim != 2 or rows.shape[1] < OWN_WIDTH + ENTITY_WIDTH or (rows.shape[1] - OWN_WIDTH) % ENTITY_WIDTH:
-        raise ValueError(f"arena observations must have shape (N, 6 + 7 k) with k >= 1, got {obs.shape}")
+    if rows.ndim != 2:
+        raise ValueError(f"arena observations must have shape (N, 6 + 7 k) with k >= 1 (+ 44 candidate features), got {obs.shape}")
+    layout_of(rows.shape[1])
     return rows
 
 
 def entity_views(obs: np.ndarray) -> list[np.ndarray]:
-    """One paper-layout (N, 13) view per observed entity block of ``obs`` (N, 6 + 7 k): own numbers, then that entity's."""
+    """One paper-layout (N, 13) view per observed entity block of ``obs`` (N, 6 + 7 k [+ 44]): own numbers, then that entity's."""
     rows = as_rows(obs)
-    k = (rows.shape[1] - OWN_WIDTH) // ENTITY_WIDTH
-    if k == 1:
+    k, features = layout_of(rows.shape[1])
+    if k == 1 and not features:
         return [rows]
     own = rows[:, :OWN_WIDTH]
     return [np.concatenate([own, rows[:, OWN_WIDTH + ENTITY_WIDTH * b : OWN_WIDTH + ENTITY_WIDTH * (b + 1)]], 1) for b in range(k)]
@@ -158,27 +166,51 @@ def may_come_near(obs: np.ndarray, horizon: int, margin: float, dt: float = 0.1,
     return (obs[:, 12] > 0.5) & (gap - own - other < margin + 1.0)
 
 
-def planning_actions(obs: np.ndarray, horizon: int = 25, margin: float = 0.6, dt: float = 0.1, friction: float = 0.99) -> np.ndarray:
-    """``heuristic_actions`` behind the rollout safety filter of the module doc, for observations (N, 6 + 7 k).
+def candidate_clearance(
+    obs: np.ndarray, horizon: int = FILTER_HORIZON, margin: float = FILTER_MARGIN, dt: float = 0.1, friction: float = 0.99, **physics: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The planning filter's candidates (N, 22, 2), the plain driver's action first, and each one's least rollout clearance
+    (N, 22) over every observed entity (inf where none may come within ``margin``), for observations (N, 6 + 7 k [+ 44]).
 
-    With several observed entities a rollout's clearance is its least over all of them. Only the
-    (vehicle, entity) pairs that ``may_come_near`` are rolled out: the others cannot change an
-    action (their clearance stays above the margin), so the actions are those of rolling out all.
+    Only the (vehicle, entity) pairs that ``may_come_near`` are rolled out: the others cannot
+    come within ``margin``, so a clearance left at inf stands for one of at least ``margin``.
+    ``physics``: the arena's ``wheelbase``, ``max_steer`` and ``max_pedal`` where they are not the defaults.
     """
     views = entity_views(obs)
     n = len(views[0])
-    nominal = heuristic_actions(views[0], dt=dt, friction=friction)
+    nominal = heuristic_actions(views[0], dt=dt, friction=friction, max_steer=physics.get("max_steer", 0.8))
     candidates = np.concatenate([nominal[:, None, :], np.broadcast_to(CANDIDATES, (n, *CANDIDATES.shape))], axis=1)
     clearance = np.full(candidates.shape[:2], np.inf)
     pairs = np.concatenate(views)  # (k N, 13): entity block b of vehicle i at row b N + i
     vehicle = np.tile(np.arange(n), len(views))
-    near = may_come_near(pairs, horizon, margin, dt)
+    near = may_come_near(pairs, horizon, margin, dt, physics.get("max_pedal", 1.0))
     if near.any():
-        least = rollout_clearance(pairs[near], candidates[vehicle[near]], horizon, dt=dt, friction=friction)
+        least = rollout_clearance(pairs[near], candidates[vehicle[near]], horizon, dt=dt, friction=friction, **physics)
         np.minimum.at(clearance, vehicle[near], least)
-    gap = ((candidates - nominal[:, None, :]) ** 2).sum(-1)  # the nominal action itself: 0
+    return candidates, clearance
+
+
+def planning_actions(
+    obs: np.ndarray, horizon: int = FILTER_HORIZON, margin: float = FILTER_MARGIN, dt: float = 0.1, friction: float = 0.99
+) -> np.ndarray:
+    """``heuristic_actions`` behind the rollout safety filter of the module doc, for observations (N, 6 + 7 k [+ 44]).
+
+    With several observed entities a rollout's clearance is its least over all of them
+    (``candidate_clearance``); the plain action if admissible, else the admissible candidate
+    closest to it, else the candidate with the most clearance.
+    """
+    candidates, clearance = candidate_clearance(obs, horizon, margin, dt, friction)
+    gap = ((candidates - candidates[:, :1, :]) ** 2).sum(-1)  # the nominal action itself: 0
     cost = np.where(clearance >= margin, gap, 1e6 - clearance)  # inadmissible: the most clearance first
-    return candidates[np.arange(n), np.argmin(cost, axis=1)]
+    return candidates[np.arange(len(candidates)), np.argmin(cost, axis=1)]
+
+
+def candidate_features(obs: np.ndarray, dt: float = 0.1, friction: float = 0.99, **physics: float) -> np.ndarray:
+    """The 44 candidate features (N, 44) float32 of observations (N, 6 + 7 k; ``config.CANDIDATE_WIDTH``): each candidate's
+    rollout clearance (``candidate_clearance``, capped at ``CLEARANCE_CAP`` and divided by it), then whether it keeps
+    ``FILTER_MARGIN``. Pairs are pruned at the cap, not the margin, so every capped clearance is exact."""
+    _, clearance = candidate_clearance(obs, margin=CLEARANCE_CAP, dt=dt, friction=friction, **physics)
+    return np.concatenate([np.minimum(clearance, CLEARANCE_CAP) / CLEARANCE_CAP, clearance >= FILTER_MARGIN], 1).astype(np.float32)
 
 
 DRIVERS = {"heuristic": heuristic_actions, "avoiding": avoiding_actions, "planning": planning_actions}  # the scripted drivers by name

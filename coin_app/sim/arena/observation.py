@@ -16,6 +16,14 @@ paper's one entity (``observed_entities=1``) 13 numbers:
 
 With ``observed_entities=k > 1`` (our option, not the paper's) blocks 13-19, 20-26, ... hold the
 second, third, ... closest entities in the same layout, absent ones as (0, 0, 0, 1, 0, 0, 0).
+With ``candidate_features=True`` (our option, not the paper's) 44 numbers follow the entity blocks:
+for each of the planning driver's 22 candidate actions (the plain driver's action, then
+``heuristic.CANDIDATES``), the least clearance of its 2.5 s constant-action rollout against the
+observed entities moving at their observed velocities, capped at 3 m and divided by 3 (1 when no
+entity can come within 3 m), then 22 flags, 1 where that clearance keeps the filter's 0.6 m margin
+(``heuristic.candidate_features``; the arena simulator appends them). What the filter decides on
+is then an input the policy can read rather than a computation it must learn.
+
 "Closest" is by clearance between bounding circles, so a large obstacle counts as near
 before its centre does (ties: vehicles first, by index). Parked (succeeded) vehicles are
 entities like any other.
@@ -27,11 +35,25 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.sim.arena.config import ENTITY_WIDTH, OWN_WIDTH
+from coin_app.sim.arena.config import CANDIDATE_WIDTH, ENTITY_WIDTH, OWN_WIDTH
 
 POSITION_SCALE = 25.0
 SPEED_SCALE = 10.0
 SIZE_SCALE = 3.0
+
+
+def layout_of(width: int) -> tuple[int, bool]:
+    """(observed entities k, whether the 44 candidate features follow) of observation rows ``width`` = 6 + 7 k (+ 44) wide.
+
+    Unambiguous: 44 = 2 (mod 7). A ValueError for any other width.
+    """
+    for tail in (0, CANDIDATE_WIDTH):
+        k, rest = divmod(width - OWN_WIDTH - tail, ENTITY_WIDTH)
+        if k >= 1 and rest == 0:
+            return k, tail > 0
+    raise ValueError(
+        f"arena observations must be 6 + 7 k numbers wide (k >= 1), plus {CANDIDATE_WIDTH} candidate features or not; got {width}"
+    )
 
 
 def to_frame(points: np.ndarray, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
@@ -42,10 +64,13 @@ def to_frame(points: np.ndarray, pos: np.ndarray, heading: np.ndarray) -> np.nda
 
 
 def observe(sim: Any) -> np.ndarray:
-    """Observations (N, obs_dim) of every vehicle of an ``ArenaSimulator`` (``obs_dim`` = 6 + 7 per observed entity)."""
+    """Observations (N, 6 + 7 k) of every vehicle of an ``ArenaSimulator``: its own numbers and k observed entities' blocks.
+
+    Without the candidate features (which the simulator appends) these are the whole observation.
+    """
     cfg, layout = sim.config, sim.layout
     n, m = sim.num_vehicles, len(layout.obstacles)
-    out = np.zeros((n, cfg.obs_dim), np.float32)
+    out = np.zeros((n, OWN_WIDTH + ENTITY_WIDTH * cfg.observed_entities), np.float32)
     out[:, 0:2] = to_frame(layout.targets[:, :2], sim.pos, sim.heading) / POSITION_SCALE
     rel = layout.targets[:, 2] - sim.heading
     out[:, 2], out[:, 3] = np.sin(rel), np.cos(rel)

@@ -3,7 +3,8 @@
 One ``step`` moves every vehicle still driving by the friction bicycle (``dynamics.py``, or
 :func:`position_first_step`, the A-GNN simulator's order, with ``update_order="position_first"``),
 finds contacts geometrically (1.0 × 2.5 m boxes against boxes and circles, ``collision.py``),
-computes the reward of Eqs. 2–6 (``reward.py``) and the observations (``observation.py``).
+computes the reward of Eqs. 2–6 (``reward.py``) and the observations (``observation.py``; the optional candidate
+features from ``heuristic.py``).
 A vehicle's run ends when it reaches the success state (it then stays parked where it
 stopped, an obstacle for the others) or when the step limit is reached. Collisions do not end
 a run. Metrics follow the paper (§IV) and the A-GNN code: a collision *event* is a rising edge
@@ -19,6 +20,7 @@ import numpy as np
 
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.arena.generator import Layout
+from coin_app.sim.arena.heuristic import candidate_features
 from coin_app.sim.arena.observation import observe
 from coin_app.sim.arena.reward import step_reward
 from coin_app.sim.collision import box_circle_overlap, boxes_overlap
@@ -68,7 +70,16 @@ class ArenaSimulator:
         self.contact = np.zeros((n, n + m), bool)
         self.prev_dist = self.target_distance()
         self.clearance = self.entity_clearance()
-        return observe(self)
+        return self.observations()
+
+    def observations(self) -> np.ndarray:
+        """Observations (N, obs_dim) of every vehicle (``observation.py``), the candidate features appended where configured."""
+        obs = observe(self)
+        cfg = self.config
+        if not cfg.candidate_features:
+            return obs
+        physics = {"wheelbase": cfg.wheelbase, "max_steer": cfg.max_steer, "max_pedal": cfg.max_pedal}
+        return np.concatenate([obs, candidate_features(obs, cfg.dt, cfg.friction, **physics)], 1)
 
     def target_distance(self) -> np.ndarray:
         """Distance (N,) of each vehicle's centre to its target position."""
@@ -144,4 +155,4 @@ class ArenaSimulator:
         self.prev_dist = dist
         self.succeeded |= success
         self.driving &= ~(success | truncated)
-        return ArenaStep(observe(self), np.where(acted, reward, 0.0), acted, success, truncated, new)
+        return ArenaStep(self.observations(), np.where(acted, reward, 0.0), acted, success, truncated, new)
