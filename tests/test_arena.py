@@ -564,6 +564,8 @@ def test_candidate_features_are_the_capped_clearances_of_rolling_out_every_candi
         for flag, env in envs.items():
             obs[flag] = env.step(dict(zip(env.agents, actions)))[0]
     assert seen > 0  # some candidates were inadmissible
+    # the features' time is recorded (the suite counts it as the policy's), and is 0 without them
+    assert envs[True].sim.feature_time > 0.0 and envs[False].sim.feature_time == 0.0
 
 
 def test_the_suite_and_the_switching_policy_carry_the_candidate_features():
