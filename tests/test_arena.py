@@ -10,6 +10,7 @@ import pytest
 
 from coin_app.evaluation.arena_suite import WithMeta, evaluate_suite, policy_config, summarize
 from coin_app.inference import load_policy
+from coin_app.inference.switching import PAPER_OBSERVATION as PAPER
 from coin_app.inference.switching import SwitchingPolicy, observation_options, observed_entities
 from coin_app.sim.arena.config import RewardConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
@@ -413,7 +414,7 @@ def test_planning_driver_beats_the_avoiding_one_among_vehicles():
     assert planning.collision_rate[0] < avoiding.collision_rate[0]
 
 
-@pytest.mark.parametrize("folder", ["pair", "pair_planning"])
+@pytest.mark.parametrize("folder", ["pair", "pair_planning", "pair_features"])
 def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles(folder):
     # a fresh interpreter: loading the pair file and its two .npz policies must not import torch or Ray
     pair = str(Path(__file__).resolve().parents[1] / "docs" / "arena" / folder / "nav.json")
@@ -424,9 +425,11 @@ def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles(folder):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
     policy = load_policy(pair)
-    env = ArenaEnv(make_arena_config(num_vehicles=1, num_obstacles=0))
+    options = observation_options(policy)  # the observation it was trained on, from its metadata
+    assert options == ({"observed_entities": 6, "candidate_features": True} if folder == "pair_features" else PAPER)
+    env = ArenaEnv(make_arena_config(num_vehicles=1, num_obstacles=0, **options))
     parked = 0
-    for k in range(10):  # the suite's first 10 held-out 1x0 scenarios (docs/arena: 49 and 50 of 50 park)
+    for k in range(10):  # the suite's first 10 held-out 1x0 scenarios (docs/arena: 49, 50 and 50 of 50 park)
         obs, _ = env.reset(options={"layout": generate(heldout_rng(1, 0, k), env.config, 1, 0)})
         while env.agents:
             obs, _, _, _, _ = env.step(dict(zip(env.agents, policy(np.stack([obs[a] for a in env.agents])))))
