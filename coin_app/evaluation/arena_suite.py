@@ -44,7 +44,7 @@ import torch
 from coin_app.algorithms.checkpoint_files import read_metadata
 from coin_app.evaluation.policies import as_policy
 from coin_app.inference.agnn import AgnnArenaPolicy
-from coin_app.inference.switching import load_pair, observation_options, observed_entities
+from coin_app.inference.switching import load_pair, observation_options
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
@@ -182,14 +182,15 @@ def policy_config(policy: Any, max_steps: int, protocol: str, generator: str = "
     """The suite's arena settings for ``policy``: in its own physics where it names one (the A-GNN), and observing as many
     entities as it was trained on, or ``observed`` (scripted drivers; refused if it contradicts a learned policy's own),
     with the candidate features where it was trained with them."""
-    own = observed_entities(policy)
+    options = observation_options(policy)  # None for a scripted driver
+    own = None if options is None else options["observed_entities"]
     if observed is not None and own is not None and observed != own:
         raise ValueError(f"observed entities {observed} contradict the policy's own {own}; allowed: {own} (or leave it unset)")
     overrides = dict(getattr(policy, "arena_overrides", None) or {})
     k = observed if observed is not None else own
     if k is not None and k != 1:
         overrides["observed_entities"] = k
-    if (observation_options(policy) or {}).get("candidate_features"):
+    if options is not None and options["candidate_features"]:
         overrides["candidate_features"] = True  # the planning filter's candidate clearances, as the policy was trained
     return suite_config(max_steps, overrides, protocol, generator)
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coin_app.sim.arena.config import ArenaConfig
+from coin_app.sim.arena.config import CANDIDATE_WIDTH, ArenaConfig
 from coin_app.sim.arena.generator import Layout
 from coin_app.sim.arena.heuristic import candidate_features
 from coin_app.sim.arena.observation import observe
@@ -74,17 +74,24 @@ class ArenaSimulator:
         self.clearance = self.entity_clearance()
         return self.observations()
 
-    def observations(self) -> np.ndarray:
-        """Observations (N, obs_dim) of every vehicle (``observation.py``), the candidate features appended where configured."""
+    def observations(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """Observations (N, obs_dim) of every vehicle (``observation.py``), the candidate features appended where configured.
+
+        The features are computed for the vehicles ``rows`` (bool (N,); all when None), the ones whose
+        observation is read (those that drove in the step); the other rows' features are 0.
+        """
         obs = observe(self)
         cfg = self.config
         if not cfg.candidate_features:
             return obs
         t0 = time.perf_counter()
         physics = {"wheelbase": cfg.wheelbase, "max_steer": cfg.max_steer, "max_pedal": cfg.max_pedal}
-        obs = np.concatenate([obs, candidate_features(obs, cfg.dt, cfg.friction, **physics)], 1)
+        features = np.zeros((len(obs), CANDIDATE_WIDTH), np.float32)
+        read = np.ones(len(obs), bool) if rows is None else rows
+        if read.any():
+            features[read] = candidate_features(obs[read], cfg.dt, cfg.friction, **physics)
         self.feature_time = time.perf_counter() - t0  # part of a policy's time per step (evaluation.arena_suite)
-        return obs
+        return np.concatenate([obs, features], 1)
 
     def target_distance(self) -> np.ndarray:
         """Distance (N,) of each vehicle's centre to its target position."""
@@ -160,4 +167,4 @@ class ArenaSimulator:
         self.prev_dist = dist
         self.succeeded |= success
         self.driving &= ~(success | truncated)
-        return ArenaStep(self.observations(), np.where(acted, reward, 0.0), acted, success, truncated, new)
+        return ArenaStep(self.observations(acted), np.where(acted, reward, 0.0), acted, success, truncated, new)
