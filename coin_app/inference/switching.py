@@ -40,7 +40,7 @@ def observation_options(policy: Any) -> dict[str, Any] | None:
     if not isinstance(meta, dict) or meta.get("scenario") != "arena":
         return None
     env = meta.get("env_config", {})
-    return {"observed_entities": int(env.get("observed_entities", 1)), "candidate_features": bool(env.get("candidate_features", False))}
+    return {key: type(default)(env.get(key, default)) for key, default in PAPER_OBSERVATION.items()}
 
 
 def observed_entities(policy: Any) -> int | None:
