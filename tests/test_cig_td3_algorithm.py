@@ -66,6 +66,15 @@ def test_trains_evaluates_and_keeps_critics_off_the_env_runner():
     # the env runner's actor equals the learner's actor after the sync
     lm = algo.learner_group._learner.module["shared"].unwrapped()
     for a, b in zip(runner_module.actor.parameters(), lm.actor.parameters()):
+        assert torch.equal(a, b) and a.data_ptr() != b.data_ptr()  # equal values in the runner's own tensors
+    # the in-place copy gave the runner exactly what RLlib's own sync (state -> object store -> load) gives
+    copied = [p.clone() for p in runner_module.parameters()]
+    with torch.no_grad():
+        for p in runner_module.parameters():
+            p.add_(1.0)  # so that a sync that loads nothing would show
+    algo.env_runner_group.sync_weights(from_worker_or_learner_group=algo.learner_group, policies=["shared"], inference_only=True)
+    assert len(copied) == len(list(runner_module.parameters())) > 0
+    for a, b in zip(runner_module.parameters(), copied):
         assert torch.equal(a, b)
     algo.stop()
 
