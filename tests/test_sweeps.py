@@ -183,6 +183,7 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     guard |= {"exploration_noise": 0.1}  # twice the paper's exploration std (the lever adopted after the fourth sweep)
     guard |= {"train_batch_size_per_learner": 256}  # the paper's minibatch, not the quick settings' 128 (after the fifth sweep)
     guard |= {"policy_delay": 1}  # the actor after every critic update (the quick settings' 2; the lever after batch 256)
+    guard |= {"timeout_bootstrap": False}  # a time-out ends the TD target (the paper's d_i; the lever after policy delay 1)
     for algo in ("cig_td3", "itd3"):
         assert trial_overrides(by_algo[algo]) == registry.quick_settings(algo) | {"precision": "fp32"} | guard | decay
     # TraCo also adds its optional individual critic (its domain critic alone froze the actor at one constant action)
@@ -199,6 +200,8 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     assert (cfg.actor_preact_penalty, cfg.actor_preact_threshold) == (0.01, 1.0)  # the built config carries the stronger guard
     assert cfg.exploration_noise == 0.1 and registry.get("cig_td3").hyperparameters["exploration_noise"][0] == 0.05
     assert cfg.policy_delay == 1 and registry.quick_settings("cig_td3")["policy_delay"] == 2
+    assert cfg.timeout_bootstrap is False and registry.get("cig_td3").hyperparameters["timeout_bootstrap"][0] is True
+    assert build_trial_config(by_algo["traco"]).timeout_bootstrap is False
     assert lr_schedule(1e-3, cfg) == [[0, 1e-3], [20_000, 1e-3], [40_000, pytest.approx(1e-4)]]
     assert trial_name(by_algo["copo"]) == "copo-s0" and trial_resources(by_algo["copo"]).bundles == [{"CPU": 1}]
     # the user's --set still comes last
