@@ -9,7 +9,7 @@ ways of sending the actor to the env runner in turn, block by block, so that a c
 machine's load hits both alike:
 
 * ``in-place``: ``CigTd3._sync_actor``, the learner's actor tensors copied into the runner's;
-* ``rllib``: RLlib's ``EnvRunnerGroup.sync_weights`` (module state -> object store -> load).
+* ``rllib``: ``CigTd3.sync_actor_through_rllib``, RLlib's ``EnvRunnerGroup.sync_weights`` (module state -> object store -> load).
 
 It prints the seconds per training step of each, their ratio, and the mean time of one sync call
 of each way. Both give the runner the same weights (``tests/test_cig_td3_algorithm.py``).
@@ -29,15 +29,9 @@ import numpy as np  # noqa: E402
 import ray  # noqa: E402
 import torch  # noqa: E402
 
-from coin_app.algorithms.common import SHARED_MODULE_ID  # noqa: E402
 from tuning import get_experiment  # noqa: E402
 from tuning.experiment import expand_grid  # noqa: E402
 from tuning.trainable import build_trial_config  # noqa: E402
-
-
-def rllib_sync(algo: object) -> None:
-    """RLlib's own weight sync, as ``CigTd3`` called it before the in-place copy."""
-    algo.env_runner_group.sync_weights(from_worker_or_learner_group=algo.learner_group, policies=[SHARED_MODULE_ID], inference_only=True)
 
 
 def main() -> None:
@@ -55,7 +49,7 @@ def main() -> None:
     print(f"{args.algo}, the reduced protocol's trial (seed 0): warm-up of {cfg.warmup_steps} env steps ...", flush=True)
     while algo._num_updates == 0:
         algo.training_step()
-    ways = {"in-place": algo._sync_actor, "rllib": lambda: rllib_sync(algo)}
+    ways = {"in-place": algo._sync_actor, "rllib": algo.sync_actor_through_rllib}
     step_times: dict[str, list[float]] = {w: [] for w in ways}
     sync_times: dict[str, list[float]] = {w: [] for w in ways}
     for block in range(args.blocks):

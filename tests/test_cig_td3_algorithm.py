@@ -72,7 +72,7 @@ def test_trains_evaluates_and_keeps_critics_off_the_env_runner():
     with torch.no_grad():
         for p in runner_module.parameters():
             p.add_(1.0)  # so that a sync that loads nothing would show
-    algo.env_runner_group.sync_weights(from_worker_or_learner_group=algo.learner_group, policies=["shared"], inference_only=True)
+    algo.sync_actor_through_rllib()
     assert len(copied) == len(list(runner_module.parameters())) > 0
     for a, b in zip(runner_module.parameters(), copied):
         assert torch.equal(a, b)

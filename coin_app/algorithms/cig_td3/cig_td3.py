@@ -346,14 +346,19 @@ class CigTd3(ProgressReporting, Algorithm):
 
         With no remote env runner and a local learner (``num_learners=0``, the reduced protocol), RLlib's
         ``sync_weights`` would still build the module's state, put it into Ray's object store and load it
-        back, about a tenth of a reduced-scale CIG-TD3 trial's time; the in-place copy gives the runner the
-        same weights bit for bit (RLlib's DreamerV3 reaches the local learner's module the same way).
+        back (a training step takes 0.925x the time without it: ``benchmarks/weight_sync.py``); the in-place
+        copy gives the runner the same weights bit for bit (RLlib's DreamerV3 reaches the local learner's
+        module the same way).
         """
         learner = getattr(self.learner_group, "_learner", None)  # None when the learner is a remote actor
         runner = self.env_runner
         if learner is not None and runner is not None and self.env_runner_group.num_remote_env_runners() == 0:
             copy_weights(learner.module[SHARED_MODULE_ID].unwrapped(), runner.module[SHARED_MODULE_ID].unwrapped())
             return
+        self.sync_actor_through_rllib()
+
+    def sync_actor_through_rllib(self) -> None:
+        """RLlib's own weight sync of the actor to every env runner (module state -> object store -> load)."""
         self.env_runner_group.sync_weights(
             from_worker_or_learner_group=self.learner_group, policies=[SHARED_MODULE_ID], inference_only=True
         )
