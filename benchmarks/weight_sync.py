@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=100, help="training steps (env step + update) per block")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    ray.init(include_dashboard=False, log_to_driver=False)  # a local session over the machine's cores; the trial samples in-process
     (trial,) = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", (args.algo,), (0,)))
     cfg = build_trial_config(trial).reporting(min_sample_timesteps_per_iteration=1)
     algo = cfg.build_algo()
