@@ -315,6 +315,19 @@ def test_exploration_noise_decays_linearly_after_the_warm_up():
     assert module_of(constant).noise_std(10) == 0.05
 
 
+def test_exploration_noise_decay_can_start_after_the_warm_up():
+    _, learner = build_learner(
+        warmup_steps=100,
+        exploration_noise=0.02,
+        exploration_noise_initial=0.1,
+        exploration_noise_decay_start=2000,
+        exploration_noise_decay_steps=2000,
+    )
+    m = module_of(learner)
+    # constant 0.1 from the warm-up's end to 2000 env steps, then linear to 0.02 at 4000 (hand-computed midpoint 0.06)
+    assert [m.noise_std(t) for t in (100, 1999, 2000, 3000, 4000, 9000)] == pytest.approx([0.1, 0.1, 0.1, 0.06, 0.02, 0.02])
+
+
 def test_learning_rates_decay_linearly_on_the_env_step_schedule():
     rates = {"actor": 1e-3, "local_critic": 2e-3, "central_critic": 3e-3}
     cfg, learner = build_learner(

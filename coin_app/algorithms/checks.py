@@ -125,6 +125,7 @@ RULES: dict[str, Rule] = {
     "exploration_noise": non_negative(),
     "exploration_noise_initial": non_negative("float", None),
     "exploration_noise_decay_steps": non_negative("int"),
+    "exploration_noise_decay_start": non_negative("int", None),
     "lr_decay_start": non_negative("int"),
     "lr_decay_steps": non_negative("int"),
     "lr_final_fraction": unit(lo_open=True),

@@ -118,7 +118,8 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         None,
         "exploration std right after the warm-up, decaying linearly to exploration_noise (None = constant)",
     ),
-    "exploration_noise_decay_steps": (0, "env steps of that decay after the warm-up"),
+    "exploration_noise_decay_steps": (0, "env steps of that decay"),
+    "exploration_noise_decay_start": (None, "env step at which that decay starts (None = the end of the warm-up)"),
     # an optional late decay of every Adam learning rate (off = constant rates, the paper)
     "lr_decay_start": (0, "env steps at which the learning rates start to decay linearly"),
     "lr_decay_steps": (0, "env steps of that decay (0 = constant learning rates, the paper)"),
@@ -260,6 +261,7 @@ class CigTd3Config(AlgorithmConfig):
             "exploration_noise": self.exploration_noise,
             "exploration_noise_initial": self.exploration_noise_initial,
             "exploration_noise_decay_steps": self.exploration_noise_decay_steps,
+            "exploration_noise_decay_start": self.exploration_noise_decay_start,
             "warmup_steps": self.warmup_steps,
         }
 

@@ -6,7 +6,8 @@
   ``make_target_networks`` adds ``actor_target``, ``local_q_target``, ``central_target``.
 
 ``_forward_inference`` is deterministic; ``_forward_exploration`` adds N(0, sigma) noise (sigma
-0.05, or decaying from ``exploration_noise_initial``), and during the first ``warmup_steps`` env
+0.05, or decaying linearly from ``exploration_noise_initial`` from ``exploration_noise_decay_start``, by
+default the end of the warm-up), and during the first ``warmup_steps`` env
 steps returns uniform random actions instead, drawn from the torch generator RLlib seeds, so the
 warm-up is reproducible. ``t`` is the global env-step count: ``CigTd3`` hands the env runner the
 exact count before every sample, so the warm-up ends exactly at ``warmup_steps`` env steps
@@ -72,6 +73,8 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
         self.exploration_noise_initial = self.exploration_noise if noise0 is None else float(noise0)
         self.exploration_noise_decay_steps = int(mc.get("exploration_noise_decay_steps", 0))
         self.warmup_steps = int(mc.get("warmup_steps", 0))
+        start = mc.get("exploration_noise_decay_start")
+        self.exploration_noise_decay_start = self.warmup_steps if start is None else int(start)
         return obs_dim, act_dim, hidden
 
     # ------------------------------------------------------------------ forward passes
@@ -99,10 +102,10 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
         return {}
 
     def noise_std(self, t: int | None) -> float:
-        """Exploration std at env step ``t``: ``exploration_noise_initial`` after the warm-up, linearly to ``exploration_noise``."""
+        """Exploration std at env step ``t``: ``exploration_noise_initial`` until the decay starts, then linearly to ``exploration_noise``."""
         if t is None or self.exploration_noise_decay_steps <= 0:
             return self.exploration_noise
-        frac = min(1.0, max(0.0, (t - self.warmup_steps) / self.exploration_noise_decay_steps))
+        frac = min(1.0, max(0.0, (t - self.exploration_noise_decay_start) / self.exploration_noise_decay_steps))
         return self.exploration_noise_initial + frac * (self.exploration_noise - self.exploration_noise_initial)
 
     # ------------------------------------------------------------------ the algorithm contract (ActorModule)

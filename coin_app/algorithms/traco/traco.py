@@ -55,6 +55,7 @@ SHARED_KEYS = (
     "actor_start_steps",
     "exploration_noise_initial",
     "exploration_noise_decay_steps",
+    "exploration_noise_decay_start",
     "lr_decay_start",
     "lr_decay_steps",
     "lr_final_fraction",
