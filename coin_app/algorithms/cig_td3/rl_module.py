@@ -102,7 +102,7 @@ class CigTd3TorchRLModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI):
         return {}
 
     def noise_std(self, t: int | None) -> float:
-        """Exploration std at env step ``t``: ``exploration_noise_initial`` until the decay starts, then linearly to ``exploration_noise``."""
+        """Exploration std at env step ``t``: ``exploration_noise_initial`` until the decay starts, then linear to ``exploration_noise``."""
         if t is None or self.exploration_noise_decay_steps <= 0:
             return self.exploration_noise
         frac = min(1.0, max(0.0, (t - self.exploration_noise_decay_start) / self.exploration_noise_decay_steps))
