@@ -17,6 +17,7 @@ import pytest
 import ray
 
 from coin_app import training
+from coin_app.adapters.rllib_env import CoinMultiAgentEnv
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoint_files import verify
 from coin_app.algorithms.cig_td3.learner import lr_schedule
@@ -179,8 +180,11 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     # the learning curves' settings (4 agents, small networks); the TD3 family in fp32 (faster than bf16 at these sizes),
     # its rates constant for 20k env steps, then falling to 10 % at 40k
     decay = {"lr_decay_start": 20_000, "lr_decay_steps": 20_000, "lr_final_fraction": 0.1}
+    decay |= {"exploration_noise_decay_start": 20_000, "exploration_noise_decay_steps": 20_000}  # the exploration std with them
     guard = {"actor_preact_penalty": 0.01, "actor_preact_threshold": 1.0}  # 10x the quick settings' guard, from |u| = 1
-    guard |= {"exploration_noise": 0.1}  # twice the paper's exploration std (the lever adopted after the fourth sweep)
+    # twice the paper's exploration std (the lever adopted after the fourth sweep), decaying to 0.02 over the second half
+    # (the lever adopted after the time-out lever)
+    guard |= {"exploration_noise_initial": 0.1, "exploration_noise": 0.02}
     guard |= {"train_batch_size_per_learner": 256}  # the paper's minibatch, not the quick settings' 128 (after the fifth sweep)
     guard |= {"policy_delay": 1}  # the actor after every critic update (the quick settings' 2; the lever after batch 256)
     guard |= {"timeout_bootstrap": False}  # a time-out ends the TD target (the paper's d_i; the lever after policy delay 1)
@@ -198,7 +202,11 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     assert registry.quick_settings("cig_td3")["train_batch_size_per_learner"] == 128
     assert cfg.precision == "fp32" and registry.get("cig_td3").hyperparameters["precision"][0] == "bf16"
     assert (cfg.actor_preact_penalty, cfg.actor_preact_threshold) == (0.01, 1.0)  # the built config carries the stronger guard
-    assert cfg.exploration_noise == 0.1 and registry.get("cig_td3").hyperparameters["exploration_noise"][0] == 0.05
+    assert (cfg.exploration_noise_initial, cfg.exploration_noise) == (0.1, 0.02)
+    assert registry.get("cig_td3").hyperparameters["exploration_noise"][0] == 0.05
+    module = cfg.build_learner(env=CoinMultiAgentEnv(cfg.env_config)).module["shared"].unwrapped()
+    # 0.1 from the warm-up's end through 20k env steps, then linear to 0.02 at 40k (hand-computed midpoint 0.06)
+    assert [module.noise_std(t) for t in (600, 20_000, 30_000, 40_000)] == pytest.approx([0.1, 0.1, 0.06, 0.02])
     assert cfg.policy_delay == 1 and registry.quick_settings("cig_td3")["policy_delay"] == 2
     assert cfg.timeout_bootstrap is False and registry.get("cig_td3").hyperparameters["timeout_bootstrap"][0] is True
     assert build_trial_config(by_algo["traco"]).timeout_bootstrap is False
@@ -209,7 +217,11 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     assert trial_overrides(tweaked[0]) == registry.quick_settings("itd3") | {"precision": "fp32", "hidden": 32} | guard | decay
     # another budget moves the decay with it (an odd budget: the second half is the longer one)
     (short,) = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", ("traco",), (0,), steps=601))
-    assert {k: trial_overrides(short)[k] for k in decay} == {"lr_decay_start": 300, "lr_decay_steps": 301, "lr_final_fraction": 0.1}
+    moved = {"lr_decay_start": 300, "lr_decay_steps": 301, "lr_final_fraction": 0.1}
+    assert {k: trial_overrides(short)[k] for k in decay} == moved | {
+        "exploration_noise_decay_start": 300,
+        "exploration_noise_decay_steps": 301,
+    }
 
 
 def test_address_probe_accepts_a_listening_port():
