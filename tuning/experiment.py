@@ -173,7 +173,8 @@ def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:
 
 def reduced_decay(steps: int) -> dict[str, Any]:
     """The reduced scale's decay of the learning rates and the exploration std over a trial of ``steps`` env steps: its second half."""
-    start, length = steps // 2, max(1, steps - steps // 2)
+    start = steps // 2
+    length = max(1, steps - start)
     rates = {"lr_decay_start": start, "lr_decay_steps": length, "lr_final_fraction": REDUCED_LR_FINAL_FRACTION}
     return rates | {"exploration_noise_decay_start": start, "exploration_noise_decay_steps": length}
 
