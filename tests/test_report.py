@@ -12,6 +12,7 @@ import ray
 
 from coin_app.cli import main
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
+from coin_app.evaluation.report import learning_curves
 from coin_app.evaluation.sweep_results import load_trials
 from coin_app.sim.seeds import TEST_SEED_BASE, VALIDATION_SEED_BASE, validation_seeds
 
@@ -262,3 +263,22 @@ def test_report_transfer_pairs_each_model_with_its_own_native_episodes_on_metadr
         assert row["gap"] == pytest.approx(row["transfer"] - row["native"])
     assert "native / metadrive (gap)" in (out / "table_transfer.md").read_text()
     assert "Transfer: native vs metadrive" in html.unescape((out / "report.html").read_text())
+
+
+def test_learning_curves_keep_the_resumed_rows_of_a_trial_that_ran_steps_again(tmp_path):
+    # A trial checkpointed at 1000 env steps, ran to 1500, crashed and resumed from 1000: Tune appends the
+    # re-run steps, so progress.csv holds 1500 twice and 1000..1500 out of order. The curve keeps the resumed rows.
+    trial = tmp_path / "trial"
+    trial.mkdir()
+    steps = [500, 1000, 1500, 1500, 2000]
+    success = [0.1, 0.2, 0.9, 0.3, 0.4]  # 0.9 is the lost run's row at 1500
+    pd.DataFrame({"env_steps": steps, "train_success_rate": success, "episode_return_mean": [1.0, 2, 3, 4, 5]}).to_csv(
+        trial / "progress.csv", index=False
+    )
+    table = pd.DataFrame({"method": ["cig_td3"], "variant": ["default"], "trained_seed": [3], "scenario": ["intersection"]}).assign(
+        checkpoint=str(trial / "checkpoint_000003")
+    )
+    curves = learning_curves(table)
+    assert curves["env_steps"].tolist() == [500, 1000, 1500, 2000]
+    assert curves["train_success_rate"].tolist() == [0.1, 0.2, 0.3, 0.4]
+    assert set(curves["seed"]) == {3} and set(curves["label"]) == {"cig_td3"}

@@ -211,7 +211,9 @@ def ordered_labels(labels: Sequence[str], method: str) -> list[str]:
 def learning_curves(table: pd.DataFrame, unreadable: list[dict[str, Any]] | None = None) -> pd.DataFrame:
     """Per run (label, seed) the Tune progress rows (env steps, return, train success) next to its checkpoint.
 
-    A ``progress.csv`` that cannot be read is left out and, with ``unreadable``, listed there.
+    A ``progress.csv`` that cannot be read is left out and, with ``unreadable``, listed there. A resumed
+    trial's file repeats the env steps it ran again after its checkpoint; the last row of each is kept
+    (the run that the final checkpoint continues).
     """
     parts = []
     runs = table.drop_duplicates("checkpoint")
@@ -228,6 +230,7 @@ def learning_curves(table: pd.DataFrame, unreadable: list[dict[str, Any]] | None
         cols = [c for c in ("env_steps", "episode_return_mean", "train_success_rate") if c in df.columns]
         if "env_steps" not in cols:
             continue
+        df = df.drop_duplicates("env_steps", keep="last").sort_values("env_steps")
         parts.append(df[cols].assign(label=run_label(r.method, r.variant), seed=r.trained_seed, scenario=r.scenario))
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=["label", "seed", "scenario", "env_steps"])
 
