@@ -87,7 +87,7 @@ def frozen(row: dict) -> bool:
 
 def parse_variants(items: list[str]) -> dict[str, dict]:
     """``NAME`` or ``NAME:KEY=VALUE,KEY=VALUE`` strings to {name: overrides}."""
-    from coin_app.algorithms.registry import parse_overrides
+    from coin_app.algorithms.checks import parse_overrides
 
     out = {}
     for item in items:
@@ -145,7 +145,8 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
 
 def main() -> None:
     """Run every (algorithm, seed), then write the CSV, the PNG and a summary."""
-    from coin_app.algorithms.registry import parse_overrides, quick_settings
+    from coin_app.algorithms.checks import parse_overrides
+    from coin_app.algorithms.registry import quick_settings
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--algos", nargs="+", default=["cig_td3", "itd3"])

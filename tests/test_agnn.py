@@ -224,6 +224,5 @@ def test_evaluate_arena_runs_the_agnn(tmp_path, capsys):
     args = ["evaluate-arena", "agnn", "--cases", "1x0", "--scenarios-per-case", "1", "--workers", "1", "--out", str(tmp_path)]
     assert main([*args, "--protocol", "agnn"]) == 0
     assert "| 1 | 0 | 1 |" in capsys.readouterr().out and "agnn protocol" in (tmp_path / "arena_table.md").read_text()
-    with pytest.raises(SystemExit):
-        main([*args, "--protocol", "seed"])
+    assert main([*args, "--protocol", "seed"]) == 2
     assert "invalid choice: 'seed'" in capsys.readouterr().err

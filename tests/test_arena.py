@@ -417,7 +417,9 @@ def test_planning_driver_beats_the_avoiding_one_among_vehicles():
 @pytest.mark.parametrize("folder", ["pair", "pair_planning", "pair_features"])
 def test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles(folder):
     # a fresh interpreter: loading the pair file and its two .npz policies must not import torch or Ray
-    pair = str(Path(__file__).resolve().parents[1] / "docs" / "arena" / folder / "nav.json")
+    # (pair_features ships inside the package as the shipped policy nav_ppo-arena, loaded by name)
+    arena = Path(__file__).resolve().parents[1] / "docs" / "arena"
+    pair = "nav_ppo-arena" if folder == "pair_features" else str(arena / folder / "nav.json")
     code = (
         f"import sys; from coin_app.inference import load_policy; load_policy({pair!r}); "
         "print(sorted(m for m in ('ray', 'torch') if m in sys.modules))"

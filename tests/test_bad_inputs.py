@@ -13,7 +13,7 @@ from coin_app.inference import export_policy
 
 # (argv, a phrase the one line must contain); paths under a regular file cannot be created, even by root
 CASES = [
-    (["train", "--algo", "sac"], "unknown algorithm 'sac'"),
+    (["train", "--algo", "sac"], "invalid choice: 'sac'"),
     (["train", "--set", "tau=inf"], "bad value for 'tau': inf; allowed: a finite number in (0, 1]"),
     (["train", "--set", "tau=abc"], "bad value for 'tau': 'abc'"),
     (["train", "--set", "actor_lr=nan"], "bad value for 'actor_lr': nan"),

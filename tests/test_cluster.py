@@ -75,7 +75,7 @@ def test_rayjob_has_cpu_and_gpu_worker_groups_and_one_torch_thread():
 
 
 def test_documented_gpu_sweep_command_parses_and_reserves_one_gpu_per_trial():
-    from coin_app.algorithms.registry import parse_overrides
+    from coin_app.algorithms.checks import parse_overrides
     from tuning import get_experiment
     from tuning.experiment import expand_grid
     from tuning.trainable import trial_resources

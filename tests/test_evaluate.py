@@ -5,7 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from coin_app.cli import _evaluation_config, main, with_preset
+from coin_app.cli import main
+from coin_app.cli.evaluate import _evaluation_config
+from coin_app.cli.policy_settings import with_preset
 from coin_app.evaluation.evaluate import evaluate_policy, run_episode
 from coin_app.evaluation.metrics import EpisodeRecorder
 from coin_app.inference import export_policy

@@ -18,6 +18,7 @@ inf, NaN, a wrong type and an out-of-range value are refused for each.
 
 from __future__ import annotations
 
+import ast
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -234,3 +235,23 @@ def value_errors(values: Mapping[str, Any]) -> list[str]:
         except ValueError as exc:
             errors.append(str(exc))
     return errors
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``key=value`` strings to a dict; values are Python literals when they parse as one (``inf``/``nan``: floats)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"bad --set {item!r}; expected key=value, e.g. --set crash_penalty=10")
+        if raw.strip().lower() in NON_FINITE:  # refused by name later, rather than read as the string 'inf'
+            out[key] = float(raw)
+            continue
+        try:
+            out[key] = ast.literal_eval(raw)
+        except (ValueError, SyntaxError):
+            out[key] = raw
+    return out
+
+
+NON_FINITE = ("inf", "+inf", "-inf", "nan", "infinity", "-infinity")

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+# the trainable algorithms, in the registry's order (coin_app.algorithms.registry checks its table against this)
+ALGORITHM_NAMES = ("cig_td3", "itd3", "traco", "ippo", "cppo", "mfpo", "copo", "nav_ppo")
+ARENA = "arena"  # the second paper's scenario (nav_ppo); the driving scenarios are coin_app.sim.config.DEFAULT_NUM_AGENTS's
+
 LOCAL_MODULES = ("cvae", "attention", "none")  # CIG-TD3's pairwise (local) module of the global critic
 GLOBAL_MODULES = ("gat", "gcn", "graphsage", "none")  # CIG-TD3's graph (global) module
 GAT_INITS = ("xavier", "default")  # the first GAT layer's initialization: the official code's Xavier (gain 1.414) or torch's

@@ -8,11 +8,11 @@ refused with the allowed keys listed.
 
 from __future__ import annotations
 
-import ast
 from dataclasses import dataclass, fields
 from typing import Any
 
 from coin_app.algorithms.checks import check_values
+from coin_app.algorithms.choices import ALGORITHM_NAMES
 from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3, ITD3
 from coin_app.algorithms.copo.copo import COPO
 from coin_app.algorithms.nav_ppo.config import NAV_PPO
@@ -23,6 +23,8 @@ from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 
 ALGORITHMS: dict[str, AlgorithmSpec] = {spec.name: spec for spec in (CIG_TD3, ITD3, TRACO, IPPO, CPPO, MFPO, COPO, NAV_PPO)}
+if tuple(ALGORITHMS) != ALGORITHM_NAMES:  # the CLI parses --algo from the Ray-free name list
+    raise ImportError(f"choices.ALGORITHM_NAMES {ALGORITHM_NAMES} does not match the registry {tuple(ALGORITHMS)}")
 
 # A small bottleneck setting that learns within minutes on a laptop CPU (CI learning test,
 # benchmarks/learning_curves.py); each spec's ``quick`` adds its small-network settings.
@@ -123,23 +125,3 @@ def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "inter
         )
     check_values(algo_cfg)  # type, finiteness and range of every value (coin_app.algorithms.checks)
     return env_cfg, algo_cfg
-
-
-def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``key=value`` strings to a dict; values are Python literals when they parse as one (``inf``/``nan``: floats)."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"bad --set {item!r}; expected key=value, e.g. --set crash_penalty=10")
-        if raw.strip().lower() in NON_FINITE:  # refused by name later, rather than read as the string 'inf'
-            out[key] = float(raw)
-            continue
-        try:
-            out[key] = ast.literal_eval(raw)
-        except (ValueError, SyntaxError):
-            out[key] = raw
-    return out
-
-
-NON_FINITE = ("inf", "+inf", "-inf", "nan", "infinity", "-infinity")

@@ -44,15 +44,15 @@ import torch
 from coin_app.algorithms.checkpoint_files import read_metadata
 from coin_app.evaluation.policies import as_policy
 from coin_app.inference.agnn import AgnnArenaPolicy
+from coin_app.inference.shipped import resolve
 from coin_app.inference.switching import load_pair, observation_options
-from coin_app.sim.arena.config import ArenaConfig, make_arena_config
+from coin_app.sim.arena.config import PROTOCOLS, ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
 from coin_app.sim.arena.heuristic import DRIVERS
 from coin_app.sim.arena.rendering import ArenaTrace, plot_arena_episode
 from coin_app.sim.dynamics import wrap_angle
 
-PROTOCOLS = ("arena", "agnn")
 # the A-GNN protocol's early stop (Ma et al. 2023): every vehicle moved < 0.05 m and turned < 0.1 rad in total over the last 10 states
 STILL_STATES, STILL_DISTANCE, STILL_ANGLE = 10, 0.05, 0.1
 
@@ -159,7 +159,7 @@ def load_arena_policy(source: str | Path) -> Any:
         return DRIVERS[str(source)]
     if str(source) == "agnn":
         return AgnnArenaPolicy()
-    path = Path(source)
+    path = Path(resolve(source))  # a shipped policy's name: its file
     if path.is_file() and path.suffix == ".json":
         return load_pair(path, load_arena_policy)
     if path.is_dir():

@@ -16,6 +16,7 @@ from typing import Any
 from coin_app.adapters.lcf import SampledLCFPolicy
 from coin_app.algorithms.checkpoints import load_checkpoint_policy
 from coin_app.inference import load_policy as load_exported_policy
+from coin_app.inference.shipped import resolve
 from coin_app.inference.switching import load_pair
 from coin_app.sim.rollout import AgentPolicy, Policy
 
@@ -29,9 +30,10 @@ def with_lcf(policy: Any) -> Any:
 
 
 def as_policy(source: Any) -> Policy | AgentPolicy:
-    """A batch policy from a callable, a checkpoint directory, an exported ``.npz`` or a switching pair ``.json``."""
+    """A batch policy from a callable, a shipped policy's name, a checkpoint directory, an exported ``.npz`` or a pair ``.json``."""
     if callable(source):
         return source
+    source = resolve(source)  # a shipped policy's name: its file
     if not isinstance(source, (str, Path)):
         raise TypeError(
             f"cannot make a policy from {type(source).__name__}; allowed: a callable, a checkpoint directory, an exported policy file"

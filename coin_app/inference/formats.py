@@ -20,6 +20,7 @@ from typing import Any
 
 from coin_app.inference.numpy_policy import export_numpy, load_numpy
 from coin_app.inference.onnx_policy import export_onnx, load_onnx
+from coin_app.inference.shipped import resolve, shipped_policies
 from coin_app.inference.switching import load_pair
 from coin_app.inference.torchscript_policy import export_torchscript, load_torchscript
 
@@ -47,10 +48,12 @@ def export_policy(actor: Any, path: str | Path, fmt: str = "numpy", meta: dict[s
 
 
 def load_policy(path: str | Path) -> Any:
-    """Load an exported actor file (``.npz``, ``.pt``, ``.onnx``) or a switching pair (``.json``) as a callable policy."""
-    path = Path(path)
+    """Load a shipped policy by name (``python -m coin_app policies``), an exported actor file (``.npz``, ``.pt``, ``.onnx``)
+    or a switching pair (``.json``) as a callable policy ``(N, obs_dim) -> (N, act_dim)``."""
+    path = Path(resolve(path))
     if not path.is_file():
-        raise ValueError(f"policy file {path} does not exist")
+        names = ", ".join(shipped_policies())
+        raise ValueError(f"policy file {path} does not exist (shipped policies, loaded by name: {names})")
     if path.suffix == ".json":
         return load_pair(path, load_policy)
     for suffix, _, loader in FORMATS.values():

@@ -116,6 +116,8 @@ class ArenaConfig:
 
 
 GENERATORS = ("agnn", "short")
+# success tests of the arena suite: the seed paper's (vehicles park) or the A-GNN paper's (coin_app.evaluation.arena_suite)
+PROTOCOLS = ("arena", "agnn")
 MAX_OBSERVED_ENTITIES = 16
 UPDATE_ORDERS = ("semi_implicit", "position_first")
 OBSTACLE_SIDES = ("both", "left")

@@ -1,0 +1,222 @@
+"""``evaluate``, ``export``, ``pair`` and ``evaluate-arena``: trained policies on test seeds, and Ray-free files of them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from coin_app.algorithms.checkpoint_files import read_metadata
+from coin_app.algorithms.checkpoints import export_actor, load_module
+from coin_app.algorithms.checks import parse_overrides
+from coin_app.cli.output import CONSOLE_ROWS, shown
+from coin_app.cli.policy_settings import check_preset, driving_config
+from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
+from coin_app.evaluation.arena_report import load_arena_eval, policy_labels, write_arena_html, write_side_by_side
+from coin_app.evaluation.arena_suite import (
+    evaluate_suite,
+    load_arena_policy,
+    markdown_table,
+    parse_cases,
+    plot_scenarios,
+    policy_config,
+    summarize,
+)
+from coin_app.evaluation.evaluate import evaluate_policy
+from coin_app.evaluation.metrics import aggregate
+from coin_app.evaluation.policies import as_policy
+from coin_app.inference import export_policy, load_policy
+from coin_app.inference.formats import check_format
+from coin_app.inference.shipped import is_shipped_name
+from coin_app.inference.switching import write_pair
+from coin_app.sim.config import DynamicsConfig
+from coin_app.sim.seeds import TEST_SEED_BASE, eval_test_seeds
+
+
+def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any], preset: str | None = None) -> Any:
+    """The scenario config to evaluate ``source`` on: its training config (checkpoint / export metadata), ``preset``, then overrides."""
+
+    if source.is_dir():
+        meta = read_metadata(source)
+        config = driving_config(meta, source, None, overrides, preset)
+        if scenario is not None and scenario != config.scenario:
+            raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {config.scenario}")
+        return config
+    if not source.is_file() and not is_shipped_name(source):
+        raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx)")
+    return driving_config(load_policy(source).meta, source, scenario, overrides, preset)
+
+
+def _dynamics_name(dynamics: DynamicsConfig) -> str:
+    """``raycast`` (MetaDrive's car, the default), ``fitted bicycle``, ``kinematic`` (the preset's) or ``custom``."""
+    names = {DynamicsConfig(): "raycast", DynamicsConfig(model="bicycle"): "fitted bicycle", DynamicsConfig.kinematic(): "kinematic"}
+    return names.get(dynamics, "custom")
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate a checkpoint or exported policy deterministically on test seeds and print the six metrics."""
+
+    if args.episodes < 1:
+        raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
+    check_preset(args.preset)
+    seeds = args.seeds if args.seeds else eval_test_seeds(args.episodes)
+    not_test = [s for s in seeds if s < TEST_SEED_BASE]
+    if not_test:
+        print(
+            f"warning: --seeds {not_test[:5]}{' ...' if len(not_test) > 5 else ''} are training or validation seeds "
+            f"(test seeds are >= {TEST_SEED_BASE}); figures on them are not test results",
+            file=sys.stderr,
+        )
+    overrides = parse_overrides(args.set)
+    if args.num_agents is not None:
+        overrides["num_agents"] = args.num_agents
+    if args.backend is not None:
+        overrides["backend"] = args.backend
+    source = Path(args.policy)
+    config = _evaluation_config(source, args.scenario, overrides, args.preset)
+    policy = as_policy(source)
+    print(
+        f"evaluate: {source} on {config.scenario} ({config.num_agents} agents, backend {config.backend}), "
+        f"seeds {seeds[0]}..{seeds[-1]} ({len(seeds)})"
+    )
+    origin = f"--preset {args.preset}" if args.preset else "the policy's training config"
+    print(
+        f"  settings ({origin}): lidar_range {config.lidar_range:g}, crash_penalty {config.crash_penalty:g}, "
+        f"out_of_road_penalty {config.out_of_road_penalty:g}, dynamics {_dynamics_name(config.dynamics)}, "
+        f"max_agent_steps {config.max_agent_steps}"
+    )
+    t0 = time.perf_counter()
+    per_episode = evaluate_policy(policy, config, seeds)
+    agg = aggregate(per_episode)
+    print(f"\n{len(seeds)} episodes in {time.perf_counter() - t0:.1f} s; mean (std) per episode:")
+    for key, label, fmt in CONSOLE_ROWS:
+        m, sd = (agg[key]["mean"], agg[key]["std"]) if key in agg else (math.nan, math.nan)
+        total = f"  {sum(e[key] for e in per_episode):.0f} in all" if fmt == "count" and key in agg else ""
+        print(f"  {label:<18}{shown(m, fmt):>10} ({shown(sd, fmt)}){total}")
+    print(
+        f"  avg travel steps: finished vehicles, one that did not arrive counting as max_agent_steps ({config.max_agent_steps}), "
+        "as COIN's Table 5.1; travel (arrived): arrivals only\n"
+        "  time-outs: vehicles done without arriving, crashing or leaving the road (their step limit or the forced stop)"
+    )
+    if args.out:
+        Path(args.out).write_text(json.dumps({"seeds": seeds, "episodes": per_episode, "aggregate": agg}, indent=2, default=float))
+        print(f"  per-episode results: {args.out}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Export a checkpoint's deterministic actor to a Ray-free file and check it against the RLModule."""
+
+    check_format(args.format, args.out)  # before loading anything
+    checkpoint = Path(args.checkpoint)
+    meta = read_metadata(checkpoint)
+    module = load_module(checkpoint)
+    actor, reference, extra = export_actor(module)
+    keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
+    out = export_policy(actor, args.out, args.format, meta=keep | extra | {"checkpoint": str(checkpoint.resolve())})
+    exported = load_policy(out)
+    obs = np.random.default_rng(0).uniform(0.0, 1.0, (256, exported.obs_dim)).astype(np.float32)
+    gap = float(np.abs(reference(obs) - exported(obs)).max())
+    print(f"export: {checkpoint} -> {out} ({args.format}, {out.stat().st_size / 1024:.0f} KiB, obs {exported.obs_dim})")
+    if "lcf" in extra:
+        lcf = extra["lcf"]
+        print(
+            f"  CoPO: the actor takes [obs | (lcf + 1) / 2]; evaluate draws each vehicle's LCF from "
+            f"N({lcf['mean']:.4f}, {lcf['std']:.4f}) in the file's metadata (train with --set eval_lcf=mean for the mean LCF)"
+        )
+    print(f"  parity: max |action - RLModule.forward_inference| on 256 random obs = {gap:.1e}")
+    if gap > 1e-5:
+        raise ValueError(f"exported {args.format} actor differs from the RLModule by {gap:.1e} (> 1e-5); {out} is not trustworthy")
+    return 0
+
+
+def cmd_pair(args: argparse.Namespace) -> int:
+    """Write a switching-policy file: the short-range policy inside --switch-radius of the target, the long-range one outside."""
+
+    out = write_pair(args.out, args.long, args.short, args.switch_radius)
+    policy = as_policy(out)  # loads both parts: a bad source fails now, not in the evaluation
+    print(f"pair: long {args.long} + short {args.short}, switch at {policy.switch_radius} m -> {out}")
+    return 0
+
+
+def cmd_evaluate_arena(args: argparse.Namespace) -> int:
+    """Run the seed-2 evaluation suite (Tables I and II) on one or more policies; per-policy case tables, one side-by-side table."""
+
+    cases = parse_cases(args.cases)
+    labels = policy_labels(args.policy)
+    if args.scenarios_per_case < 1:
+        raise ValueError(f"bad --scenarios-per-case {args.scenarios_per_case}; allowed: an integer >= 1")
+    observes = {  # a bad source or entity count fails now, before any policy is evaluated
+        source: policy_config(load_arena_policy(source), args.max_steps, args.protocol, args.generator, args.observed_entities)
+        for source in args.policy
+    }
+    out = Path(args.out)
+    folders = {label: "." if len(labels) == 1 else label for label in labels}  # one policy: its files in --out itself
+    print(
+        f"evaluate-arena: {', '.join(args.policy)}; {len(cases)} cases x {args.scenarios_per_case} scenarios, up to {args.max_steps} "
+        f"steps, {args.protocol} protocol, {args.generator} scenarios -> {out}"
+    )
+    t0 = time.perf_counter()
+    summaries = {}
+    for source, label in zip(args.policy, labels):
+        if len(labels) > 1:
+            print(f"\n{label} ({source})")
+        rows = evaluate_suite(
+            source,
+            cases,
+            args.scenarios_per_case,
+            args.max_steps,
+            args.workers,
+            protocol=args.protocol,
+            generator=args.generator,
+            observed=args.observed_entities,
+        )
+        where = out / folders[label]
+        where.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame(rows).to_csv(where / "arena_scenarios.csv", index=False)
+        summaries[label] = summary = summarize(rows)
+        summary.to_csv(where / "arena_cases.csv", index=False)
+        header = f"Policy: `{source}`; {args.scenarios_per_case} test scenarios per case; {args.protocol} protocol.\n\n"
+        if observes[source].observed_entities != 1:
+            k = observes[source].observed_entities
+            header += f"Each vehicle observes its {k} closest entities (`observed_entities`; the paper's observation: 1).\n\n"
+        if observes[source].candidate_features:
+            header += (
+                "Each vehicle also observes the clearance of the planning filter's 22 candidate rollouts "
+                "(`candidate_features`; not in the paper's observation).\n\n"
+            )
+        if args.generator != "agnn":
+            header += f"Scenarios of the `{args.generator}` generator, not the paper's suite: the paper's columns do not apply.\n\n"
+        (where / "arena_table.md").write_text(header + markdown_table(summary))
+        if args.plots:
+            plots = plot_scenarios(
+                source, cases, args.plots, where / "plots", args.max_steps, args.protocol, args.generator, args.observed_entities
+            )
+            print(f"  trajectory plots: {len(plots)} in {where / 'plots'}")
+    settings = {
+        "policies": list(args.policy),
+        "folders": folders,
+        "cases": [f"{n}x{m}" for n, m in cases],
+        "scenarios_per_case": args.scenarios_per_case,
+        "max_steps": args.max_steps,
+        "protocol": args.protocol,
+        "generator": args.generator,
+        "observed_entities": args.observed_entities,
+        "command": getattr(args, "command_line", None),
+    }
+    _, markdown = write_side_by_side(out, summaries, settings)
+    page = write_arena_html(out / ARENA_PAGE, [load_arena_eval(out)], settings["command"])
+    print(f"\n{len(labels)} policies x {len(cases)} cases x {args.scenarios_per_case} scenarios in {time.perf_counter() - t0:.0f} s")
+    print(markdown_table(summaries[labels[0]]) if len(labels) == 1 else markdown)
+    for label in labels:
+        where = out / folders[label]
+        print(f"  {label}: per-scenario rows {where / 'arena_scenarios.csv'}, case table {where / 'arena_table.md'}")
+    print(f"  side by side: {out / 'arena_side_by_side.md'} (and .csv); page: {page}")
+    return 0

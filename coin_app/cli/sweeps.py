@@ -1,0 +1,111 @@
+"""``sweep``, ``generalize`` and ``report``: Tune sweeps of the paper's experiments and the report made from them."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from coin_app.algorithms.checks import parse_overrides
+from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
+from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, write_arena_html
+from coin_app.evaluation.report import ReportOptions, build_report
+from tuning.sweep import run_sweep, write_generalization
+
+
+def sweep_scale(scale: str | None, smoke: bool) -> str:
+    """The scale asked for by ``--scale`` and ``--smoke`` (default paper); a ValueError when they disagree."""
+    if smoke and scale not in (None, "smoke"):
+        raise ValueError(f"--smoke with --scale {scale}; allowed: one of them (--smoke is --scale smoke)")
+    return "smoke" if smoke else scale or "paper"
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Run or resume a Tune sweep of one paper experiment; print where results went and each trial's figures."""
+
+    summary = run_sweep(
+        args.experiment,
+        scenario=args.scenario,
+        scale=sweep_scale(args.scale, args.smoke),
+        methods=tuple(args.algos) if args.algos else None,
+        seeds=tuple(args.seeds) if args.seeds else None,
+        steps=args.steps,
+        overrides=parse_overrides(args.set),
+        storage=args.storage,
+        name=args.name,
+        address=args.address,
+        max_concurrent=args.max_concurrent,
+        resume=args.resume,
+        restart=tuple(args.restart),
+        num_cpus=args.num_cpus,
+        command=getattr(args, "command_line", None),
+        wandb_project=args.wandb,
+        mlflow_uri=args.mlflow,
+    )
+    print(f"\nsweep summary: {summary['experiment_dir']} ({summary['wall_s']:.0f} s, {summary['errors']} errored trials)")
+    for t in summary.get("trials", []):
+        state = "done" if t["finished"] else "UNFINISHED"
+        print(
+            f"  {t['name']:<28} {state:<10} env steps {t['env_steps']:>9}  train success {t['train_success_rate']:.3f}  "
+            f"eval success {t['eval_success_rate']:.3f}  {t['checkpoint']}"
+        )
+    if "generalization_csv" in summary:
+        print(f"  generalization table: {summary['generalization_csv']}")
+    unfinished = [t["name"] for t in summary.get("trials", []) if not t["finished"]]
+    if summary["errors"] or unfinished:
+        print(f"  not finished: {', '.join(unfinished) or summary['errors']}; continue with --resume")
+        return 1
+    return 0
+
+
+def cmd_generalize(args: argparse.Namespace) -> int:
+    """Evaluate every final checkpoint of a sweep at each agent count; write the tidy generalization CSV."""
+
+    out = write_generalization(Path(args.experiment_dir), counts=args.counts, test_seeds=args.test_seeds)
+    print(f"generalization table: {out}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Evaluate sweeps (or read results) and write the paper's tables, tests, figures and report.html."""
+
+    options = ReportOptions(
+        method=args.method,
+        counts=tuple(args.counts) if args.counts else None,
+        test_seeds=args.test_seeds,
+        workers=args.workers,
+        alpha=args.alpha,
+        tsne_samples=args.tsne_samples,
+        tsne_episodes=args.tsne_episodes,
+        transfer=args.transfer,
+        transfer_test_seeds=args.transfer_test_seeds,
+        select=args.select,
+        validation_episodes=args.validation_episodes,
+        command=getattr(args, "command_line", None),
+    )
+    arena = [Path(p) for p in args.sources if is_arena_eval(p)]  # evaluate-arena outputs: the arena page
+    sweeps = [Path(p) for p in args.sources if not is_arena_eval(p)]
+    if arena:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        page = write_arena_html(out / ARENA_PAGE, [load_arena_eval(p) for p in arena], options.command)
+        print(f"arena report: {len(arena)} evaluate-arena run(s) -> {page}")
+        if not sweeps:
+            return 0
+    summary = build_report(sweeps, Path(args.out), options)
+    print(
+        f"\nreport summary: {summary['episodes']} test episodes of {summary['models']} models "
+        f"in {summary['wall_s']:.0f} s -> {summary['out']}"
+    )
+    for key, value in summary["success"].items():
+        print(f"  success {key:<40} {100 * value:6.2f} %")
+    drawn = [k for k, v in summary["figures"].items() if not v.startswith("not drawn")]
+    print(f"  figures: {len(drawn)} of {len(summary['figures'])} drawn; page: {Path(summary['out']) / 'report.html'}")
+    for name, value in summary["figures"].items():
+        if value.startswith("not drawn"):
+            print(f"    {name}: {value}")
+    for f in summary["failures"]:
+        where = f" on {f['backend']}" if f.get("backend") else ""
+        print(f"  NOT EVALUATED{where} {f.get('trial') or f.get('checkpoint')}: {f['error']}")
+    for f in summary.get("unreadable", []):
+        print(f"  UNREADABLE {f['path']}: {f['error']} (left out of the learning curves)")
+    return 1 if summary["failures"] or summary.get("unreadable") else 0
