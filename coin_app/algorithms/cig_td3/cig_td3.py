@@ -66,7 +66,7 @@ from coin_app.sim.road_map import load_map
 from coin_app.sim.scenarios import scenario_name
 from coin_app.sim.simulator import MAX_RESPAWN_PER_STEP
 
-ITD3_PRECISION = "fp32"  # ITD3's default precision (CIG-TD3's is bf16: docs/learning_curves_precision)
+ITD3_PRECISION = "fp32"  # ITD3's default precision (CIG-TD3's is bf16: docs/studies/learning_curves_precision)
 
 # name -> (default, meaning); the single source of the documentation and of training() kwargs
 HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
@@ -129,7 +129,7 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         "bf16",
         "learner update precision: bf16 | fp32 (bf16: every loss forward pass under torch.autocast bfloat16; parameters, "
         "optimizer state, TD targets, loss reductions and soft updates stay fp32; 0.37x the fp32 update time at the paper's "
-        "sizes on this CPU, no loss of success at equal env steps: docs/learning_curves_precision)",
+        "sizes on this CPU, no loss of success at equal env steps: docs/studies/learning_curves_precision)",
     ),
     "checkpoint_replay": (
         True,
@@ -430,7 +430,7 @@ QUICK_TD3: dict[str, Any] = {
     "central_critic_lr": 1e-3,
     "eval_every": 0,
     # The freeze guard is the reduced-scale default of every TD3-family method (quick settings, smoke sweeps), chosen by
-    # 5 seeds x 40k env steps of CIG-TD3 and of ITD3 with and without it (docs/learning_curves_freeze*); the paper scale
+    # 5 seeds x 40k env steps of CIG-TD3 and of ITD3 with and without it (docs/studies/learning_curves_freeze*); the paper scale
     # keeps the paper's setting (no guard).
     "actor_preact_penalty": 1e-3,
     "actor_preact_threshold": 2.0,
