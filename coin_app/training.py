@@ -232,7 +232,7 @@ class FreezeDetector:
     """Warns when vehicles stand still after the warm-up for ``patience`` iterations in a row (the TD3 full-brake freeze).
 
     A TD3-family actor can saturate at full brake: vehicles stop, every braking action gives the
-    same next state, the critic is flat there and the return is exactly 0 (README, "TD3 freeze").
+    same next state, the critic is flat there and the return is exactly 0 (docs/guides/train-cig-td3.md, "TD3 freeze").
     ``update`` takes :func:`iteration_metrics` and returns a warning line once the mean speed of
     the acting vehicles has stayed below ``speed_threshold`` m/s for ``patience`` iterations.
     """
@@ -256,11 +256,11 @@ class FreezeDetector:
             return head + (
                 f"the actor gives one action whatever it observes (action std over the batch {spread:.3f}, saturated "
                 f"{saturation:.0%}): a collapsed actor, which the saturation guard does not undo (TraCo's domain critic alone did "
-                "this: docs/results/README.md); its critic's action gradient is the suspect"
+                "this: docs/results/journal.md); its critic's action gradient is the suspect"
             )
         return head + (
             f"saturated actor outputs {saturation:.0%}. A TD3 actor frozen at full brake does not recover by itself "
-            "(README: TD3 freeze): try --set actor_preact_penalty=1e-3 actor_preact_threshold=2"
+            "(docs/guides/train-cig-td3.md: TD3 freeze): try --set actor_preact_penalty=1e-3 actor_preact_threshold=2"
         )
 
 

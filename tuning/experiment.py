@@ -34,28 +34,28 @@ PPO_FAMILY = tuple(n for n, s in registry.ALGORITHMS.items() if s.capabilities.o
 
 
 # Reduced scale: COIN's comparison sized for one small machine (the protocol and its evidence are in
-# docs/results/README.md): the quick scenario (4 agents) and small networks of the learning curves
+# docs/results/README.md and journal.md): the quick scenario (4 agents) and small networks of the learning curves
 # (registry.quick_settings: for the TD3 family one update of 128 transitions per env step, the freeze
 # guard), plus each family's settings below.
 # fp32: at these sizes a bf16 update takes 3.3x the fp32 time for CIG-TD3 (benchmarks/learner_update.py --size quick).
 # The stronger saturation guard (10x the quick settings' weight, from |u| = 1 instead of 2): with the quick settings' guard
-# CIG-TD3 froze late in the protocol's first sweep (seed 0); with this one it did not (docs/results/README.md).
+# CIG-TD3 froze late in the protocol's first sweep (seed 0); with this one it did not (docs/results/journal.md).
 # Exploration noise 0.1 (the paper's is 0.05): judged on CIG-TD3 by a rule fixed before its trials were evaluated, it raised
-# the five seeds' validation success from 0.541 to 0.639 (docs/results/README.md, "Levers after the fourth sweep"); the whole
+# the five seeds' validation success from 0.541 to 0.639 (docs/results/journal.md, "Levers after the fourth sweep"); the whole
 # TD3 family gets it, as it gets every other protocol setting.
 # Minibatches of 256 transitions per update (the paper's; the quick settings' 128): judged on CIG-TD3 by the rule fixed before
 # its trials, which adopts a setting of the paper's own unless it lowers the five seeds' validation success by more than 0.05:
-# 0.613 against 0.649 (seed 1 far higher, seed 4 far lower; docs/results/README.md, "Levers after the fifth sweep").
+# 0.613 against 0.649 (seed 1 far higher, seed 4 far lower; docs/results/journal.md, "Levers after the fifth sweep").
 # The actor (and the targets) updated after every critic update (policy_delay 1; the paper's is 5, TD3's 2): judged on
 # CIG-TD3 by a rule fixed before its trials (adopted only above 0.663), 0.668 on the validation seeds, at the edge of what
-# ten validation seeds resolve (docs/results/README.md, "Levers after the batch-256 lever").
+# ten validation seeds resolve (docs/results/journal.md, "Levers after the batch-256 lever").
 # A vehicle's time-out ends its TD target (timeout_bootstrap False: the paper's d_i, as the PPO family already does): judged
 # on CIG-TD3 by a rule fixed before its trials (a paper setting, adopted unless below 0.618), 0.766 on the validation seeds
-# against 0.668; the deterministic policies had deadlocked at the junction's entries (docs/results/README.md, "Levers after
+# against 0.668; the deterministic policies had deadlocked at the junction's entries (docs/results/journal.md, "Levers after
 # the policy-delay lever").
 # Exploration std 0.1 for the first half of the budget, then decaying linearly to REDUCED_NOISE_FINAL with the learning rates
 # (reduced_decay): judged on CIG-TD3 by a rule fixed before its trials (adopted only at or above 0.816), 0.843 on the
-# validation seeds against 0.766 (docs/results/README.md, "Levers after the policy-delay lever").
+# validation seeds against 0.766 (docs/results/journal.md, "Levers after the policy-delay lever").
 REDUCED_NOISE_FINAL = 0.02
 REDUCED_TD3: dict[str, Any] = {
     "precision": "fp32",
@@ -69,11 +69,11 @@ REDUCED_TD3: dict[str, Any] = {
 }
 # The TD3 family's learning rates decay linearly to this fraction over the second half of each trial's budget, as its
 # exploration std does to REDUCED_NOISE_FINAL (reduced_decay): with constant rates the policies learned, then froze or
-# crashed late (docs/results/README.md).
+# crashed late (docs/results/journal.md).
 REDUCED_LR_FINAL_FRACTION = 0.1
 # TraCo with its domain critic alone collapsed at once to one constant action for every observation (steer ~0.7,
 # throttle ~-0.7: braking) on seeds 0 and 1 under the protocol's guard; with its optional individual critic (Q^l_1 added to
-# its actor objective, one of TraCo's inferred options in the README) both seeds drove (docs/results/README.md).
+# its actor objective, one of TraCo's inferred options in docs/guides/traco.md) both seeds drove (docs/results/journal.md).
 REDUCED_ALGO: dict[str, dict[str, Any]] = {"traco": {"individual_critic": True}}
 REDUCED_PPO: dict[str, Any] = {}  # the reference settings: 1,600 env steps per update, sampled in the trial's process
 

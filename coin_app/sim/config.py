@@ -74,29 +74,29 @@ class ScenarioConfig:
     horizon: int = 1000  # env steps with respawn; also each vehicle's own step limit
     max_agent_steps: int = 1000  # a vehicle is truncated (max_step) after this many own steps
     delay_done: int = 25  # steps a crashed / off-road vehicle stays as a static obstacle
-    allow_respawn: bool = True
+    allow_respawn: bool = True  # respawn at free entry places while the episode step is below the horizon
     own_arm_destinations: bool = True  # MetaDrive also draws the spawn arm's exit (U-turn / full loop)
     force_stop_factor: int = 5  # every agent is truncated at env step factor * horizon
     spawn_jitter_long: float = 1.0  # initial spawns: longitude += U(-a, a) (m)
     spawn_jitter_lat: float = 0.25  # initial spawns: lateral += U(-a, a) (m)
     # reward (COIN App. A.3)
-    driving_reward: float = 1.0
-    speed_reward: float = 0.1
-    success_reward: float = 10.0
-    crash_penalty: float = 5.0
-    out_of_road_penalty: float = 5.0
+    driving_reward: float = 1.0  # per metre of progress along the localised lane
+    speed_reward: float = 0.1  # times speed_kmh / max_speed_kmh (80), per step
+    success_reward: float = 10.0  # on arrival, in place of the step reward
+    crash_penalty: float = 5.0  # subtracted on a crash into another vehicle (paper 5; MetaDrive 10)
+    out_of_road_penalty: float = 5.0  # subtracted when leaving the road (paper 5; MetaDrive 10)
     # sensors
-    lidar_beams: int = 72
-    lidar_range: float = 50.0
+    lidar_beams: int = 72  # beams over 360 degrees, beam 0 straight ahead
+    lidar_range: float = 50.0  # m (paper; MetaDrive 40: the metadrive_compat preset)
     navi_point_dist: float = 50.0  # navigation vectors are clipped to this length (m)
     # "standard": 19 ego/navigation features + lidar (91); "bottleneck96": MetaDrive's
     # bottleneck layout with 4-beam side (solid lines, 50 m) and lane-line (20 m) detectors
     obs_layout: str = "standard"
-    side_detector_range: float = 50.0
-    lane_line_detector_range: float = 20.0
+    side_detector_range: float = 50.0  # m, bottleneck96's side detectors (solid lines)
+    lane_line_detector_range: float = 20.0  # m, bottleneck96's lane-line detectors (all line dashes)
     # vehicle
-    vehicle_length: float = 4.515
-    vehicle_width: float = 1.852
+    vehicle_length: float = 4.515  # m, MetaDrive's car
+    vehicle_width: float = 1.852  # m
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     # simulator: "native" (coin_app's vectorized core) or "metadrive" (MetaDrive 0.4.3, optional extra)
     backend: str = "native"

@@ -56,7 +56,7 @@ class StepResult:
     truncated: np.ndarray
     episode_length: np.ndarray  # the agent's own steps so far
     global_reward: np.ndarray  # (E,) mean reward over the agents that acted in each env
-    episode_over: np.ndarray  # bool (E,): no active agent is left after respawn (see README)
+    episode_over: np.ndarray  # bool (E,): no active agent is left after respawn (docs/reference/deviations.md)
     env_step: np.ndarray  # (E,) env steps taken in the current episode
 
 

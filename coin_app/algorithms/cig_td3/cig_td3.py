@@ -105,7 +105,7 @@ HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
         "critic_first: the critics step, then the actor loss on the updated critics (TD3, official code) | "
         "joint: every loss from the critics before the update (before coin_app 0.2)",
     ),
-    # guards against the saturated full-brake freeze of TD3-family actors (README "TD3 freeze"); all off = the paper
+    # guards against the saturated full-brake freeze of TD3-family actors (docs/guides/train-cig-td3.md, "TD3 freeze"); all off = the paper
     "actor_preact_penalty": (0.0, "weight w of w * mean(max(|u| - actor_preact_threshold, 0)^2) over the actor's pre-tanh outputs u"),
     "actor_preact_threshold": (0.0, "pre-tanh magnitude the penalty starts at (0 = the plain penalty w * mean(u^2))"),
     "critic_feature_norm": (

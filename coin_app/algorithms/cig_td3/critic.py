@@ -2,7 +2,7 @@
 
 Composes a pairwise module (``pairwise.py``: CVAE or attention) and a graph module
 (``graph.py``: GAT, GCN, GraphSAGE) into the critic of COIN Fig. 2 (Eqs. 1-6, 9-11, App. B),
-with the choices made where the paper is silent (README, "Where the paper is silent"). Plain
+with the choices made where the paper is silent (docs/guides/train-cig-td3.md, "Where the paper is silent"). Plain
 ``torch.nn``; nothing here imports Ray. Shapes: ``B`` batch rows (one ego agent at one env step
 each), ``N`` padded slots for the other agents, ``M = N + 1`` graph nodes (node 0 = the ego),
 ``O`` observation, ``S`` local state (``schema.STATE_DIM``), ``A`` action (``schema.ACT_DIM``),

@@ -1,7 +1,7 @@
 """CoPO: its spec, its RLlib config and the algorithm that keeps the env runners' LCF distribution in sync.
 
 CoPO (Peng et al., "Learning to Simulate Self-Driven Particles System with Coordinated Policy
-Optimization", NeurIPS 2021; README, "PPO baselines") is the PPO family's IPPO with local
+Optimization", NeurIPS 2021; docs/guides/ppo-family.md) is the PPO family's IPPO with local
 coordination factors (LCF): every agent's observation ends with its LCF, the policy learns on
 the coordinated advantage of its ego and neighbour rewards, and a meta-gradient moves the LCF
 distribution towards the global reward (``learner.py``, ``coordination.py``). Its

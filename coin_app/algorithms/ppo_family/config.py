@@ -2,7 +2,7 @@
 
 Values are those of the PPO baselines of the COIN paper, which ran CoPO's code (Peng et al.,
 "Learning to Simulate Self-Driven Particles System with Coordinated Policy Optimization",
-NeurIPS 2021) on Ray 1.2's PPO, as the MetaDrive benchmark did (README, "PPO baselines";
+NeurIPS 2021) on Ray 1.2's PPO, as the MetaDrive benchmark did (docs/guides/ppo-family.md;
 ``docs/decisions.md`` §7). ``train_batch_size`` counts env steps (each gives one transition per
 present agent). Ray 1.x sampled 200-step chunks on 4 workers until at least 1024 env steps
 were in: 2 rounds, 1600 env steps per update. The defaults are that batch in 200-step chunks

@@ -1,4 +1,4 @@
-"""Neighbour sets and the centralized-critic inputs of CPPO and MFPO (README, "PPO baselines").
+"""Neighbour sets and the centralized-critic inputs of CPPO and MFPO (docs/guides/ppo-family.md).
 
 Rows are agent transitions; ``group`` says which rows share an env step of one episode
 (e.g. ``episode_index * big + env_step`` from the env's ``env_step`` info, never row order), so

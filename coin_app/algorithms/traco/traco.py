@@ -9,7 +9,7 @@ This is that re-implementation on CIG-TD3's machinery: the same joint-step repla
 centralized-critic connector, which also gives the others' rewards), sampling, actor, exploration,
 learner order, checkpoints and export; only the critics and losses differ (``networks.py``,
 ``losses.py``). Every choice nobody has published is a documented key below, marked
-"inference"; the README's baseline section lists them.
+"inference"; docs/guides/traco.md lists them.
 
 ``TracoConfig`` / ``Traco`` subclass ``CigTd3Config`` / ``CigTd3``; ``TRACO`` is the
 :class:`~coin_app.algorithms.spec.AlgorithmSpec` entry.
