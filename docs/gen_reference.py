@@ -4,7 +4,7 @@
     python docs/gen_reference.py --check  # exit 1 if a committed page differs from what the code gives
 
 ``config-keys.md``: every ``--set`` key with its default and meaning, from the same sources as
-``python -m coin_app scenarios`` (``coin_app/cli.py`` ``cmd_scenarios``): the scenario configs'
+``python -m coin_app scenarios`` (``coin_app/cli/catalog.py`` ``cmd_scenarios``): the scenario configs'
 dataclass fields (their meaning is the field's comment in the source), every algorithm spec's
 ``hyperparameters`` and the registry's ``COMMON_KEYS``. ``cli.md``: every command's ``--help``
 from ``coin_app.cli.build_parser``. ``tests/test_docs_site.py`` fails while a committed page is

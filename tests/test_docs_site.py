@@ -62,22 +62,13 @@ def _nav_pages() -> list[str]:
 
 
 def test_generated_reference_pages_are_those_the_code_gives():
-    stale = [
-        str(path.relative_to(ROOT))
-        for path, text in _generator().pages().items()
-        if not path.exists() or path.read_text() != text
-    ]
+    stale = [str(path.relative_to(ROOT)) for path, text in _generator().pages().items() if not path.exists() or path.read_text() != text]
     assert not stale, f"out of date with the code: {stale}; run python docs/gen_reference.py and commit the pages"
 
 
 @pytest.mark.parametrize("title", OLD_README_SECTIONS)
 def test_every_section_of_the_old_readme_is_a_heading_of_the_site(title):
-    headings = {
-        line.lstrip("#").strip()
-        for page in _site_pages()
-        for line in page.read_text().splitlines()
-        if re.match(r"#{1,6} ", line)
-    }
+    headings = {line.lstrip("#").strip() for page in _site_pages() for line in page.read_text().splitlines() if re.match(r"#{1,6} ", line)}
     assert title in headings, f"the old README's section {title!r} is no heading of any page under docs/"
 
 
