@@ -254,6 +254,7 @@ class EpisodeTrace:
     heading: list[np.ndarray] = field(default_factory=list)  # per step (n,)
     status: list[np.ndarray] = field(default_factory=list)  # per step (n,) EMPTY/ACTIVE/DYING
     events: list[OutcomeEvent] = field(default_factory=list)
+    vehicle_size: tuple[float, float] | None = None  # (length, width) in m; record() takes it from the simulator
 
     def record(self, env: Any, infos: Mapping[str, Mapping[str, Any]] | None = None, env_index: int = 0) -> None:
         """Record the env's vehicles after ``reset``/``step`` and the outcomes flagged in that call's ``infos``.
@@ -265,6 +266,9 @@ class EpisodeTrace:
         sim = _simulator(env)
         if not self.scenario:
             self.scenario = sim.map.name
+        if self.vehicle_size is None:
+            half = _half(sim)
+            self.vehicle_size = (2 * float(half[0]), 2 * float(half[1]))
         rows, step = _env_view(sim, env_index)
         flags = _flag_table(infos)
         finished = np.array([n for n, _ in flags], dtype=np.int64)

@@ -20,24 +20,37 @@ from coin_app.sim.rendering import ARRIVAL_COLOR, BACKGROUND, CRASH_COLOR, agent
 
 
 class ArenaTrace:
-    """Positions and headings of every vehicle after each step, and where collisions started."""
+    """Positions and headings of every vehicle after each step, and where collisions started.
+
+    Per recorded state (the reset, then each step) it also keeps which vehicles were still
+    driving, which had reached the success state and how many collision events each started
+    in that step: what the HTML replay (``arena/replay.py``) needs for its outcome markers.
+    """
 
     def __init__(self) -> None:
         self.sim: Any = None
         self.positions: list[np.ndarray] = []
         self.headings: list[np.ndarray] = []
         self.collisions: list[np.ndarray] = []
+        self.driving: list[np.ndarray] = []  # per state (N,) bool
+        self.succeeded: list[np.ndarray] = []  # per state (N,) bool
+        self.new_collisions: list[np.ndarray] = []  # per state (N,) int, 0 at the reset
 
     def start(self, sim: Any) -> None:
         """Begin recording an episode of ``sim`` (just reset)."""
         self.sim = sim
         self.positions, self.headings, self.collisions = [sim.pos.copy()], [sim.heading.copy()], []
+        self.driving, self.succeeded = [sim.driving.copy()], [sim.succeeded.copy()]
+        self.new_collisions = [np.zeros(sim.num_vehicles, int)]
 
     def record(self, new_collisions: np.ndarray) -> None:
         """Store the state after a step (and one point per collision event that started in it)."""
         self.positions.append(self.sim.pos.copy())
         self.headings.append(self.sim.heading.copy())
+        self.driving.append(self.sim.driving.copy())
+        self.succeeded.append(self.sim.succeeded.copy())
         new = np.asarray(new_collisions, int)
+        self.new_collisions.append(np.broadcast_to(new, (self.sim.num_vehicles,)).copy())
         if new.any():
             self.collisions.append(np.repeat(self.sim.pos, new, axis=0))  # one point per collision event
 
