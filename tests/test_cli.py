@@ -129,3 +129,29 @@ def test_train_and_evaluate_refuse_bad_input(tmp_path, capsys):
     assert main(["evaluate", str(tmp_path / "missing"), "--episodes", "2"]) == 2
     assert "missing" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()  # refused before any work started
+
+
+def test_config_prints_a_reduced_trials_merged_settings_with_their_origins(capsys):
+    from tuning import get_experiment
+    from tuning.experiment import expand_grid, trial_overrides
+
+    assert main(["config", "--algo", "cig_td3", "--scale", "reduced", "--set", "tau=0.01"]) == 0
+    rows = {}
+    for line in capsys.readouterr().out.splitlines():
+        parts = line.split(maxsplit=2)
+        if line.startswith("  ") and len(parts) == 3:
+            rows[parts[0]] = (parts[1], parts[2])
+    # the trial the sweep itself would run (seed 0 of sweep seeds --scale reduced), merged by the sweep's own code
+    space = get_experiment("seeds").param_space("intersection", "reduced", ("cig_td3",), (0,), overrides={"tau": 0.01})
+    trial = trial_overrides(expand_grid(space)[0])
+    for key, value in trial.items():
+        assert rows[key][0] == repr(value), key
+    assert rows["tau"] == ("0.01", "--set")
+    assert rows["policy_delay"] == ("1", "reduced scale (REDUCED_TD3)")
+    assert rows["num_agents"] == ("4", "quick settings (registry.quick_settings)")
+    assert rows["lr_decay_start"][0] == "20000" and rows["lr_decay_start"][1].startswith("reduced scale: decay")
+    assert rows["target_noise"] == ("0.1", "default") and rows["crash_penalty"] == ("5.0", "ScenarioConfig default")
+    assert main(["config", "--algo", "cig_td3", "--set", "preset=metadrive_compat"]) == 0
+    assert "crash_penalty                  10.0                     preset 'metadrive_compat'" in capsys.readouterr().out
+    assert main(["config", "--set", "tau=2"]) == 2
+    assert "bad value for 'tau': 2" in capsys.readouterr().err

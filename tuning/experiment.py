@@ -179,22 +179,45 @@ def reduced_decay(steps: int) -> dict[str, Any]:
     return rates | {"exploration_noise_decay_start": start, "exploration_noise_decay_steps": length}
 
 
-def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
-    """The registry overrides of one trial: the scale's settings, then the variant's, then the user's ``--set``.
+def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """The named layers of one trial's registry overrides, lowest first: the scale's, the variant's, the user's ``--set``.
 
     Smoke scale: the quick scenario and small batches; reduced scale: the quick scenario with each
     family's reduced settings (the TD3 family's rates decaying over the second half of the budget)
     and the per-algorithm ones (``REDUCED_ALGO``: TraCo's individual critic);
-    paper scale: the PPO family's 4 env runners.
+    paper scale: the PPO family's 4 env runners. ``python -m coin_app config`` prints them.
     """
-    algo = config["algo"]
+    algo, scale = config["algo"], config["scale"]
     on_policy = algo in PPO_FAMILY  # the rest replay (the TD3 family)
-    scale: dict[str, Any] = {}
-    if config["scale"] == "smoke":
-        scale = registry.quick_settings(algo) | (SMOKE_PPO | SMOKE_CHUNK if on_policy else SMOKE_TD3)
-    elif config["scale"] == "reduced":
-        family = REDUCED_PPO if on_policy else REDUCED_TD3 | reduced_decay(int(config["steps"]))
-        scale = registry.quick_settings(algo) | family | REDUCED_ALGO.get(algo, {})
+    layers: list[tuple[str, dict[str, Any]]] = []
+    if scale in ("smoke", "reduced"):
+        layers.append(("quick settings (registry.quick_settings)", registry.quick_settings(algo)))
+    if scale == "smoke":
+        layers.append(
+            (
+                "smoke scale (SMOKE_PPO, SMOKE_CHUNK)" if on_policy else "smoke scale (SMOKE_TD3)",
+                SMOKE_PPO | SMOKE_CHUNK if on_policy else SMOKE_TD3,
+            )
+        )
+    elif scale == "reduced" and on_policy:
+        layers.append(("reduced scale (REDUCED_PPO)", dict(REDUCED_PPO)))
+    elif scale == "reduced":
+        layers.append(("reduced scale (REDUCED_TD3)", dict(REDUCED_TD3)))
+        layers.append(
+            (f"reduced scale: decay over the second half of {int(config['steps']):,} env steps", reduced_decay(int(config["steps"])))
+        )
     elif on_policy:
-        scale = dict(PAPER_PPO)
-    return scale | config["variant_overrides"][config["variant"]] | config["overrides"]
+        layers.append(("paper scale (PAPER_PPO)", dict(PAPER_PPO)))
+    if scale == "reduced" and algo in REDUCED_ALGO:
+        layers.append((f"reduced scale (REDUCED_ALGO[{algo!r}])", dict(REDUCED_ALGO[algo])))
+    layers.append((f"variant {config['variant']!r}", dict(config["variant_overrides"][config["variant"]])))
+    layers.append(("--set", dict(config["overrides"])))
+    return layers
+
+
+def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
+    """The registry overrides of one trial: its :func:`trial_layers` merged, later ones winning."""
+    out: dict[str, Any] = {}
+    for _, layer in trial_layers(config):
+        out |= layer
+    return out

@@ -20,7 +20,8 @@ from coin_app.algorithms.ppo_family.config import CPPO, IPPO, MFPO
 from coin_app.algorithms.spec import AlgorithmSpec
 from coin_app.algorithms.traco.traco import TRACO
 from coin_app.sim.arena.config import ArenaConfig
-from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.config import PRESETS, ScenarioConfig
+from coin_app.sim.scenarios import config_from_dict
 
 ALGORITHMS: dict[str, AlgorithmSpec] = {spec.name: spec for spec in (CIG_TD3, ITD3, TRACO, IPPO, CPPO, MFPO, COPO, NAV_PPO)}
 if tuple(ALGORITHMS) != ALGORITHM_NAMES:  # the CLI parses --algo from the Ray-free name list
@@ -125,3 +126,48 @@ def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "inter
         )
     check_values(algo_cfg)  # type, finiteness and range of every value (coin_app.algorithms.checks)
     return env_cfg, algo_cfg
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One merged setting of a run: its key, value, the layer that set it last and (algorithm keys) its meaning."""
+
+    key: str
+    value: Any
+    origin: str
+    meaning: str = ""
+    scenario_key: bool = False
+
+
+def merged_settings(name: str, scenario: str, layers: list[tuple[str, dict[str, Any]]]) -> list[Setting]:
+    """Every setting of algorithm ``name`` on ``scenario`` after ``layers`` (named override dicts, lowest first), each with
+    its origin: the scenario's defaults, its preset, the algorithm's defaults, then the layer that set it last.
+
+    The merged overrides are validated as ``train`` validates them (unknown keys and bad values refused).
+    """
+    spec = get(name)
+    merged: dict[str, Any] = {}
+    origin: dict[str, str] = {}
+    for label, layer in layers:
+        merged |= layer
+        origin |= dict.fromkeys(layer, label)
+    env_cfg, algo_cfg = split_overrides(name, merged, scenario)
+    split_run_settings(dict(algo_cfg))  # a bad value of the sampling or learner keys is refused too
+    env_origin = {k: origin[k] for k in env_cfg}
+    below = spec.scenario_defaults(algo_cfg)  # the algorithm's scenario values beneath the user's (nav_ppo's stage mix)
+    env_origin = dict.fromkeys(below, f"{name}'s scenario defaults") | env_origin
+    env_cfg = below | env_cfg
+    config = config_from_dict(scenario, env_cfg)  # refuses bad values as train does
+    if scenario == "arena":
+        base = {f.name: "ArenaConfig default" for f in fields(ArenaConfig)}
+    else:
+        preset = env_cfg.get("preset", "paper")
+        base = {f.name: "ScenarioConfig default" for f in fields(ScenarioConfig) if f.name != "scenario"}
+        base |= {"num_agents": f"{scenario}'s default", "preset": "default"} | dict.fromkeys(PRESETS[preset], f"preset {preset!r}")
+    out = [Setting("preset", env_cfg.get("preset", "paper"), env_origin.get("preset", "default"), scenario_key=True)] * (
+        scenario != "arena"
+    )
+    out += [Setting(k, getattr(config, k), env_origin.get(k, base[k]), scenario_key=True) for k in base if k != "preset"]
+    for key, (default, meaning) in {**spec.hyperparameters, **COMMON_KEYS}.items():
+        out.append(Setting(key, algo_cfg.get(key, default), origin.get(key, "default"), meaning))
+    return out

@@ -22,6 +22,7 @@ from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.heuristic import HeuristicDriver
 from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
+from coin_app.sim.replay import write_replay
 from coin_app.sim.rollout import DictEnvs, rollout
 
 HEURISTIC = "heuristic"
@@ -59,14 +60,14 @@ def demo_config(source: str, scenario: str | None, preset: str | None, overrides
     return config
 
 
-def drive(source: str, label: str, config: ScenarioConfig, seed: int, steps: int, gif_every: int | None, log: bool) -> Drive:
-    """Run ``source`` (a shipped name, a file or ``heuristic``) for one episode of ``config`` from ``seed``."""
+def drive(policy: Any, label: str, config: ScenarioConfig, seed: int, steps: int, gif_every: int | None, log: bool) -> Drive:
+    """Run ``policy`` (``heuristic``, a shipped name, a file, or a batch policy object) for one episode of ``config`` from
+    ``seed``, recording its metrics, its trace and (every ``gif_every`` steps) its frames."""
     env = DrivingEnv(config)
-    if source == HEURISTIC:
-        policy: Any = HeuristicDriver(env)
-    else:
-        policy = load_policy(source)
-        if policy.obs_dim != config.obs_dim:
+    if isinstance(policy, str):
+        source = policy
+        policy = HeuristicDriver(env) if source == HEURISTIC else load_policy(source)
+        if source != HEURISTIC and policy.obs_dim != config.obs_dim:
             raise ValueError(f"{source} takes {policy.obs_dim} observation numbers; {config.scenario} gives {config.obs_dim}")
     run = Drive(label, env, EpisodeRecorder(config.max_agent_steps))
     t0, agent_steps = time.perf_counter(), 0
@@ -105,7 +106,7 @@ def metric_table(runs: list[Drive]) -> str:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Drive a scenario with a trained policy (default: the shipped CIG-TD3) beside the heuristic driver; print both metric
-    rows; write a GIF (one panel per policy), a trajectory plot, the metrics and a replay page."""
+    rows; write a GIF (one panel per policy), a trajectory plot, the metrics and a replay page per policy."""
 
     if args.steps < 1:
         raise ValueError(f"bad --steps {args.steps}; allowed: an integer >= 1")
@@ -135,6 +136,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
     title = f"{config.scenario}, {config.num_agents} vehicles, seed {args.seed}"
     traj = plot_trajectories(runs[0].trace, runs[0].env.sim.map, out / "trajectories.png", title=f"{title}: {runs[0].label}")
     gif = None if args.no_gif else write_gif(side_by_side([r.frames for r in runs]), out / "episode.gif", fps=10 / args.gif_every)
+    pages = (
+        [
+            write_replay(
+                r.trace, r.env.sim.map, out / f"replay{'' if k == 0 else '-' + Path(r.label).stem}.html", title=f"{title}: {r.label}"
+            )
+            for k, r in enumerate(runs)
+        ]
+        if args.html
+        else []
+    )
     metrics = {r.label: r.recorder.metrics() for r in runs}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     print(f"\nsummary: {max(r.steps for r in runs)} env steps per policy, {time.perf_counter() - t0:.1f} s")
@@ -142,6 +153,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"  trajectory plot: {traj}")
     if gif is not None:
         print(f"  animation:       {gif}" + (f" (left: {source}, right: {compare})" if compare else ""))
+    for page, run in zip(pages, runs):
+        print(f"  replay page:     {page} ({run.label}; open it in a browser)")
     print(f"  metrics:         {out / 'metrics.json'}")
     return 0
 

@@ -16,6 +16,7 @@ import pandas as pd
 from coin_app.algorithms.checkpoint_files import read_metadata
 from coin_app.algorithms.checkpoints import export_actor, load_module
 from coin_app.algorithms.checks import parse_overrides
+from coin_app.cli.drive import drive
 from coin_app.cli.output import CONSOLE_ROWS, shown
 from coin_app.cli.policy_settings import check_preset, driving_config
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
@@ -37,6 +38,7 @@ from coin_app.inference.formats import check_format
 from coin_app.inference.shipped import is_shipped_name
 from coin_app.inference.switching import write_pair
 from coin_app.sim.config import DynamicsConfig
+from coin_app.sim.replay import write_replay
 from coin_app.sim.seeds import TEST_SEED_BASE, eval_test_seeds
 
 
@@ -79,8 +81,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         overrides["num_agents"] = args.num_agents
     if args.backend is not None:
         overrides["backend"] = args.backend
+    if args.replay and Path(args.replay).suffix != ".html":
+        raise ValueError(f"bad --replay {args.replay}; allowed: a path ending in .html")
     source = Path(args.policy)
     config = _evaluation_config(source, args.scenario, overrides, args.preset)
+    if args.replay and config.backend != "native":
+        raise ValueError(f"--replay records the native simulator; got backend {config.backend!r} (drop --replay or --backend)")
     policy = as_policy(source)
     print(
         f"evaluate: {source} on {config.scenario} ({config.num_agents} agents, backend {config.backend}), "
@@ -108,6 +114,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.out:
         Path(args.out).write_text(json.dumps({"seeds": seeds, "episodes": per_episode, "aggregate": agg}, indent=2, default=float))
         print(f"  per-episode results: {args.out}")
+    if args.replay:
+        limit = config.force_stop_factor * config.horizon
+        run = drive(policy, str(source), config, seeds[0], limit, gif_every=None, log=False)
+        page = write_replay(run.trace, run.env.sim.map, args.replay, title=f"{config.scenario}, seed {seeds[0]}: {source}")
+        print(f"  replay of seed {seeds[0]}: {page} (open it in a browser)")
     return 0
 
 

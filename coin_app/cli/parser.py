@@ -67,6 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="runs/demo", help="output directory")
     demo.add_argument("--gif-every", type=int, default=2, help="render every k-th step into the GIF")
     demo.add_argument("--no-gif", action="store_true", help="skip the animation")
+    demo.add_argument(
+        "--html", action=argparse.BooleanOptionalAction, default=True, help="write replay.html: the episode to scrub in a browser"
+    )
     demo.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
     demo.set_defaults(run="drive.cmd_demo")
 
@@ -119,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seeds", type=int, nargs="*", default=None, help="explicit seeds (default: the fixed test seeds)")
     ev.add_argument("--num-agents", type=int, default=None, help="evaluate at another agent count (generalization)")
     ev.add_argument("--out", default=None, help="write per-episode results to this JSON file")
+    ev.add_argument("--replay", default=None, metavar="HTML", help="also write the first seed's episode as a replay page (native backend)")
     ev.set_defaults(run="evaluate.cmd_evaluate")
 
     pr = sub.add_parser("probe", help="a TD3-family checkpoint's critics at its stopped vehicles: do they prefer braking or driving on?")
@@ -258,6 +262,18 @@ def build_parser() -> argparse.ArgumentParser:
     jb.add_argument("job_id", help="the id submit printed")
     jb.add_argument("--address", default=None, help="job server URL, default http://127.0.0.1:8265")
     jb.set_defaults(run="cluster.cmd_job")
+
+    cf = sub.add_parser("config", help="print every merged setting of a run (train's or a sweep trial's) with where it came from")
+    cf.add_argument("--algo", default="cig_td3", choices=ALGORITHM_NAMES, help="the algorithm")
+    cf.add_argument("--scenario", default="intersection", choices=(*DRIVING, ARENA), help="the scenario")
+    cf.add_argument("--scale", default=None, choices=("paper", "reduced", "smoke"), help="a sweep trial's settings at this scale")
+    cf.add_argument("--experiment", default="seeds", help="the sweep's experiment, with --scale: seeds | ablations | generalization")
+    cf.add_argument("--variant", default="default", help="the experiment's variant, with --scale (ablations: e.g. wo_gat)")
+    cf.add_argument("--steps", type=int, default=None, help="env steps per trial, with --scale (default: the scale's)")
+    cf.add_argument("--quick", action="store_true", help="train --quick's small settings (without --scale)")
+    cf.add_argument("--num-agents", type=int, default=None, help="vehicles (default: the scenario's or the scale's)")
+    cf.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides, as train and sweep take them")
+    cf.set_defaults(run="settings.cmd_config")
 
     pol = sub.add_parser("policies", help="list the shipped trained policies (load one by name, drive one with demo --policy)")
     pol.set_defaults(run="drive.cmd_policies")
