@@ -143,7 +143,7 @@ def test_bad_sweeps_are_refused_before_any_work(tmp_path, capsys):
     storage = tmp_path / "sweeps"
     cases = [
         (["sweep", "nonsense"], "unknown experiment 'nonsense'; allowed: seeds, ablations, generalization"),
-        (["sweep", "seeds", "--scenario", "arena"], "runs on intersection, roundabout, bottleneck; got scenario 'arena'"),
+        (["sweep", "seeds", "--scenario", "arena"], "invalid choice: 'arena'"),  # the parser's choices: the driving scenarios
         (["sweep", "seeds", "--algos", "dqn"], "unknown algorithm 'dqn'"),
         (["sweep", "seeds", "--seeds", "1", "1"], "bad seeds [1, 1]"),
         (["sweep", "seeds", "--set", "hiden=3"], "hiden"),
