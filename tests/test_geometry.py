@@ -8,6 +8,7 @@ import pytest
 from coin_app.sim.collision import boxes_overlap
 from coin_app.sim.config import make_config
 from coin_app.sim.road_map import load_map
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 from coin_app.sim.sensors import lidar_scan
 from coin_app.sim.simulator import DrivingSimulator
 
@@ -139,7 +140,7 @@ def test_bottleneck_neck_centre_line_is_broken():
     assert on and not line
 
 
-@pytest.mark.parametrize("scenario", ["intersection", "roundabout", "bottleneck"])
+@pytest.mark.parametrize("scenario", DRIVING_SCENARIOS)
 def test_lane_coordinates_round_trip(scenario):
     m = load_map(scenario)
     rng = np.random.default_rng(0)
@@ -162,7 +163,7 @@ def test_route_lengths_match_map_data():
 
     from coin_app.sim.road_map import MAP_DIR
 
-    for name in ("intersection", "roundabout", "bottleneck"):
+    for name in DRIVING_SCENARIOS:
         m = load_map(name)
         data = json.loads((MAP_DIR / f"{name}.json").read_text())
         for route, rec in zip(m.routes, data["destinations"]["routes"]):

@@ -8,8 +8,9 @@ from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.heuristic import HeuristicDriver, route_paths, single_vehicle_outcomes
 from coin_app.sim.road_map import load_map
 from coin_app.sim.rollout import DictEnvs, rollout
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 
-SCENARIOS = ["intersection", "roundabout", "bottleneck"]
+SCENARIOS = list(DRIVING_SCENARIOS)
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS)

@@ -17,6 +17,7 @@ from coin_app.sim.config import make_config  # noqa: E402
 from coin_app.sim.driving_env import DrivingEnv  # noqa: E402
 from coin_app.sim.rendering import EpisodeTrace, write_gif  # noqa: E402
 from coin_app.sim.road_map import load_map  # noqa: E402
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 
 SMALL = {"num_agents": 4, "horizon": 60, "max_agent_steps": 60}
 NATIVE_INFO_KEYS = set(DrivingEnv(make_config("intersection", num_agents=2)).reset(0)[1]["agent0"])
@@ -198,7 +199,7 @@ def test_one_engine_per_process_topdown_rendering_and_no_3d(tmp_path):
     MetaDriveDrivingEnv(scenario="intersection").close()  # a new engine after close()
 
 
-@pytest.mark.parametrize("scenario", ["intersection", "roundabout", "bottleneck"])
+@pytest.mark.parametrize("scenario", DRIVING_SCENARIOS)
 def test_native_observations_of_metadrive_poses_match_metadrive(scenario):
     """Put native vehicles where MetaDrive's are (same route and route progress): same observations."""
     from coin_app.sim.simulator import DYING, DrivingSimulator

@@ -10,8 +10,9 @@ from pettingzoo.test import parallel_api_test
 
 from coin_app.adapters.pettingzoo_env import CoinParallelEnv
 from coin_app.sim.config import make_config
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 
-SCENARIOS = ["intersection", "roundabout", "bottleneck"]
+SCENARIOS = list(DRIVING_SCENARIOS)
 # every vehicle times out after 10 own steps and vanishes at once (delay_done=0), so
 # replacements spawn mid-episode at env steps 10 and 20 whatever the random actions do
 RESPAWN_CFG = {"num_agents": 4, "horizon": 30, "max_agent_steps": 10, "delay_done": 0}

@@ -13,6 +13,7 @@ from ray.tune.registry import ENV_CREATOR, _global_registry
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.common import policy_mapping_fn, shared_policy_config
 from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 
 BRAKE = np.array([0.0, -1.0], np.float32)
 SPIN = np.array([1.0, 1.0], np.float32)  # full steering and full throttle: leaves the road
@@ -41,7 +42,7 @@ def test_spaces_cover_every_possible_id():
     assert all(obs_space.contains(o) for o in obs.values())
 
 
-@pytest.mark.parametrize("scenario", ["intersection", "roundabout", "bottleneck"])
+@pytest.mark.parametrize("scenario", DRIVING_SCENARIOS)
 def test_rllib_env_checker_passes(scenario):
     env = CoinMultiAgentEnv({"scenario": scenario, "num_agents": 6, "horizon": 20, "max_agent_steps": 20})
     check_multiagent_environments(env)  # raises ValueError on a contract violation

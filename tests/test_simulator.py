@@ -7,6 +7,7 @@ import pytest
 
 from coin_app.sim.config import make_config
 from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 from coin_app.sim.simulator import ACTIVE, DYING, EMPTY, DrivingSimulator
 
 L = 4.515
@@ -204,7 +205,7 @@ def test_batched_env_reproduces_single_env():
 
 
 def test_observations_are_in_unit_box_under_random_driving():
-    for sc in ("intersection", "roundabout", "bottleneck"):
+    for sc in DRIVING_SCENARIOS:
         sim = DrivingSimulator(make_config(sc))
         res = sim.reset(0)
         rng = np.random.default_rng(0)

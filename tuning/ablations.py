@@ -6,6 +6,7 @@ attention-based pairwise fusion (Table B.1); ``sparse_graph`` uses a 40 m radius
 instead of the full graph (Tables B.2/B.3); ``gcn`` and ``graphsage`` replace the GAT (Table B.3).
 """
 
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 from tuning.experiment import Experiment, Scale
 
 VARIANTS = {
@@ -23,7 +24,7 @@ ABLATIONS = Experiment(
     name="ablations",
     summary="CIG-TD3 ablation variants x 8 seeds (Table 5.2, B.1-B.3)",
     methods=("cig_td3",),
-    scenarios=("intersection", "roundabout", "bottleneck"),
+    scenarios=DRIVING_SCENARIOS,
     paper=Scale(seeds=tuple(range(8)), steps=1_000_000, checkpoint_every=100, keep=2),
     smoke=Scale(seeds=(0,), steps=1000, checkpoint_every=1, keep=1),
     variants=VARIANTS,

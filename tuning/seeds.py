@@ -4,13 +4,14 @@ The reduced scale (``--scale reduced``) is the same comparison on one small mach
 4-agent scenario (``tuning.experiment.REDUCED_TD3`` / ``REDUCED_PPO``; docs/results/README.md).
 """
 
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 from tuning.experiment import Experiment, Scale
 
 SEEDS = Experiment(
     name="seeds",
     summary="methods x 8 training seeds on one scenario (Table 5.1); --algos adds the baselines",
     methods=("cig_td3",),
-    scenarios=("intersection", "roundabout", "bottleneck"),
+    scenarios=DRIVING_SCENARIOS,
     paper=Scale(seeds=tuple(range(8)), steps=1_000_000, checkpoint_every=100, keep=2),
     # TD3 family: 10 iterations = 5,000 env steps, all 8 checkpoints kept (the report's validation-seed selection picks among them)
     reduced=Scale(seeds=tuple(range(5)), steps=40_000, checkpoint_every=10, keep=8),

@@ -53,14 +53,13 @@ from coin_app.sim import schema
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenarios import config_from_dict, scenario_name
+from coin_app.sim.scenes import SCENES
 
 OUTCOMES = ("finished", "succeeded", "collided", "agent_steps", "speed_sum")  # CoinMultiAgentEnv.outcomes (module doc)
 SCENARIO_CONFIG_KEY = "scenario_config"  # env_config key of an already parsed (typed) scenario config
 ADAPTER_KEYS = ("scenario", "lcf", SCENARIO_CONFIG_KEY)  # env_config keys of the adapter itself, not of the scenario
 ENV_IDS: dict[str, str] = {
-    "coin-intersection-v0": "intersection",
-    "coin-roundabout-v0": "roundabout",
-    "coin-bottleneck-v0": "bottleneck",
+    **{s.env_id: name for name, s in SCENES.items()},
     "coin-arena-v0": "arena",
 }
 

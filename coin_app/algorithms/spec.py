@@ -20,8 +20,9 @@ from torch import nn
 from coin_app.algorithms.choices import LCF_MODES  # noqa: F401 (re-exported)
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.scenes import DRIVING_SCENARIOS as SCENE_NAMES
 
-DRIVING_SCENARIOS = ("intersection", "roundabout", "bottleneck")
+DRIVING_SCENARIOS = SCENE_NAMES  # re-exported for the algorithm packages
 
 AnyScenarioConfig = ScenarioConfig | ArenaConfig
 # (typed scenario config, the algorithm's --set values, seed) -> a validated RLlib config

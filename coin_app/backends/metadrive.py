@@ -57,15 +57,12 @@ from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.driving_env import checked_actions
 from coin_app.sim.rendering import render_frame
 from coin_app.sim.road_map import RoadMap, load_map
+from coin_app.sim.scenes import SCENES
 from coin_app.sim.sensors import local_state
 from coin_app.sim.simulator import ACTIVE, DYING, MAX_RESPAWN_PER_STEP, agent_name
 
 INSTALL_HINT = "install the optional extra: pip install -r requirements-metadrive.txt"
-ENV_CLASSES = {
-    "intersection": "MultiAgentIntersectionEnv",
-    "roundabout": "MultiAgentRoundaboutEnv",
-    "bottleneck": "MultiAgentBottleneckEnv",
-}
+ENV_CLASSES = {name: s.metadrive_class for name, s in SCENES.items()}
 FORCE_STOP_FACTOR = 5  # MetaDrive truncates every agent once the env step exceeds 5 x horizon
 RENDER_MODES = ("topdown", "metadrive_topdown")
 _OPEN: list[MetaDriveDrivingEnv] = []  # the adapter that owns this process's MetaDrive engine

@@ -43,6 +43,7 @@ import numpy as np
 from coin_app.backends.metadrive import _env_class
 from coin_app.sim.config import make_config
 from coin_app.sim.heuristic import HeuristicDriver
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 from coin_app.sim.simulator import DrivingSimulator
 
 OPEN_GROUND = (300.0, 300.0)  # far from every road of the three maps (their extents are within +-150 m)
@@ -186,7 +187,7 @@ def record_all(route_seeds: int = 3) -> dict[str, Any]:
             print(f"  {man.name}: {len(man.actions)} steps", flush=True)
     finally:
         env.close()
-    for scenario in ("intersection", "roundabout", "bottleneck"):
+    for scenario in DRIVING_SCENARIOS:
         env = _open_env(scenario)
         try:
             for seed in range(route_seeds):

@@ -7,15 +7,15 @@ from dataclasses import fields
 
 from coin_app.algorithms import registry
 from coin_app.sim.arena.config import ArenaConfig
-from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, ScenarioConfig, make_config
+from coin_app.sim.config import PRESETS, ScenarioConfig, make_config
+from coin_app.sim.scenes import SCENES
 
 
 def cmd_scenarios(args: argparse.Namespace) -> int:
     """List the scenarios, presets and every config key with its default."""
 
-    for name, n in DEFAULT_NUM_AGENTS.items():
-        cfg = make_config(name)
-        print(f"{name:<13} {n:>3} agents  obs {cfg.obs_dim}  registered as coin-{name}-v0")
+    for name, s in SCENES.items():
+        print(f"{name:<13} {s.default_vehicles:>3} agents  obs {make_config(name).obs_dim}  registered as {s.env_id}")
     print(f"presets: {', '.join(PRESETS)}")
     print("config keys (--set key=value):")
     cfg = ScenarioConfig()

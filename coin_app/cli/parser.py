@@ -7,9 +7,8 @@ from typing import Any, NoReturn
 
 from coin_app.algorithms.choices import ALGORITHM_NAMES, ARENA
 from coin_app.sim.arena.config import GENERATORS, PROTOCOLS
-from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS
-
-DRIVING = tuple(DEFAULT_NUM_AGENTS)  # the driving scenarios
+from coin_app.sim.config import PRESETS
+from coin_app.sim.scenes import DRIVING_SCENARIOS as DRIVING
 
 
 class UsageError(ValueError):

@@ -13,8 +13,9 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from coin_app.sim.road_map import MAP_NAMES
+from coin_app.sim.scenes import SCENES
 
-DEFAULT_NUM_AGENTS = {"intersection": 30, "roundabout": 40, "bottleneck": 20}
+DEFAULT_NUM_AGENTS = {name: s.default_vehicles for name, s in SCENES.items()}  # COIN Table 5.1 (sim/scenes.py)
 SPAWN_CAPACITY = 48  # MetaDrive's spawn slots per map (6 per lane of every spawn road)
 
 

@@ -17,8 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
+from coin_app.sim.scenes import DRIVING_SCENARIOS
+
 MAP_DIR = Path(__file__).parent / "maps"
-MAP_NAMES = ("intersection", "roundabout", "bottleneck")
+MAP_NAMES = DRIVING_SCENARIOS  # one map file per driving scenario (sim/scenes.py)
 SOLID_LINE_TYPES = ("ROAD_LINE_SOLID_SINGLE_WHITE", "ROAD_LINE_SOLID_SINGLE_YELLOW")
 
 
