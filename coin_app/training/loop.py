@@ -1,0 +1,210 @@
+"""The train loop: RLlib iterations until an env-step or wall-time budget or a signal, with checkpoints and one line per iteration."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import ray
+import torch
+from tensorboardX import SummaryWriter
+
+from coin_app.adapters.batched_runner import BatchedEnvRunner
+from coin_app.algorithms import registry
+from coin_app.algorithms.checkpoint_files import latest_complete
+from coin_app.algorithms.common import ProgressReporting, scenario_config_of
+from coin_app.training.checkpoints import check_resume, check_run_dir, checkpoint_meta, save
+from coin_app.training.config import build_config
+from coin_app.training.monitor import (
+    CRITIC_LOSS_KEYS,
+    EVAL_RESULT_KEY,
+    FreezeDetector,
+    RunProgress,
+    _eval_line,
+    iteration_metrics,
+    outcome_text,
+    ray_noise_to,
+)
+
+TENSORBOARD_DIR = "tensorboard"  # the iteration metrics of a train run as TensorBoard event files, in its --out
+
+
+RAY_LOG = "ray.log"  # Ray's and RLlib's log records and Python warnings of a train run, in its --out
+
+
+STOPPED_AT_BUDGET, STOPPED_AT_MAX_MINUTES = "steps", "max_minutes"  # summary["stopped"], or the name of the signal
+
+
+class StopRequest:
+    """Set by SIGTERM or SIGINT while :func:`stop_on_signal` is active: the run stops after its current iteration."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None  # the name of the first signal received
+
+
+@contextmanager
+def stop_on_signal() -> Iterator[StopRequest]:
+    """While inside (main thread), the first SIGTERM or SIGINT asks for a stop after the current iteration; a second one stops at once."""
+    request = StopRequest()
+
+    def handler(signum: int, frame: Any) -> None:  # sets the flag only: printing here could re-enter a write to stdout
+        name = signal.Signals(signum).name
+        if request.signal is not None:
+            raise KeyboardInterrupt(f"second {name}: stopping at once (the last checkpoint is kept)")
+        request.signal = name
+
+    if threading.current_thread() is not threading.main_thread():  # handlers can only be set there; signals keep their default
+        yield request
+        return
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield request
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def train(
+    name: str,
+    scenario: str,
+    steps: int,
+    seed: int,
+    overrides: dict[str, Any],
+    out: Path,
+    checkpoint_every: int = 10,
+    resume: Path | None = None,
+    log: Callable[[str], None] = print,
+    max_minutes: float | None = None,
+    threads: int = 1,
+    address: str | None = None,
+    overwrite: bool = False,
+    progress: bool | None = None,
+) -> dict[str, Any]:
+    """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end.
+
+    ``threads``: torch threads of this process (its learner and local env runner; one by default,
+    as every Ray worker gets). ``address``: a running Ray cluster to use instead of a local session
+    over all of this machine's cores. ``out`` must not hold an earlier run unless ``resume`` or
+    ``overwrite``; ``resume`` must be a complete checkpoint (or its ``.prev``, after an interrupted
+    save) of the same algorithm, scenario config and network shape. Everything is checked before
+    any work starts. ``progress``: the progress bar (``None``: on a terminal only; see ``RunProgress``).
+    """
+    if steps < 1:
+        raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
+    if max_minutes is not None and not max_minutes > 0:
+        raise ValueError(f"bad max_minutes {max_minutes}; allowed: a number > 0 or None")
+    if checkpoint_every < 1:
+        raise ValueError(f"bad checkpoint_every {checkpoint_every}; allowed: an integer >= 1")
+    if not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"bad threads {threads!r}; allowed: an integer >= 1")
+    cfg = build_config(name, scenario, overrides, seed)
+    if resume is not None:
+        found, resume_meta = latest_complete(resume)
+        if found != resume:
+            log(f"{resume} is incomplete (a save was interrupted); resuming from the previous checkpoint {found}")
+        resume = found
+        check_resume(resume, resume_meta, name, scenario, overrides)
+    check_run_dir(out, resume, overwrite)
+    spec = registry.get(name)
+    warmup = cfg.warmup_steps if "warmup_steps" in spec.hyperparameters else 0
+    if warmup and steps <= warmup:
+        log(
+            f"warning: --steps {steps} <= warmup_steps {warmup}: every action is uniform random and the networks are never "
+            f"updated (losses print nan). Train longer, or --set warmup_steps=N; small settings that learn in minutes: --quick"
+        )
+    torch.set_num_threads(threads)
+    if not ray.is_initialized():
+        ray.init(address=address or "local", include_dashboard=False, log_to_driver=False, configure_logging=False)
+        where = f"the cluster at {address}" if address else "a local session (all of this machine's cores)"
+        log(f"ray: {where} with {int(ray.cluster_resources().get('CPU', 0))} CPUs, {int(ray.cluster_resources().get('GPU', 0))} GPUs")
+    runner = "batched" if cfg.env_runner_cls is BatchedEnvRunner else "RLlib's multi_agent"
+    log(
+        f"sampling: {runner} env runner, {max(1, cfg.num_env_runners)} runner(s) x {cfg.num_envs_per_env_runner} env(s); "
+        f"learner: {'remote' if cfg.num_learners else 'in this process'}, {torch.get_num_threads()} torch thread(s) here"
+    )
+    with ray_noise_to(out / RAY_LOG):  # Ray's and RLlib's log records and warnings: a file, not the console
+        algo = cfg.build_algo()
+        if resume is not None:
+            algo.restore_from_path(str(resume.resolve()))
+            log(f"resumed from {resume}")
+        meta = checkpoint_meta(name, scenario, seed, overrides)
+        (out / "config.json").write_text(json.dumps(meta, indent=2, default=str))
+        if spec.capabilities.joint_replay:
+            agents = scenario_config_of(cfg).num_agents
+            log(f"replay: {cfg.replay_capacity:,} agent transitions, about {cfg.replay_capacity // agents:,} env steps at {agents} agents")
+        freeze = FreezeDetector(warmup)
+        board = SummaryWriter(str(out / TENSORBOARD_DIR))  # what Tune trials write too: tensorboard --logdir <out>
+        t0 = time.perf_counter()
+        start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
+        result: dict[str, Any] = {}
+        last_eval: dict[str, float] = {}
+        ckpt = out / "checkpoint"
+        bar = RunProgress(steps, start, log, progress)
+        if isinstance(algo, ProgressReporting):  # long iterations: their updates are shown as they go
+            algo.progress_callback = bar.phase
+        stopped = STOPPED_AT_BUDGET  # why the loop ended: the budget, max_minutes or a signal's name
+        saved = None  # env steps of the newest checkpoint written by this run
+
+        def save_at(env_steps: int) -> int:
+            bar.phase("saving checkpoint", 0, 0)
+            save(algo, ckpt, meta | {"env_steps": int(env_steps)})
+            return env_steps
+
+        try:
+            with stop_on_signal() as stop:
+                while sampled < steps and stop.signal is None:
+                    if max_minutes is not None and time.perf_counter() - t0 >= 60.0 * max_minutes:
+                        stopped = STOPPED_AT_MAX_MINUTES
+                        break
+                    result = algo.train()
+                    m = iteration_metrics(result)
+                    sampled = m["env_steps"]
+                    bar.advance(sampled)
+                    it = int(result["training_iteration"])
+                    elapsed = time.perf_counter() - t0
+                    critic = next((m[k] for k in CRITIC_LOSS_KEYS if k in m), np.nan)
+                    bar.say(
+                        f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
+                        f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
+                    )
+                    for key, value in m.items():
+                        if math.isfinite(value):
+                            board.add_scalar(key, value, global_step=sampled)
+                    board.flush()
+                    warning = freeze.update(m)
+                    if warning:
+                        bar.say(warning)
+                    if EVAL_RESULT_KEY in result:
+                        last_eval = result[EVAL_RESULT_KEY]
+                        bar.say(_eval_line(last_eval))
+                    if it % checkpoint_every == 0:
+                        saved = save_at(sampled)
+                if stop.signal is not None and sampled < steps:  # a signal during the last iteration changes nothing
+                    stopped = stop.signal
+                    bar.say(f"{stop.signal}: stopped after this iteration; saving a checkpoint (send it again to stop at once)")
+                if saved != sampled:  # the last iteration's periodic save already holds this state
+                    save_at(sampled)
+        finally:
+            bar.close()
+        board.close()
+        algo.stop()
+    summary = {
+        "checkpoint": str(ckpt),
+        "ray_log": str(out / RAY_LOG),
+        "tensorboard": str(out / TENSORBOARD_DIR),
+        "env_steps": sampled,
+        "iterations": int(result.get("training_iteration", 0)),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "eval": last_eval,
+        "stopped": stopped,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
