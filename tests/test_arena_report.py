@@ -64,6 +64,7 @@ def test_evaluate_arena_puts_policies_side_by_side_and_report_rebuilds_the_page(
         assert list(table[f"{label} success"]) == list(own["success_to_goal_rate"])
         assert list(table[f"{label} step ms"]) == pytest.approx(list(own["step_time_s"] * 1e3))
         assert len(list((out / label / "plots").glob("*.png"))) == 2  # one per case
+        assert len(list((out / label / "plots").glob("*.html"))) == 2  # and its replay page
     # a lone vehicle on an empty arena: the scripted driver parks it (the suite's documented 1x0 result)
     assert table.loc[0, "heuristic success"] == 1.0 and table.loc[0, "heuristic collisions/m"] == 0.0
     assert list(table["paper success"]) == [PAPER_TABLE_I[(1, 0)][0], PAPER_TABLE_I[(2, 0)][0]]

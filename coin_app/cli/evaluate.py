@@ -131,7 +131,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     module = load_module(checkpoint)
     actor, reference, extra = export_actor(module)
     keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
-    out = export_policy(actor, args.out, args.format, meta=keep | extra | {"checkpoint": str(checkpoint.resolve())})
+    # the checkpoint as named on the command line: a relative path stays relative (no machine path in a shipped file)
+    out = export_policy(actor, args.out, args.format, meta=keep | extra | {"checkpoint": str(checkpoint)})
     exported = load_policy(out)
     obs = np.random.default_rng(0).uniform(0.0, 1.0, (256, exported.obs_dim)).astype(np.float32)
     gap = float(np.abs(reference(obs) - exported(obs)).max())
@@ -208,9 +209,9 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
         (where / "arena_table.md").write_text(header + markdown_table(summary))
         if args.plots:
             plots = plot_scenarios(
-                source, cases, args.plots, where / "plots", args.max_steps, args.protocol, args.generator, args.observed_entities
+                source, cases, args.plots, where / "plots", args.max_steps, args.protocol, args.generator, args.observed_entities, True
             )
-            print(f"  trajectory plots: {len(plots)} in {where / 'plots'}")
+            print(f"  trajectory plots and replay pages (.html, open in a browser): {len(plots)} in {where / 'plots'}")
     settings = {
         "policies": list(args.policy),
         "folders": folders,

@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ea.add_argument("--workers", type=int, default=2, help="worker processes (one CPU thread each)")
     ea.add_argument("--out", default="runs/arena_eval", help="output directory")
-    ea.add_argument("--plots", type=int, default=0, help="trajectory plots of the first K test scenarios of each case")
+    ea.add_argument("--plots", type=int, default=0, help="trajectory plots and replay pages of the first K test scenarios of each case")
     ea.set_defaults(run="evaluate.cmd_evaluate_arena")
 
     sw = sub.add_parser("sweep", help="run (or --resume) a Ray Tune sweep: seeds | ablations | generalization")

@@ -51,6 +51,7 @@ from coin_app.sim.arena.env import ArenaEnv, arena_metrics
 from coin_app.sim.arena.generator import PAPER_CASES, generate, heldout_rng
 from coin_app.sim.arena.heuristic import DRIVERS
 from coin_app.sim.arena.rendering import ArenaTrace, plot_arena_episode
+from coin_app.sim.arena.replay import write_arena_replay
 from coin_app.sim.dynamics import wrap_angle
 
 # the A-GNN protocol's early stop (Ma et al. 2023): every vehicle moved < 0.05 m and turned < 0.1 rad in total over the last 10 states
@@ -252,8 +253,10 @@ def plot_scenarios(
     protocol: str = "arena",
     generator: str = "agnn",
     observed: int | None = None,
+    replays: bool = False,
 ) -> list[Path]:
-    """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores)."""
+    """Trajectory plots of the first ``count`` test scenarios of each case (the same episodes the suite scores), and with
+    ``replays`` an HTML replay page of each beside its plot (``coin_app.sim.arena.replay``)."""
 
     policy = load_arena_policy(source)
     cfg = policy_config(policy, max_steps, protocol, generator, observed)
@@ -267,6 +270,8 @@ def plot_scenarios(
                 f"{n} vehicles, {m} obstacles, test scenario {k}: success {res['success_to_goal_rate']:.2f}, {res['collisions']} collisions"
             )
             paths.append(plot_arena_episode(trace, out / f"arena_{n}x{m}_{k}.png", title))
+            if replays:
+                paths.append(write_arena_replay(trace, out / f"arena_{n}x{m}_{k}.html", title=title))
     return paths
 
 
