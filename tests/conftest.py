@@ -19,6 +19,7 @@ FILE_CLASS: dict[str, str] = {
             "test_checkpoints.py",
             "test_cig_td3_algorithm.py",
             "test_cig_td3_learning.py",
+            "test_metadrive_env.py",  # slow: each test over ~1 s (see TEST_CLASS)
             "test_metadrive_rllib.py",
             "test_ppo_critic_inputs.py",
             "test_reproducible.py",
@@ -34,7 +35,6 @@ FILE_CLASS: dict[str, str] = {
             "test_cig_td3_precision.py",
             "test_cig_td3_replay.py",
             "test_evaluate.py",
-            "test_metadrive_env.py",
             "test_ppo_precision.py",
             "test_rollout.py",
             "test_traco_learner.py",
@@ -43,6 +43,7 @@ FILE_CLASS: dict[str, str] = {
     ),
 }
 TEST_CLASS: dict[str, str] = {
+    # e2e by what they do: train, sweep, start Ray (ray_session), run a coin_app process that trains or evaluates, kill
     **dict.fromkeys(
         (
             "test_arena.py::test_the_committed_pair_loads_without_ray_and_parks_lone_vehicles",
@@ -84,13 +85,88 @@ TEST_CLASS: dict[str, str] = {
         ),
         "e2e",
     ),
+    # slow: over ~1 s a test (2-core machine shared with training runs, 2026-11-29), so that -m "not e2e" stays under 2 minutes
     **dict.fromkeys(
         (
+            "test_agnn.py::test_evaluate_arena_runs_the_agnn",
+            "test_agnn.py::test_suite_runs_the_agnn_in_its_physics_under_both_protocols",
+            "test_agnn.py::test_u_attention_matches_the_edge_by_edge_formula",
+            "test_architecture.py::test_function_level_imports_name_their_reason",
+            "test_architecture.py::test_layers_import_only_downward",
+            "test_architecture.py::test_no_import_cycles",
+            "test_architecture.py::test_nothing_but_main_imports_the_cli",
+            "test_architecture.py::test_sim_and_inference_import_without_ray_and_inference_without_torch",
+            "test_arena.py::test_avoiding_driver_collides_less_than_the_plain_one_among_obstacles",
+            "test_arena.py::test_candidate_features_are_the_capped_clearances_of_rolling_out_every_candidate_against_every_entity",
+            "test_arena.py::test_generator_guarantees",
+            "test_arena.py::test_heuristic_parks_a_lone_vehicle_every_time",
+            "test_arena.py::test_planning_driver_beats_the_avoiding_one_among_vehicles",
+            "test_arena.py::test_several_entities_see_more_and_the_suite_observes_what_a_policy_was_trained_on",
+            "test_arena.py::test_short_generator_starts_near_the_targets",
+            "test_arena.py::test_test_sets_are_fixed_and_disjoint_from_training",
+            "test_arena_report.py::test_evaluate_arena_puts_policies_side_by_side_and_report_rebuilds_the_page",
+            "test_bad_inputs.py::test_every_algorithm_key_refuses_inf_nan_and_wrong_types_through_train",
+            "test_batched_runner.py::test_arena_transitions_equal_rllib_runner",
+            "test_batched_runner.py::test_driving_batch_of_envs_equals_single_env_runners",
+            "test_batched_runner.py::test_driving_transitions_equal_rllib_runner",
             "test_cig_td3_device.py::test_update_and_exploration_create_tensors_on_the_module_device",
+            "test_cig_td3_learner.py::test_a_checkpoint_saved_before_the_fused_adam_resumes_with_it",
+            "test_cig_td3_learner.py::test_actor_has_three_hidden_layers_of_hidden_units",
+            "test_cig_td3_learner.py::test_actor_step_does_not_touch_critics",
+            "test_cig_td3_learner.py::test_actor_waits_actor_start_steps_after_the_warm_up",
+            "test_cig_td3_learner.py::test_each_ablation_switch_changes_only_what_it_names",
+            "test_cig_td3_learner.py::test_exploration_noise_decays_linearly_after_the_warm_up",
+            "test_cig_td3_learner.py::test_gradient_step_matches_rllibs_with_finite_and_non_finite_gradients",
+            "test_cig_td3_learner.py::test_learner_state_round_trip_continues_identically",
+            "test_cig_td3_learner.py::test_learning_rates_decay_linearly_on_the_env_step_schedule",
+            "test_cig_td3_learner.py::test_policy_delay_and_target_updates",
+            "test_cig_td3_learner.py::test_same_seed_same_losses_for_50_updates",
+            "test_cig_td3_learner.py::test_without_a_decay_the_learning_rates_stay_constant",
+            "test_cig_td3_networks.py::test_gradcheck_in_double_precision",
+            "test_cig_td3_precision.py::test_bf16_losses_and_gradients_agree_with_fp32",
+            "test_cig_td3_replay.py::test_eviction_never_yields_overwritten_data",
+            "test_cig_td3_replay.py::test_memory_is_proportional_to_what_is_stored",
+            "test_cig_td3_replay.py::test_real_env_runner_stream_matches_the_env_log",
+            "test_cig_td3_replay.py::test_rings_growing_from_a_few_rows_store_sample_evict_and_checkpoint_exactly",
             "test_cli.py::test_demo_compares_two_policies_on_one_seed",
+            "test_cli.py::test_demo_writes_metrics_gif_and_plot",
+            "test_cli.py::test_parsing_and_refusals_import_neither_ray_nor_torch",
+            "test_critic_probe.py::test_probe_weighs_the_global_critic_as_the_actor_does",
+            "test_evaluate.py::test_batched_evaluation_equals_sequential_runs",
+            "test_evaluate.py::test_evaluation_is_repeatable_and_seed_sets_are_disjoint",
+            "test_export_formats.py::test_loading_needs_no_ray",
+            "test_heuristic.py::test_batched_outcomes_equal_one_env_at_a_time",
+            "test_heuristic.py::test_driver_as_rollout_policy_equals_its_dict_actions",
+            "test_heuristic.py::test_single_vehicle_arrives_in_at_least_99_percent_of_200_spawns",
+            "test_nav_ppo.py::test_short_generator_scores_the_parking_stages_starts_on_the_held_out_seeds",
+            "test_nav_ppo.py::test_suite_is_deterministic_and_its_summary_aggregates_by_hand",
+            "test_parking_options.py::test_dagger_rounds_add_the_clones_own_states_labelled_by_the_driver",
+            "test_parking_options.py::test_demonstrations_label_every_driving_row_with_the_drivers_own_action",
+            "test_parking_options.py::test_intervention_weights_mark_exactly_the_rows_the_filter_changed",
+            "test_parking_options.py::test_lone_fraction_mixes_in_single_vehicle_episodes_and_leaves_the_default_stream_unchanged",
             "test_ppo_device.py::test_an_update_creates_tensors_on_the_module_device",
+            "test_ppo_precision.py::test_bf16_losses_and_gradients_agree_with_fp32",
+            "test_ppo_precision.py::test_the_sgd_steps_run_in_the_configured_precision_and_the_rest_in_fp32",
+            "test_ppo_reference.py::test_a_copo_export_reproduces_the_checkpoints_per_vehicle_draws",
+            "test_ppo_reference.py::test_the_rollout_names_every_row_by_its_episode_seed_and_agent_id",
+            "test_rendering.py::test_trajectory_plot_marks_a_vehicle_that_never_moved",
+            "test_rendering.py::test_write_gif_has_every_frame",
+            "test_rllib_env.py::test_outcome_counts_match_the_episode_metrics",
+            "test_rollout.py::test_batched_and_dict_paths_equal_a_hand_written_loop",
+            "test_rollout.py::test_stops_when_every_episode_is_over",
+            "test_shipped.py::test_the_shipped_arena_pair_parks_lone_vehicles_as_recorded",
+            "test_simulator.py::test_batched_env_reproduces_single_env",
+            "test_simulator.py::test_observations_are_in_unit_box_under_random_driving",
+            "test_simulator.py::test_same_seed_same_episode_and_different_seed_differs",
+            "test_sweeps.py::test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings",
+            "test_traco_learner.py::test_actor_step_does_not_touch_critics",
+            "test_traco_learner.py::test_each_switch_builds_and_trains",
+            "test_traco_learner.py::test_learner_state_round_trip_continues_identically",
+            "test_traco_learner.py::test_policy_delay_and_target_updates",
+            "test_traco_learner.py::test_same_seed_same_losses_for_50_updates",
+            "test_vehicle_replay.py::test_recorder_reproduces_the_shipped_traces",
         ),
-        "integration",
+        "e2e",
     ),
 }
 
@@ -105,7 +181,10 @@ def pytest_collection_modifyitems(config, items):
         file, name = item.path.name, getattr(item, "originalname", item.name)
         if any(item.get_closest_marker(s) for s in SPEED_CLASSES):
             raise pytest.UsageError(f"{item.nodeid}: a speed class is set only in tests/conftest.py's FILE_CLASS / TEST_CLASS")
-        item.add_marker(TEST_CLASS.get(f"{file}::{name}", FILE_CLASS.get(file, "unit")))
+        speed = TEST_CLASS.get(f"{file}::{name}", FILE_CLASS.get(file, "unit"))
+        if "ray_session" in getattr(item, "fixturenames", ()) and speed != "e2e":
+            raise pytest.UsageError(f"{item.nodeid} starts Ray (ray_session): its speed class is e2e, not {speed}")
+        item.add_marker(speed)
         modules.setdefault(file, getattr(item, "module", None))
     for key in TEST_CLASS:
         file, name = key.split("::")
