@@ -43,3 +43,19 @@ def learner_update(learner, batch, env_steps=0):
 def scalar(value):
     """A logged metric (a Stats object or a number) as a float."""
     return float(value.peek()) if hasattr(value, "peek") else float(value)
+
+
+# ----------------------------------------------------------------------------- the tiny scale of every algorithm
+def tiny(algo, scenario=None, **extra):
+    """(scenario, settings) of ``algo`` at the smallest scale (``registry.tiny_settings``: the tiny scenario and the
+    spec's ``tiny``) on ``scenario`` (default: the algorithm's first), with ``extra`` settings on top."""
+    from coin_app.algorithms import registry
+
+    scenario = scenario or registry.get(algo).scenarios[0]
+    return scenario, {**registry.tiny_settings(algo, scenario), **extra}
+
+
+def tiny_cli(algo, scenario=None, **extra):
+    """The ``--scenario`` and ``--set`` arguments of ``coin-app train --algo algo`` at the tiny scale (see ``tiny``)."""
+    scenario, settings = tiny(algo, scenario, **extra)
+    return ["--scenario", scenario, "--set", *(f"{k}={v}" for k, v in settings.items())]

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from fixtures import tiny_cli
 
 from coin_app.algorithms.checkpoint_files import (
     MANIFEST_FILE,
@@ -124,8 +125,7 @@ def torn_copies(good: Path, tmp: Path) -> dict[str, Path]:
     return out
 
 
-TINY = ["--scenario", "bottleneck", "--num-agents", "3", "--set", "horizon=40", "max_agent_steps=40", "warmup_steps=60"]
-TINY += ["train_batch_size_per_learner=16", "hidden=16", "eval_every=0", "--checkpoint-every", "1"]
+TINY = [*tiny_cli("itd3", "bottleneck"), "--checkpoint-every", "1"]
 
 
 @pytest.fixture(scope="module")
@@ -134,6 +134,7 @@ def trained(tmp_path_factory):
     import ray
 
     out = tmp_path_factory.mktemp("ckpt") / "run"
+    ray.shutdown()  # train starts its own Ray
     try:
         assert main(["train", "--algo", "itd3", "--steps", "120", "--out", str(out), *TINY]) == 0
     finally:
@@ -204,7 +205,7 @@ def test_train_refuses_an_existing_run_and_a_mismatched_resume(trained, tmp_path
     assert not (tmp_path / "new").exists()
 
 
-def test_resume_falls_back_to_the_previous_checkpoint_after_an_interrupted_rename(trained, tmp_path, capsys):
+def test_resume_falls_back_to_the_previous_checkpoint_after_an_interrupted_rename(no_ray, trained, tmp_path, capsys):
     import ray
 
     run = tmp_path / "run"

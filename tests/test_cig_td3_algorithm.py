@@ -2,39 +2,19 @@
 
 import numpy as np
 import pytest
-import ray
 import torch
+from fixtures import tiny
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
-from coin_app.algorithms import registry
 from coin_app.training import build_config
 
 torch.set_num_threads(1)
-TINY = {
-    "num_agents": 3,
-    "horizon": 40,
-    "max_agent_steps": 40,
-    "warmup_steps": 60,
-    "train_batch_size_per_learner": 16,
-    "hidden": 16,
-    "latent_dim": 4,
-    "node_width": 8,
-    "policy_delay": 2,
-    "eval_every": 2,
-    "eval_episodes": 2,
-}
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ray_session():
-    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-    yield
-    ray.shutdown()
+pytestmark = pytest.mark.usefixtures("ray_session")
+EVALUATING = {"eval_every": 2, "eval_episodes": 2}  # the tiny scale with a periodic evaluation every second iteration
 
 
 def tiny_algo(seed=0, algo="cig_td3", **extra):
-    keys = set(registry.keys(algo)) | set(registry.scenario_keys("bottleneck"))
-    settings = {k: v for k, v in {**TINY, **extra}.items() if k in keys}  # TraCo has no CVAE / GAT widths
+    _, settings = tiny(algo, "bottleneck", **{**EVALUATING, **extra})
     cfg = build_config(algo, "bottleneck", settings, seed).reporting(min_sample_timesteps_per_iteration=50)
     return cfg.build_algo()
 

@@ -14,7 +14,6 @@ steps and 25.5 at 2,000).
 import copy
 
 import numpy as np
-import ray
 import torch
 
 from coin_app.algorithms.registry import QUICK_SETTINGS
@@ -24,12 +23,10 @@ from coin_app.sim.seeds import eval_test_seeds, validation_seeds
 from coin_app.training import build_config, evaluate_algorithm
 
 
-def test_cig_td3_beats_random_policy():
-    torch.set_num_threads(1)
-    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+def test_cig_td3_beats_random_policy(ray_session):
+    cfg = build_config("cig_td3", "bottleneck", QUICK_SETTINGS, seed=0).reporting(min_sample_timesteps_per_iteration=500)
+    algo = cfg.build_algo()
     try:
-        cfg = build_config("cig_td3", "bottleneck", QUICK_SETTINGS, seed=0).reporting(min_sample_timesteps_per_iteration=500)
-        algo = cfg.build_algo()
         actor = algo.learner_group._learner.module["shared"].unwrapped().actor
         untrained = copy.deepcopy(actor)
         best, best_state = -np.inf, None
@@ -39,9 +36,8 @@ def test_cig_td3_beats_random_policy():
             score = evaluate_algorithm(algo, validation_seeds(6))["episode_return"]
             if score > best:
                 best, best_state = score, copy.deepcopy(actor.state_dict())
-        algo.stop()
     finally:
-        ray.shutdown()
+        algo.stop()
     actor.load_state_dict(best_state)
 
     def deterministic(net):

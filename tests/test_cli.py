@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+from fixtures import tiny_cli
 from PIL import Image
 
 from coin_app.algorithms.checks import parse_overrides
@@ -91,11 +92,10 @@ def test_parse_overrides_literals():
     }
 
 
-TINY_TRAIN = ["--scenario", "bottleneck", "--num-agents", "3", "--set", "horizon=40", "max_agent_steps=40", "warmup_steps=60"]
-TINY_TRAIN += ["train_batch_size_per_learner=16", "hidden=16", "eval_every=0", "--checkpoint-every", "1"]
+TINY_TRAIN = [*tiny_cli("itd3", "bottleneck"), "--checkpoint-every", "1"]
 
 
-def test_train_evaluate_and_resume(tmp_path, capsys):
+def test_train_evaluate_and_resume(no_ray, tmp_path, capsys):
     import ray
 
     out = tmp_path / "run"

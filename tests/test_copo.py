@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from fixtures import NO_BRAKES
+from fixtures import NO_BRAKES, tiny
 from ray.rllib.core.rl_module.rl_module import RLModule
 
 from coin_app.adapters.batched_runner import BatchedEnvRunner
@@ -41,14 +41,7 @@ from coin_app.sim.road_map import load_map
 from coin_app.training import build_config
 
 RESPAWNING = {"num_agents": 5, "horizon": 60, "max_agent_steps": 60, "delay_done": 0, "dynamics": NO_BRAKES}
-TINY = {
-    **RESPAWNING,
-    "train_batch_size_per_learner": 100,
-    "rollout_fragment_length": 50,
-    "minibatch_size": 50,
-    "num_epochs": 2,
-    "hidden": 16,
-}
+TINY = {**tiny("copo")[1], **RESPAWNING}  # CoPO's tiny scale on the respawning scenario
 
 
 # ---------------------------------------------------------------- LCFs in the env

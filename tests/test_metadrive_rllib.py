@@ -8,8 +8,6 @@ import pytest
 
 pytest.importorskip("metadrive", reason="the optional MetaDrive extra is not installed (pip install -r requirements-metadrive.txt)")
 
-import ray  # noqa: E402
-import torch  # noqa: E402
 from ray.rllib.algorithms.ppo import PPOConfig  # noqa: E402
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig  # noqa: E402
 
@@ -23,12 +21,8 @@ SMALL = {"backend": "metadrive", "num_agents": 4, "horizon": 40, "max_agent_step
 
 
 @pytest.fixture(scope="module", autouse=True)
-def ray_session():
-    torch.set_num_threads(1)
-    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+def envs(ray_session):
     register_envs()
-    yield
-    ray.shutdown()
 
 
 def test_ppo_two_iterations_on_metadrive():

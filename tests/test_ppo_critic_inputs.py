@@ -4,8 +4,6 @@ import copy
 
 import numpy as np
 import pytest
-import ray
-import torch
 from fixtures import NO_BRAKES
 
 from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS, CriticInputs
@@ -19,18 +17,15 @@ SETTINGS |= {"minibatch_size": 50, "num_epochs": 1, "hidden": 8}
 
 
 @pytest.fixture(scope="module")
-def sampled():
+def sampled(ray_session):
     """Sampled episodes, and the train batch the CPPO learner's connector pipeline makes of them."""
-    torch.set_num_threads(1)
-    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    algo = build_config("cppo", "intersection", SETTINGS, 0).build_algo()
     try:
-        algo = build_config("cppo", "intersection", SETTINGS, 0).build_algo()
         eps = algo.env_runner.sample(num_timesteps=150, random_actions=True)
         learner = algo.learner_group._learner
         batch = learner._learner_connector(rl_module=learner.module, batch={}, episodes=copy.deepcopy(eps), shared_data={})
-        algo.stop()
     finally:
-        ray.shutdown()
+        algo.stop()
     return eps, batch["shared"]
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 from device_audit import CreationAudit
+from fixtures import tiny
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 import coin_app.algorithms.copo as copo_package
@@ -17,9 +18,8 @@ from coin_app.training import build_config
 torch.set_num_threads(1)
 # the PPO family's learners, connector pieces, losses and modules, and this file for the self-check
 AUDITED = tuple(Path(p.__file__).parent for p in (ppo_family_package, copo_package, nav_ppo_package)) + (Path(__file__).parent,)
-DRIVING = {"num_agents": 3, "horizon": 40, "max_agent_steps": 40, "train_batch_size_per_learner": 100, "rollout_fragment_length": 50}
-DRIVING |= {"minibatch_size": 50, "num_epochs": 1, "hidden": 16}
-ARENA = {"train_batch_size_per_learner": 100, "minibatch_size": 50, "num_epochs": 1, "hidden": 16, "max_steps": 40}
+DRIVING = {**tiny("ippo")[1], "num_epochs": 1}  # the tiny scale, one epoch
+_, ARENA = tiny("nav_ppo")
 SETTINGS = {"ippo": DRIVING, "cppo": DRIVING, "copo": DRIVING, "nav_ppo": ARENA}
 # what each update creates from no input tensor (the audit's own check that it looked): the KL of a run without the KL
 # term, the critic inputs and CoPO's columns (numpy -> the batch's device), CoPO's gradient dot product

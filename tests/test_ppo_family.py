@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 import torch
+from fixtures import tiny
 from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 
 from coin_app.algorithms.checkpoints import actor_module, load_module
@@ -80,8 +81,7 @@ def test_clipped_value_loss_by_hand():
     assert clipped_value_loss(v, v_old, r, clip=100.0).item() == pytest.approx((1 + 0 + 25) / 3)
 
 
-TINY = {"num_agents": 3, "horizon": 40, "max_agent_steps": 40, "train_batch_size_per_learner": 100}
-TINY |= {"minibatch_size": 50, "num_epochs": 2, "rollout_fragment_length": 50, "hidden": 16}
+_, TINY = tiny("ippo")  # the PPO family's tiny scale (IPPO, CPPO, MFPO and CoPO share it)
 
 
 def test_ippo_trains_with_the_paper_hyperparameters(ray_session):

@@ -8,7 +8,7 @@ import zlib
 import numpy as np
 import pytest
 import torch
-from fixtures import NO_BRAKES
+from fixtures import NO_BRAKES, tiny
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
 from ray.rllib.evaluation.postprocessing import Postprocessing
@@ -107,7 +107,7 @@ def test_kl_coefficient_follows_the_hand_computed_sequence(signal):
 
 
 def test_a_training_update_adapts_the_kl_coefficient_to_its_last_epoch_mean(ray_session):
-    settings = {**TINY, "train_batch_size_per_learner": 100, "rollout_fragment_length": 50, "minibatch_size": 50, "num_epochs": 2}
+    _, settings = tiny("ippo", "intersection")
     algo = build_config("ippo", "intersection", settings, 0).build_algo()
     try:
         learner = algo.learner_group._learner

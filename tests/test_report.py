@@ -8,7 +8,6 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-import ray
 
 from coin_app.cli import main
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
@@ -20,14 +19,10 @@ METRIC_COLUMNS = [c for c in RESULT_COLUMNS if c != "wall_time_s"]
 
 
 @pytest.fixture(scope="module")
-def sweep_dir(tmp_path_factory):
+def sweep_dir(ray_session, tmp_path_factory):
     """A finished smoke generalization sweep of CIG-TD3 and IPPO (seed 0, 1000 env steps, counts 2 and 4)."""
     storage = tmp_path_factory.mktemp("sweeps")
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-    try:
-        assert main(["sweep", "generalization", "--smoke", "--algos", "cig_td3", "ippo", "--storage", str(storage)]) == 0
-    finally:
-        ray.shutdown()
+    assert main(["sweep", "generalization", "--smoke", "--algos", "cig_td3", "ippo", "--storage", str(storage)]) == 0
     return storage / "generalization-intersection-smoke"
 
 

@@ -3,8 +3,6 @@
 import math
 
 import pytest
-import ray
-import torch
 from fixtures import NO_BRAKES
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
@@ -24,13 +22,9 @@ TOGETHER_CONFIG = {"num_agents": NUM_AGENTS, "horizon": 40, "max_agent_steps": 2
 TRAIN_BATCH = 200
 
 
-@pytest.fixture(scope="module")
-def ray_session():
-    torch.set_num_threads(1)
-    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
+@pytest.fixture(scope="module", autouse=True)
+def envs():
     register_envs()
-    yield
-    ray.shutdown()
 
 
 @pytest.mark.parametrize("case", ["respawn", "together"])

@@ -114,7 +114,7 @@ def test_gpu_learner_settings_make_each_trial_reserve_a_gpu():
             validate_trials(get_experiment("seeds").param_space("intersection", methods=(algo,), overrides=overrides))
 
 
-def test_gpu_sweep_on_a_local_ray_without_enough_gpus_is_refused(local_ray, tmp_path, capsys):
+def test_gpu_sweep_on_a_local_ray_without_enough_gpus_is_refused(ray_session, tmp_path, capsys):
     more = int(ray.cluster_resources().get("GPU", 0)) + 1  # more GPUs than this machine has, whatever it has
     with pytest.raises(ValueError, match=f"each trial reserves {more} GPU"):
         check_local_gpus(float(more), started_here=False)
@@ -236,14 +236,6 @@ def test_address_probe_accepts_a_listening_port():
     check_address("auto")
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    """One local Ray for the in-process sweeps of this module (2 CPUs: two trials at once)."""
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-    yield
-    ray.shutdown()
-
-
 def test_trial_files_caught_mid_write_are_handled_and_corrupt_ones_named(tmp_path):
     exp = tmp_path / "sweep"
     (exp / "a").mkdir(parents=True)
@@ -263,7 +255,7 @@ def test_trial_files_caught_mid_write_are_handled_and_corrupt_ones_named(tmp_pat
         load_trials(exp)
 
 
-def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(local_ray, tmp_path, capsys, monkeypatch):
+def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(ray_session, tmp_path, capsys, monkeypatch):
     storage = tmp_path / "sweeps"
     argv = ["sweep", "seeds", "--scale", "reduced", "--algos", "cig_td3", "copo", "--seeds", "3", "--steps", "600"]
     assert main([*argv, "--storage", str(storage)]) == 0
@@ -297,7 +289,7 @@ def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(local_ray, tmp_path, 
     assert json.dumps([[r[k] for k in keys] for r in new.results]) == json.dumps([[r[k] for k in keys] for r in old.results])
 
 
-def test_ablations_smoke_sweep_end_to_end(local_ray, tmp_path, capsys):
+def test_ablations_smoke_sweep_end_to_end(ray_session, tmp_path, capsys):
     storage = tmp_path / "sweeps"
     assert main(["sweep", "ablations", "--smoke", "--storage", str(storage)]) == 0
     out = capsys.readouterr().out
@@ -320,7 +312,7 @@ def test_ablations_smoke_sweep_end_to_end(local_ray, tmp_path, capsys):
 @pytest.mark.skipif(
     any(importlib.util.find_spec(p) is None for p in ("wandb", "mlflow")), reason="optional trackers: pip install wandb mlflow-skinny"
 )
-def test_sweep_logs_every_trial_to_wandb_offline_and_an_mlflow_store(local_ray, tmp_path, capsys, monkeypatch):
+def test_sweep_logs_every_trial_to_wandb_offline_and_an_mlflow_store(ray_session, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("WANDB_MODE", "offline")  # no network: W&B writes its run files locally
     monkeypatch.setenv("WANDB_SILENT", "true")
     monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")  # MLflow 3 wants a database; a directory store is enough here

@@ -32,6 +32,11 @@ if tuple(ALGORITHMS) != ALGORITHM_NAMES:  # the CLI parses --algo from the Ray-f
 QUICK_SCENARIO: dict[str, Any] = {"num_agents": 4, "horizon": 300, "max_agent_steps": 300}
 QUICK_SETTINGS: dict[str, Any] = {**QUICK_SCENARIO, **CIG_TD3.quick}  # CIG-TD3 / ITD3 on the quick scenario
 
+# The smallest settings that build, update and checkpoint in seconds (the tests' tiny runs, tests/fixtures.py): short
+# episodes of a few vehicles (the arena: its short step limit), plus each spec's ``tiny`` (small networks and batches).
+TINY_SCENARIO: dict[str, Any] = {"num_agents": 3, "horizon": 40, "max_agent_steps": 40}
+TINY_ARENA: dict[str, Any] = {"max_steps": 40}
+
 
 # --set keys of every algorithm: how it samples (the algorithm's own keys say how much)
 RUNNER_KEYS: dict[str, tuple[Any, str]] = {
@@ -104,6 +109,13 @@ def split_run_settings(algo_cfg: dict[str, Any]) -> RunSettings:
 def quick_settings(name: str) -> dict[str, Any]:
     """Settings of algorithm ``name`` on the small quick scenario (learning test, learning curves)."""
     return {**QUICK_SCENARIO, **get(name).quick}
+
+
+def tiny_settings(name: str, scenario: str | None = None) -> dict[str, Any]:
+    """Settings of algorithm ``name`` at the smallest scale on ``scenario`` (default: its first): the tiny scenario and its ``tiny``."""
+    spec = get(name)
+    scenario = scenario or spec.scenarios[0]
+    return {**(TINY_ARENA if scenario == "arena" else TINY_SCENARIO), **spec.tiny}
 
 
 def scenario_keys(scenario: str) -> set[str]:

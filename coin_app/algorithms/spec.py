@@ -55,6 +55,8 @@ class AlgorithmSpec:
     capabilities: Capabilities
     scenarios: tuple[str, ...] = DRIVING_SCENARIOS
     quick: Mapping[str, Any] = field(default_factory=dict)  # hyper-parameters of the small quick scenario
+    # the smallest settings that build, update and checkpoint in seconds (tests; registry.tiny_settings adds the scenario's)
+    tiny: Mapping[str, Any] = field(default_factory=dict)
     # scenario values the algorithm sets beneath the user's --set (nav_ppo's stage mix), from its --set values
     scenario_defaults: Callable[[Mapping[str, Any]], dict[str, Any]] = _no_scenario_defaults
 

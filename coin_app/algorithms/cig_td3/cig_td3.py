@@ -437,6 +437,18 @@ QUICK_TD3: dict[str, Any] = {
 }
 
 
+# CIG-TD3 / ITD3 at the smallest scale (registry.tiny_settings: tests that build, update and checkpoint in seconds)
+TINY_TD3: dict[str, Any] = {
+    "warmup_steps": 60,
+    "train_batch_size_per_learner": 16,
+    "hidden": 16,
+    "latent_dim": 4,
+    "node_width": 8,
+    "policy_delay": 2,
+    "eval_every": 0,
+}
+
+
 def _builder(itd3: bool) -> Any:
     """The config builder of CIG-TD3 (``itd3=False``) or ITD3."""
 
@@ -461,6 +473,7 @@ CIG_TD3 = AlgorithmSpec(
     build=_builder(itd3=False),
     capabilities=Capabilities(on_policy=False, centralized_critic=True, joint_replay=True, periodic_evaluation=True),
     quick=QUICK_TD3,
+    tiny=TINY_TD3,
 )
 ITD3 = dataclasses.replace(  # the same algorithm without the centralized critic
     CIG_TD3,

@@ -29,6 +29,7 @@ from coin_app.algorithms.copo.learner import CoPOLearner
 from coin_app.algorithms.copo.rl_module import CoPOModule
 from coin_app.algorithms.ppo_family.config import (
     HYPERPARAMETERS,
+    TINY_PPO,
     checked,
     driving_scenario,
     learner_options,
@@ -117,4 +118,5 @@ COPO = AlgorithmSpec(
     # the neighbour and global value heads learn from the other agents' rewards
     capabilities=Capabilities(on_policy=True, centralized_critic=True, joint_replay=False),
     quick={"hidden": 64},
+    tiny=TINY_PPO,
 )

@@ -226,6 +226,9 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     return shared_policy_config(config)
 
 
+# the smallest scale (registry.tiny_settings, which adds the arena's short episodes): one epoch of two minibatches
+TINY_NAV_PPO: dict[str, Any] = {"train_batch_size_per_learner": 100, "minibatch_size": 50, "num_epochs": 1, "hidden": 16}
+
 NAV_PPO = AlgorithmSpec(
     name="nav_ppo",
     description="seed-2 paper: PPO-Clip navigation (--set stage=long) and parking (stage=short) policies on the arena",
@@ -234,5 +237,6 @@ NAV_PPO = AlgorithmSpec(
     capabilities=Capabilities(on_policy=True, centralized_critic=False, joint_replay=False),
     scenarios=("arena",),
     quick={"hidden": 64},
+    tiny=TINY_NAV_PPO,
     scenario_defaults=stage_scenario,
 )

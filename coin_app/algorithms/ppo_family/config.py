@@ -195,6 +195,15 @@ def build_mfpo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: 
 PPO_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=False, joint_replay=False)
 CENTRAL_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=True, joint_replay=False)
 
+# the smallest scale (registry.tiny_settings): two sampling chunks of 50 env steps, two epochs of two minibatches
+TINY_PPO: dict[str, Any] = {
+    "train_batch_size_per_learner": 100,
+    "rollout_fragment_length": 50,
+    "minibatch_size": 50,
+    "num_epochs": 2,
+    "hidden": 16,
+}
+
 IPPO = AlgorithmSpec(
     name="ippo",
     description="IPPO: PPO with one shared policy, value on the own observation",
@@ -202,6 +211,7 @@ IPPO = AlgorithmSpec(
     build=build_ippo_config,
     capabilities=PPO_CAPABILITIES,
     quick={"hidden": 64},
+    tiny=TINY_PPO,
 )
 CPPO = AlgorithmSpec(
     name="cppo",
@@ -210,6 +220,7 @@ CPPO = AlgorithmSpec(
     build=build_cppo_config,
     capabilities=CENTRAL_CAPABILITIES,
     quick={"hidden": 64},
+    tiny=TINY_PPO,
 )
 MFPO = AlgorithmSpec(
     name="mfpo",
@@ -218,4 +229,5 @@ MFPO = AlgorithmSpec(
     build=build_mfpo_config,
     capabilities=CENTRAL_CAPABILITIES,
     quick={"hidden": 64},
+    tiny=TINY_PPO,
 )

@@ -153,6 +153,8 @@ class Traco(CigTd3):
 # the quick scenario: CIG-TD3's small settings where TraCo has the key (the freeze guard included), the baseline at the critics' rate
 QUICK_TRACO: dict[str, Any] = {k: v for k, v in cig_td3.QUICK_TD3.items() if k in HYPERPARAMETERS or k in cig_td3.RLLIB_KEYS}
 QUICK_TRACO["baseline_lr"] = cig_td3.QUICK_TD3["critic_lr"]
+# the smallest scale: CIG-TD3's tiny settings where TraCo has the key (no CVAE or GAT widths)
+TINY_TRACO: dict[str, Any] = {k: v for k, v in cig_td3.TINY_TD3.items() if k in HYPERPARAMETERS or k in cig_td3.RLLIB_KEYS}
 
 
 def build(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> TracoConfig:
@@ -172,4 +174,5 @@ TRACO = AlgorithmSpec(
     build=build,
     capabilities=Capabilities(on_policy=False, centralized_critic=True, joint_replay=True, periodic_evaluation=True),
     quick=QUICK_TRACO,
+    tiny=TINY_TRACO,
 )
