@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from coin_app.algorithms.checks import parse_overrides
 from coin_app.cli.output import CONSOLE_ROWS, format_metrics, shown
@@ -90,10 +91,17 @@ def drive(policy: Any, label: str, config: ScenarioConfig, seed: int, steps: int
     return run
 
 
-def side_by_side(columns: list[list[np.ndarray]]) -> list[np.ndarray]:
-    """Frames of several runs placed left to right (a run that ended early holds its last frame)."""
+def labelled(frame: np.ndarray, label: str) -> np.ndarray:
+    """``frame`` with ``label`` written in its bottom-left corner."""
+    image = Image.fromarray(frame)
+    ImageDraw.Draw(image).text((8, frame.shape[0] - 18), label, fill=(0, 0, 0))
+    return np.asarray(image)
+
+
+def side_by_side(columns: list[list[np.ndarray]], labels: list[str]) -> list[np.ndarray]:
+    """Frames of several runs placed left to right, each labelled (a run that ended early holds its last frame)."""
     n = max(len(c) for c in columns)
-    return [np.concatenate([c[min(k, len(c) - 1)] for c in columns], axis=1) for k in range(n)]
+    return [np.concatenate([labelled(c[min(k, len(c) - 1)], lab) for c, lab in zip(columns, labels)], axis=1) for k in range(n)]
 
 
 def metric_table(runs: list[Drive]) -> str:
@@ -135,7 +143,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     runs = [drive(s, s, config, args.seed, args.steps, gif_every, log=True) for s in sources]
     title = f"{config.scenario}, {config.num_agents} vehicles, seed {args.seed}"
     traj = plot_trajectories(runs[0].trace, runs[0].env.sim.map, out / "trajectories.png", title=f"{title}: {runs[0].label}")
-    gif = None if args.no_gif else write_gif(side_by_side([r.frames for r in runs]), out / "episode.gif", fps=10 / args.gif_every)
+    gif = (
+        None
+        if args.no_gif
+        else write_gif(side_by_side([r.frames for r in runs], [r.label for r in runs]), out / "episode.gif", fps=10 / args.gif_every)
+    )
     pages = (
         [
             write_replay(
