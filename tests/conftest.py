@@ -35,6 +35,7 @@ FILE_CLASS: dict[str, str] = {
             "test_cig_td3_precision.py",
             "test_cig_td3_replay.py",
             "test_evaluate.py",
+            "test_ppo_gae_by_hand.py",
             "test_ppo_precision.py",
             "test_rollout.py",
             "test_traco_learner.py",
