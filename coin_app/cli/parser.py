@@ -152,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
         "policy",
         nargs="+",
         help="one or more of: heuristic | avoiding | planning (the scripted drivers) | agnn (the A-GNN baseline's released weights) | "
-        "checkpoint directory | exported .npz | pair .json",
+        "a shipped policy's name (nav_ppo-arena) | checkpoint directory | exported .npz | pair .json",
     )
     ea.add_argument("--cases", default="all", help="all (the paper's 24) or e.g. 4x3,20x8")
     ea.add_argument("--scenarios-per-case", type=int, default=100, help="fixed test scenarios per case (the paper: 4062)")
