@@ -176,9 +176,9 @@ def merged_settings(name: str, scenario: str, layers: list[tuple[str, dict[str, 
         preset = env_cfg.get("preset", "paper")
         base = {f.name: "ScenarioConfig default" for f in fields(ScenarioConfig) if f.name != "scenario"}
         base |= {"num_agents": f"{scenario}'s default", "preset": "default"} | dict.fromkeys(PRESETS[preset], f"preset {preset!r}")
-    out = [Setting("preset", env_cfg.get("preset", "paper"), env_origin.get("preset", "default"), scenario_key=True)] * (
-        scenario != "arena"
-    )
+    out = []
+    if scenario != "arena":  # the arena has no presets
+        out.append(Setting("preset", env_cfg.get("preset", "paper"), env_origin.get("preset", "default"), scenario_key=True))
     out += [Setting(k, getattr(config, k), env_origin.get(k, base[k]), scenario_key=True) for k in base if k != "preset"]
     for key, (default, meaning) in {**spec.hyperparameters, **COMMON_KEYS}.items():
         out.append(Setting(key, algo_cfg.get(key, default), origin.get(key, "default"), meaning))
