@@ -36,6 +36,9 @@ CASES = [
     (["evaluate", "{missing}"], "does not exist"),
     (["evaluate", "{truncated_npz}"], "BadZipFile"),
     (["evaluate", "{file}"], "no known policy suffix"),
+    (["evaluate", "{good_npz}", "--out", "{good_npz}"], "bad --out"),  # the results would overwrite the policy
+    (["evaluate", "{good_npz}", "--replay", "{good_npz}"], "bad --replay"),
+    (["evaluate", "{good_npz}", "--seeds", "200000", "200000"], "given more than once"),
     (["evaluate", "{missing}", "--preset", "mdc"], "unknown preset 'mdc'; allowed: paper, metadrive_compat, kinematic"),
     (["export", "{missing}", "--out", "x.npz"], "does not exist"),
     (["export", "{missing}", "--format", "tflite", "--out", "x.tflite"], "unknown format 'tflite'"),
@@ -53,7 +56,7 @@ def paths(tmp_path):
     good = export_policy(_tiny_actor(), tmp_path / "good.npz", "numpy", meta={"scenario": "intersection"})
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    return {"missing": str(tmp_path / "missing"), "file": str(file), "truncated_npz": str(truncated)}
+    return {"missing": str(tmp_path / "missing"), "file": str(file), "truncated_npz": str(truncated), "good_npz": str(good)}
 
 
 def _tiny_actor():
@@ -119,3 +122,10 @@ def test_sweep_tracking_flags_refuse_a_missing_package_before_any_work(flag, pac
     err = capsys.readouterr().err
     assert f"{flag} x needs the {package} package; allowed: pip install {package}" in err and err.count("\n") == 1
     assert not (tmp_path / "s").exists()
+
+
+def test_evaluate_never_writes_over_the_policy_it_reads(paths, capsys):
+    before = open(paths["good_npz"], "rb").read()
+    assert main(["evaluate", paths["good_npz"], "--episodes", "1", "--out", paths["good_npz"]]) == 2
+    assert "is, or is inside, the policy it evaluates" in capsys.readouterr().err
+    assert open(paths["good_npz"], "rb").read() == before

@@ -62,6 +62,12 @@ def _dynamics_name(dynamics: DynamicsConfig) -> str:
     return names.get(dynamics, "custom")
 
 
+def _within(path: Path, source: Path) -> bool:
+    """Whether ``path`` is ``source`` or lies inside it (an output that would overwrite the input)."""
+    path, source = path.resolve(), source.resolve()
+    return path == source or source in path.parents
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate a checkpoint or exported policy deterministically on test seeds and print the six metrics."""
 
@@ -69,6 +75,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
     check_preset(args.preset)
     seeds = args.seeds if args.seeds else eval_test_seeds(args.episodes)
+    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+    if repeated:
+        raise ValueError(f"bad --seeds: {repeated} given more than once (an episode would count twice); allowed: distinct seeds")
+    for flag, out in (("--out", args.out), ("--replay", args.replay)):
+        if out and _within(Path(out), Path(args.policy)):
+            raise ValueError(f"bad {flag} {out}: it is, or is inside, the policy it evaluates; allowed: a path outside {args.policy}")
     not_test = [s for s in seeds if s < TEST_SEED_BASE]
     if not_test:
         print(
