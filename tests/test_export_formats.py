@@ -180,3 +180,20 @@ def test_cli_export_refuses_bad_input(ippo_checkpoint, tmp_path, capsys):
     assert main(["export", str(tmp_path / "missing"), "--format", "numpy", "--out", str(tmp_path / "a.npz")]) == 2
     assert "missing" in capsys.readouterr().err
     assert not list(tmp_path.glob("a.*"))
+
+
+def test_a_failed_export_leaves_the_earlier_file_intact(tmp_path, monkeypatch):
+    import coin_app.inference.numpy_policy as numpy_policy
+
+    actor = torch.nn.Sequential(torch.nn.Linear(91, 8), torch.nn.Tanh(), torch.nn.Linear(8, 2), torch.nn.Tanh())
+    path = export_policy(actor, tmp_path / "actor.npz", "numpy")
+    before = path.read_bytes()
+
+    def full_disk(*args, **kwargs):
+        args[0].write(b"half a file")  # what a write cut by a full disk leaves behind
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(numpy_policy.np, "savez", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        export_policy(actor, path, "numpy")
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["actor.npz"]

@@ -14,6 +14,7 @@ None of the loaders imports Ray.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -42,9 +43,23 @@ def check_format(fmt: str, path: str | Path) -> None:
 
 
 def export_policy(actor: Any, path: str | Path, fmt: str = "numpy", meta: dict[str, Any] | None = None) -> Path:
-    """Write a torch actor to ``path`` in format ``fmt``; returns the path."""
+    """Write a torch actor to ``path`` in format ``fmt``; returns the path.
+
+    Atomic: the file is written to a hidden sibling, flushed to disk, then renamed over ``path``, so a failed
+    export (a full disk, a bad actor) leaves an earlier file at ``path`` as it was and no partial file behind.
+    """
     check_format(fmt, path)
-    return FORMATS[fmt][1](actor, path, meta)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial{path.suffix}")
+    try:
+        FORMATS[fmt][1](actor, partial, meta)
+        with open(partial, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
+    return path
 
 
 def load_policy(path: str | Path) -> Any:
