@@ -89,7 +89,7 @@ def metadrive_assets_present() -> bool:
 def metadrive_config(config: ScenarioConfig) -> dict[str, Any]:
     """MetaDrive env config equivalent to the native scenario ``config``."""
     vehicle: dict[str, Any] = {"lidar": {"num_lasers": config.lidar_beams, "distance": config.lidar_range, "num_others": 0}}
-    if config.scenario == "bottleneck":
+    if config.obs_layout == "bottleneck96":  # the layout's side and lane-line detectors
         vehicle["side_detector"] = {"num_lasers": 4, "distance": config.side_detector_range}
         vehicle["lane_line_detector"] = {"num_lasers": 4, "distance": config.lane_line_detector_range}
     return {

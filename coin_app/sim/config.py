@@ -223,7 +223,7 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
 
 
 def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:
-    """Refuse keys MetaDrive cannot honour; give the bottleneck MetaDrive's 96-dim observation."""
+    """Refuse keys MetaDrive cannot honour; give each scene MetaDrive's own observation layout (``Scene.metadrive_obs_layout``)."""
     default = ScenarioConfig()
     for key in METADRIVE_FIXED:
         if key in values and values[key] != getattr(default, key):
@@ -235,6 +235,6 @@ def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:
     steps = values.get("max_agent_steps", horizon)
     _check("max_agent_steps", steps, steps == horizon, f"equal to horizon ({horizon}) with backend 'metadrive' (one MetaDrive setting)")
     values["max_agent_steps"] = horizon
-    layout = "bottleneck96" if scenario == "bottleneck" else "standard"
+    layout = SCENES[scenario].metadrive_obs_layout
     got = values.setdefault("obs_layout", layout)
     _check("obs_layout", got, got == layout, f"{layout!r} on the MetaDrive {scenario} (MetaDrive's own observation)")
