@@ -75,11 +75,6 @@ def test_off_road_is_any_of_no_lane_a_solid_line_a_sidewalk():
     assert rules.off_road(on_lane, line, walk).tolist() == [F, T, T, T, T]
 
 
-def test_a_crash_flags_both_vehicles_of_an_overlapping_pair():
-    got = rules.crashed(5, np.array([0, 1, 2]), np.array([3, 4, 4]), np.array([T, F, T]))
-    assert got.tolist() == [T, F, T, T, T]
-
-
 def test_time_outs_at_the_vehicles_step_limit_and_the_force_stop():
     assert rules.step_limit_reached(np.array([39, 40, 41]), CFG).tolist() == [F, T, T]
     assert rules.force_stopped(np.array([199, 200]), CFG).tolist() == [F, T]

@@ -24,8 +24,8 @@ The outcomes (MetaDrive's ``done_function``):
     force_stop  <=> the env step >= force_stop_factor x horizon
     truncated   =   (max_step or force_stop) and not terminated
 
-The geometric tests (lane regions, line and sidewalk contact, box overlap) live with the simulator's
-geometry; these functions combine their results.
+The geometric tests (lane regions, line and sidewalk contact, the crash's box overlap) are the
+simulator's geometry; these functions combine their results.
 """
 
 from __future__ import annotations
@@ -68,14 +68,6 @@ def arrived(s_f: np.ndarray, r_f: np.ndarray, length: np.ndarray, width: np.ndar
 def off_road(on_lane: np.ndarray, on_solid_line: np.ndarray, on_sidewalk: np.ndarray) -> np.ndarray:
     """Whether each vehicle left the road: off every lane region, or touching a solid line or a sidewalk."""
     return ~on_lane | on_solid_line | on_sidewalk
-
-
-def crashed(num: int, i: np.ndarray, j: np.ndarray, overlap: np.ndarray) -> np.ndarray:
-    """Per vehicle of ``num``: whether it is in an overlapping pair (``i[k]``, ``j[k]``, ``overlap[k]``)."""
-    out = np.zeros(num, bool)
-    out[i[overlap]] = True
-    out[j[overlap]] = True
-    return out
 
 
 def step_limit_reached(episode_length: np.ndarray, cfg: ScenarioConfig) -> np.ndarray:

@@ -413,7 +413,9 @@ class DrivingSimulator:
         i, j = self._same_env_pairs(2 * self.half_diag)
         if len(i):
             hb = np.broadcast_to(self.half, (len(i), 2))
-            out = rules.crashed(self.num_slots, i, j, boxes_overlap(self.pos[i], self.heading[i], hb, self.pos[j], self.heading[j], hb))
+            hit = boxes_overlap(self.pos[i], self.heading[i], hb, self.pos[j], self.heading[j], hb)
+            out[i[hit]] = True
+            out[j[hit]] = True
         return out
 
     def _respawn(self, vacated: np.ndarray, env_ok: np.ndarray) -> np.ndarray:
