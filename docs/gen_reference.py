@@ -102,7 +102,8 @@ def config_keys_page() -> str:
     """docs/reference/config-keys.md: every --set key with its default and meaning."""
     from coin_app.algorithms import registry
     from coin_app.sim.arena.config import ArenaConfig, RewardConfig
-    from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, DynamicsConfig, ScenarioConfig, make_config
+    from coin_app.sim.config import PRESETS, DynamicsConfig, ScenarioConfig, make_config
+    from coin_app.sim.scenes import ARENA, SCENES, env_id
 
     out = [
         "# Every `--set` key",
@@ -117,8 +118,8 @@ def config_keys_page() -> str:
         "| scenario | agents | observation | RLlib env |",
         "|---|---:|---:|---|",
     ]
-    for name, n in DEFAULT_NUM_AGENTS.items():
-        out.append(f"| `{name}` | {n} | {make_config(name).obs_dim} | `coin-{name}-v0` |")
+    for name, s in SCENES.items():
+        out.append(f"| `{name}` | {s.default_vehicles} | {make_config(name).obs_dim} | `{s.env_id}` |")
     out += ["", "Presets (`--preset`, `make_config(scenario, preset)`): the keys each one sets.", "", "| preset | keys |", "|---|---|"]
     for name, values in PRESETS.items():
         shown = ", ".join(f"`{k}={v!r}`" for k, v in values.items()) if name != "kinematic" else "`dynamics=DynamicsConfig.kinematic()`"
@@ -133,7 +134,7 @@ def config_keys_page() -> str:
         "## The arena",
         "",
         f"`arena`: {arena.num_vehicles} vehicles, {arena.num_obstacles} obstacles by default, observation {arena.obs_dim}, "
-        "RLlib env `coin-arena-v0` (`nav_ppo`). No presets.",
+        f"RLlib env `{env_id(ARENA)}` (`nav_ppo`). No presets.",
         "",
         "### Arena keys (`ArenaConfig`)",
         "",

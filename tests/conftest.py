@@ -167,7 +167,6 @@ TEST_CLASS: dict[str, str] = {
             "test_replay.py::test_selected_vehicle_shows_its_outcome",
             "test_replay.py::test_js_errors_are_reported",
             "test_replay.py::test_arena_page_loads",
-            "test_scenes.py::test_a_scene_resets_reproducibly_and_respawns_within_its_cap",
             "test_simulator.py::test_batched_env_reproduces_single_env",
             "test_simulator.py::test_observations_are_in_unit_box_under_random_driving",
             "test_simulator.py::test_same_seed_same_episode_and_different_seed_differs",

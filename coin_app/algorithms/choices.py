@@ -1,10 +1,11 @@
-"""The named choices of algorithm keys, in one dependency-free module (networks, configs and ``checks`` import it)."""
+"""The named choices of algorithm keys, in one module that imports only the scene names (networks, configs and ``checks`` import it)."""
 
 from __future__ import annotations
 
+from coin_app.sim.scenes import ARENA  # noqa: F401  (the second paper's scenario, nav_ppo's; re-exported for the name tables)
+
 # the trainable algorithms, in the registry's order (coin_app.algorithms.registry checks its table against this)
 ALGORITHM_NAMES = ("cig_td3", "itd3", "traco", "ippo", "cppo", "mfpo", "copo", "nav_ppo")
-ARENA = "arena"  # the second paper's scenario (nav_ppo); the driving scenarios are coin_app.sim.config.DEFAULT_NUM_AGENTS's
 
 LOCAL_MODULES = ("cvae", "attention", "none")  # CIG-TD3's pairwise (local) module of the global critic
 GLOBAL_MODULES = ("gat", "gcn", "graphsage", "none")  # CIG-TD3's graph (global) module

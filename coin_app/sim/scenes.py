@@ -47,6 +47,8 @@ SCENES: dict[str, Scene] = {
     )
 }
 DRIVING_SCENARIOS: tuple[str, ...] = tuple(SCENES)
+ARENA = "arena"  # the other scenario: the second paper's navigation-and-parking arena (coin_app/sim/arena/)
+SCENARIOS: tuple[str, ...] = (*DRIVING_SCENARIOS, ARENA)
 
 
 def scene(name: str) -> Scene:

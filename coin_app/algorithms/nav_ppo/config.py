@@ -34,7 +34,7 @@ from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from coin_app.adapters.rllib_env import env_config_of, parse_env_config
+from coin_app.adapters.rllib_env import env_config_of, env_id_of, parse_env_config
 from coin_app.algorithms.checkpoint_files import SHARED_MODULE_ID
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import set_on_envs, shared_policy_config
@@ -215,7 +215,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     model = policy_model(hp.pop("hidden"), "torch") | {"log_std_init": hp.pop("log_std_init"), "log_std_min": floor}
     config = (
         PPOConfig(algo_class=NavPPO)
-        .environment("coin-arena-v0", env_config=env_config_of(scenario))
+        .environment(env_id_of(scenario), env_config=env_config_of(scenario))
         .env_runners(num_env_runners=hp.pop("num_env_runners"), env_to_module_connector=acting_order)  # fixed agent order
         .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
         .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision, **curriculum, **warm})

@@ -33,7 +33,7 @@ from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from coin_app.adapters.rllib_env import env_config_of
+from coin_app.adapters.rllib_env import env_config_of, env_id_of
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import backend_errors, shared_policy_config
 from coin_app.algorithms.ppo_family.agent_order import acting_order
@@ -43,7 +43,6 @@ from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map
-from coin_app.sim.scenarios import scenario_name
 
 # name -> (default, meaning)
 HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
@@ -122,7 +121,7 @@ def ppo_base_config(
     """The PPO family's env, sampling, training values and seed; no learner, module or policy mapping yet."""
     return (
         PPOConfig(algo_class=algo_class)
-        .environment(f"coin-{scenario_name(scenario)}-v0", env_config=env_config)
+        .environment(env_id_of(scenario), env_config=env_config)
         .env_runners(
             num_env_runners=hp["num_env_runners"],
             rollout_fragment_length=hp["rollout_fragment_length"],
