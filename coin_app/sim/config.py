@@ -139,6 +139,7 @@ _NON_NEGATIVE = (
     "out_of_road_penalty",
 )
 _POSITIVE = ("lidar_range", "navi_point_dist", "vehicle_length", "vehicle_width", "side_detector_range", "lane_line_detector_range")
+_BOOL = tuple(f.name for f in fields(ScenarioConfig) if f.type in ("bool", bool))  # switches: True or False
 OBS_LAYOUTS = ("standard", "bottleneck96")
 BACKENDS = ("native", "metadrive")
 METADRIVE_ASSETS = ("skip", "download")
@@ -211,8 +212,9 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     _check("num_agents", n, n <= SPAWN_CAPACITY, f"an integer from 1 to {SPAWN_CAPACITY} (the map's spawn slots)")
     layout = values.get("obs_layout", "standard")
     _check("obs_layout", layout, layout in OBS_LAYOUTS, " | ".join(OBS_LAYOUTS))
-    for key in ("allow_respawn", "own_arm_destinations"):
-        _check(key, values.get(key, True), isinstance(values.get(key, True), bool), "True or False")
+    for key in _BOOL:
+        v = values.get(key, getattr(ScenarioConfig, key))
+        _check(key, v, isinstance(v, bool), "True or False")
     backend = values.get("backend", "native")
     _check("backend", backend, backend in BACKENDS, " | ".join(BACKENDS))
     assets = values.get("metadrive_assets", "skip")
