@@ -155,6 +155,7 @@ TEST_CLASS: dict[str, str] = {
             "test_rllib_env.py::test_outcome_counts_match_the_episode_metrics",
             "test_rules.py::test_long_seeded_episodes_give_the_recorded_rewards_terminations_and_infos_bit_for_bit",
             "test_map_extract.py::test_the_extractor_regenerates_every_committed_map",
+            "test_map_extract.py::test_the_native_solid_center_line_is_the_bottleneck_coins_patched_metadrive_builds",
             "test_rollout.py::test_batched_and_dict_paths_equal_a_hand_written_loop",
             "test_rollout.py::test_stops_when_every_episode_is_over",
             "test_shipped.py::test_the_shipped_arena_pair_parks_lone_vehicles_as_recorded",

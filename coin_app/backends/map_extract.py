@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.backends.metadrive import _import_metadrive
+from coin_app.backends.metadrive import _import_metadrive, bottleneck_center_line
 from coin_app.sim.road_map import MAP_DIR
 from coin_app.sim.scenes import DRIVING_SCENARIOS, scene
 
@@ -277,12 +277,13 @@ def _initial_agents(env: Any) -> dict[str, Any]:
     return out
 
 
-def extract(name: str) -> dict[str, Any]:
-    """The map of scene ``name`` as MetaDrive 0.4.3 builds it (the JSON's structure, rounded)."""
+def extract(name: str, solid_center_line: bool = False) -> dict[str, Any]:
+    """The map of scene ``name`` as MetaDrive 0.4.3 builds it (the JSON's structure, rounded); optionally COIN's bottleneck."""
     from metadrive.manager.spawn_manager import SpawnManager  # optional: the MetaDrive extra
     from metadrive.version import VERSION  # optional: the MetaDrive extra
 
     marl = _import_metadrive("skip")
+    bottleneck_center_line(solid_center_line)
     env_class = getattr(marl, scene(name).metadrive_class)
     with _recorded_line_segments() as segments:
         env = env_class(
@@ -366,10 +367,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenario", nargs="+", choices=DRIVING_SCENARIOS, default=list(DRIVING_SCENARIOS))
     parser.add_argument("--out", type=Path, default=MAP_DIR, help="folder of the map files (default: the package's maps)")
     parser.add_argument("--check", action="store_true", help="compare with the files in --out instead of writing them")
+    parser.add_argument("--solid-center-line", action="store_true", help="COIN's bottleneck (solid neck centre line), not 0.4.3's")
     args = parser.parse_args(argv)
     stale = []
     for name in args.scenario:
-        text = map_text(extract(name))
+        text = map_text(extract(name, args.solid_center_line))
         path = args.out / scene(name).map_file
         if args.check:
             if not path.is_file() or path.read_text() != text:

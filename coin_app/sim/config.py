@@ -77,6 +77,9 @@ class ScenarioConfig:
     delay_done: int = 25  # steps a crashed / off-road vehicle stays as a static obstacle
     allow_respawn: bool = True  # respawn at free entry places while the episode step is below the horizon
     own_arm_destinations: bool = True  # MetaDrive also draws the spawn arm's exit (U-turn / full loop)
+    # the bottleneck's neck has a solid yellow centre line: touching it is off-road and the side detectors see it (COIN's
+    # patched MetaDrive); MetaDrive 0.4.3 builds it broken (metadrive_compat). The other scenes' centre lines are solid
+    solid_center_line: bool = True
     force_stop_factor: int = 5  # every agent is truncated at env step factor * horizon
     spawn_jitter_long: float = 1.0  # initial spawns: longitude += U(-a, a) (m)
     spawn_jitter_lat: float = 0.25  # initial spawns: lateral += U(-a, a) (m)
@@ -123,7 +126,7 @@ class ScenarioConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
-    "metadrive_compat": {"crash_penalty": 10.0, "out_of_road_penalty": 10.0, "lidar_range": 40.0},
+    "metadrive_compat": {"crash_penalty": 10.0, "out_of_road_penalty": 10.0, "lidar_range": 40.0, "solid_center_line": False},
     "kinematic": {"dynamics": DynamicsConfig.kinematic()},
 }
 

@@ -72,7 +72,7 @@ class DrivingSimulator:
                 "use coin_app.sim.driving_env.make_driving_env(config) (or backend='native')"
             )
         self.cfg = config
-        self.map = load_map(config.scenario)
+        self.map = load_map(config.scenario, config.solid_center_line)
         m = self.map
         self.num_envs = num_envs
         # spare slots so that a slot vacated in a step is never refilled in the same step

@@ -2,7 +2,8 @@
 
     python tests/data/rules_record.py     # rewrite tests/data/rules_record.npz with this checkout's simulator
 
-Every scene, two envs each, 8 vehicles, horizon 300, each vehicle's step limit 400 and the force stop at 2 x 300:
+Every scene on MetaDrive 0.4.3's roads (the bottleneck's broken centre line, as when the record was made), two envs
+each, 8 vehicles, horizon 300, each vehicle's step limit 400 and the force stop at 2 x 300:
 the heuristic driver, every third vehicle with seeded steering and pedal noise, so the episodes hold arrivals, crashes, off-road exits,
 step limits, respawns and the force stop. Per acting vehicle and step the record keeps the reward, the four outcome
 flags, terminated, truncated and the vehicle's step count; per env step the mean reward, ``episode_over`` and a
@@ -32,7 +33,7 @@ from coin_app.sim.simulator import DrivingSimulator  # noqa: E402
 
 RECORD = Path(__file__).with_name("rules_record.npz")
 STEPS = 600  # the force stop ends the episodes at step 2 x horizon
-SETTINGS = {"num_agents": 8, "horizon": 300, "max_agent_steps": 400, "force_stop_factor": 2}
+SETTINGS = {"num_agents": 8, "horizon": 300, "max_agent_steps": 400, "force_stop_factor": 2, "solid_center_line": False}
 NOISY = 3  # every third vehicle (by its number) drives with noisy steering and pedals
 FLAGS = ("arrive_dest", "crash_vehicle", "out_of_road", "max_step", "terminated", "truncated")
 
