@@ -6,7 +6,7 @@ import inspect
 import pytest
 
 from coin_app.adapters.rllib_env import ENV_IDS
-from coin_app.sim.config import DEFAULT_NUM_AGENTS, OBS_LAYOUTS, make_config
+from coin_app.sim.config import DEFAULT_NUM_AGENTS, OBS_LAYOUTS, SPAWN_CAPACITY, make_config
 from coin_app.sim.road_map import MAP_DIR, load_map
 from coin_app.sim.scenes import DRIVING_SCENARIOS, SCENES, scene
 
@@ -26,6 +26,7 @@ def test_a_scene_has_its_map_config_env_id_and_grid(name):
     assert make_config(name).num_agents == s.default_vehicles
     assert ENV_IDS[s.env_id] == name
     assert s.default_vehicles in s.generalization_counts and list(s.generalization_counts) == sorted(set(s.generalization_counts))
+    assert len(load_map(name).spawn_slot_lane) == SPAWN_CAPACITY >= max(s.generalization_counts)  # the map's spawn slots
     assert s.metadrive_obs_layout in OBS_LAYOUTS and make_config(name).obs_layout == "standard"  # native: the paper's 91
     if importlib.util.find_spec("metadrive") is not None:  # the optional backend: the class it rebuilds exists there
         import metadrive
