@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
-from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.choices import ALGORITHM_NAMES
 from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3, ITD3
 from coin_app.algorithms.copo.copo import COPO
@@ -136,7 +135,9 @@ def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "inter
         raise ValueError(
             f"unknown --set key(s) {unknown}; scenario keys: {', '.join(sorted(env_keys))}; {name} keys: {', '.join(sorted(algo_keys))}"
         )
-    check_values(algo_cfg)  # type, finiteness and range of every value (coin_app.algorithms.checks)
+    errors = get(name).value_errors(algo_cfg)  # type, finiteness and range of every value (its declaration's rule)
+    if errors:
+        raise ValueError(errors[0])
     return env_cfg, algo_cfg
 
 

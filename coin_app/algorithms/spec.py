@@ -17,7 +17,9 @@ import torch
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from torch import nn
 
+from coin_app.algorithms.checks import RULES, Rule
 from coin_app.algorithms.choices import LCF_MODES  # noqa: F401 (re-exported)
+from coin_app.algorithms.settings import Settings
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenes import DRIVING_SCENARIOS as SCENE_NAMES
@@ -50,9 +52,13 @@ class AlgorithmSpec:
 
     name: str
     description: str
-    hyperparameters: Mapping[str, tuple[Any, str]]  # --set key -> (default, meaning)
     build: ConfigBuilder
     capabilities: Capabilities
+    # the algorithm's settings class (coin_app.algorithms.settings) and its presets (values of it: quick, tiny, ...);
+    # ``hyperparameters``, ``quick`` and ``tiny`` derive from them
+    settings: type[Settings] | None = None
+    presets: Mapping[str, Settings] = field(default_factory=dict)
+    hyperparameters: Mapping[str, tuple[Any, str]] = field(default_factory=dict)  # --set key -> (default, meaning)
     scenarios: tuple[str, ...] = DRIVING_SCENARIOS
     quick: Mapping[str, Any] = field(default_factory=dict)  # hyper-parameters of the small quick scenario
     # the smallest settings that build, update and checkpoint in seconds (tests; registry.tiny_settings adds the scenario's)
@@ -60,9 +66,31 @@ class AlgorithmSpec:
     # scenario values the algorithm sets beneath the user's --set (nav_ppo's stage mix), from its --set values
     scenario_defaults: Callable[[Mapping[str, Any]], dict[str, Any]] = _no_scenario_defaults
 
+    def __post_init__(self) -> None:
+        if self.settings is not None:  # everything below is derived from the one declaration of each setting
+            object.__setattr__(self, "hyperparameters", {**self.settings.hyperparameters(), **self.hyperparameters})
+            for name in ("quick", "tiny"):
+                if name in self.presets:
+                    object.__setattr__(self, name, self.presets[name].changes())
+
     def keys(self) -> tuple[str, ...]:
         """The algorithm's ``--set`` keys."""
         return tuple(self.hyperparameters)
+
+    def rule(self, key: str) -> Rule | None:
+        """The rule of ``key``'s values: its declaration's (the settings class), else the checks table's; None for neither."""
+        if self.settings is not None and key in self.settings.keys():
+            return self.settings.declarations()[key].rule
+        return RULES.get(key)
+
+    def value_errors(self, values: Mapping[str, Any]) -> list[str]:
+        """The one-line message of every bad value in ``values`` (keys without a rule pass)."""
+        errors = []
+        for key, value in values.items():
+            rule = self.rule(key)
+            if rule is not None and not rule.accepts(value):
+                errors.append(f"bad value for {key!r}: {value!r}; allowed: {rule.allowed()}")
+        return errors
 
     def build_config(self, scenario: AnyScenarioConfig, algo_cfg: Mapping[str, Any], seed: int) -> AlgorithmConfig:
         """The RLlib config of this algorithm on ``scenario`` with ``algo_cfg`` (its own keys only) and ``seed``."""
