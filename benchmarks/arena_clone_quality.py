@@ -28,8 +28,8 @@ import torch
 
 import coin_app.evaluation.arena_suite as suite
 from coin_app.algorithms.checkpoints import actor_policy
-from coin_app.algorithms.nav_ppo.config import STAGES, progress
-from coin_app.algorithms.nav_ppo.settings import DEFAULT
+from coin_app.algorithms.nav_ppo.config import progress
+from coin_app.algorithms.nav_ppo.settings import DEFAULT, STAGES
 from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations, warm_start
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.heuristic import DRIVERS

@@ -12,13 +12,12 @@ from fixtures import tiny
 from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 
 from coin_app.algorithms.checkpoints import actor_module, load_module
-from coin_app.algorithms.copo.copo import COPO
-from coin_app.algorithms.nav_ppo.config import NAV_PPO
+from coin_app.algorithms.copo.settings import COPO
+from coin_app.algorithms.nav_ppo.settings import NAV_PPO
 from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS
-from coin_app.algorithms.ppo_family.config import CPPO, IPPO, MFPO
 from coin_app.algorithms.ppo_family.learner import OLD_VALUES, OldValuePredictions
 from coin_app.algorithms.ppo_family.losses import clipped_value_loss, surrogate_loss
-from coin_app.algorithms.ppo_family.settings import CppoSettings, PpoSettings
+from coin_app.algorithms.ppo_family.settings import CPPO, IPPO, MFPO, CppoSettings, PpoSettings
 from coin_app.algorithms.spec import DRIVING_SCENARIOS, ActorModule
 from coin_app.cli import main
 from coin_app.training import build_config, fresh_module

@@ -1,21 +1,20 @@
 """The algorithm contract: what every algorithm package exports, as BenchMARL's ``Algorithm`` base declares it.
 
-Each package under ``coin_app/algorithms/`` exports one :class:`AlgorithmSpec` per algorithm it
-holds (``cig_td3`` holds CIG-TD3 and ITD3, ``ppo_family`` IPPO, CPPO and MFPO). The spec says
-what the algorithm is, its documented hyper-parameters (the ``--set`` keys), the scenarios it
-trains on, its capabilities, and builds its RLlib config from a typed scenario config. Its
-RLModule implements :class:`ActorModule`, so evaluation and export never guess by attribute.
+Each package under ``coin_app/algorithms/`` declares one :class:`AlgorithmSpec` per algorithm it
+holds, in its Ray-free ``settings.py`` beside the settings class and presets. The spec says what
+the algorithm is, its settings (the ``--set`` keys), the scenarios it trains on, its
+capabilities, and names the function that builds its RLlib config from a typed scenario config
+(``"module:function"``, imported only when a config is built, so the registry, the command
+line's checks and ``config`` need neither Ray nor torch). Its RLModule implements
+:class:`ActorModule`, so evaluation and export never guess by attribute.
 """
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
-
-import torch
-from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
-from torch import nn
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from coin_app.algorithms.checks import RULES, Rule
 from coin_app.algorithms.choices import LCF_MODES  # noqa: F401 (re-exported)
@@ -24,11 +23,16 @@ from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenes import DRIVING_SCENARIOS as SCENE_NAMES
 
+if TYPE_CHECKING:  # annotations only: the contract itself imports neither Ray nor torch
+    import torch
+    from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+    from torch import nn
+
 DRIVING_SCENARIOS = SCENE_NAMES  # re-exported for the algorithm packages
 
 AnyScenarioConfig = ScenarioConfig | ArenaConfig
 # (typed scenario config, the algorithm's --set values, seed) -> a validated RLlib config
-ConfigBuilder = Callable[[AnyScenarioConfig, dict[str, Any], int], AlgorithmConfig]
+ConfigBuilder = Callable[[AnyScenarioConfig, dict[str, Any], int], "AlgorithmConfig"]
 
 
 @dataclass(frozen=True)
@@ -52,7 +56,7 @@ class AlgorithmSpec:
 
     name: str
     description: str
-    build: ConfigBuilder
+    build: ConfigBuilder | str  # the builder, or "package.module:function" imported when a config is built
     capabilities: Capabilities
     # the algorithm's settings class (coin_app.algorithms.settings) and its presets (values of it: quick, tiny, ...);
     # ``hyperparameters``, ``quick`` and ``tiny`` derive from them
@@ -94,7 +98,11 @@ class AlgorithmSpec:
 
     def build_config(self, scenario: AnyScenarioConfig, algo_cfg: Mapping[str, Any], seed: int) -> AlgorithmConfig:
         """The RLlib config of this algorithm on ``scenario`` with ``algo_cfg`` (its own keys only) and ``seed``."""
-        return self.build(scenario, dict(algo_cfg), seed)
+        build = self.build
+        if isinstance(build, str):
+            module, _, name = build.partition(":")
+            build = getattr(importlib.import_module(module), name)
+        return build(scenario, dict(algo_cfg), seed)
 
 
 @runtime_checkable

@@ -1,4 +1,4 @@
-"""CoPO: its spec, its RLlib config and the algorithm that keeps the env runners' LCF distribution in sync.
+"""CoPO: its RLlib config (settings and spec: ``settings.py``) and the algorithm that keeps the LCF distribution in sync.
 
 CoPO (Peng et al., "Learning to Simulate Self-Driven Particles System with Coordinated Policy
 Optimization", NeurIPS 2021; docs/guides/ppo-family.md) is the PPO family's IPPO with local
@@ -27,7 +27,7 @@ from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.common import SHARED_MODULE_ID, set_on_envs, shared_policy_config
 from coin_app.algorithms.copo.learner import CoPOLearner
 from coin_app.algorithms.copo.rl_module import CoPOModule
-from coin_app.algorithms.copo.settings import PRESETS, CopoSettings
+from coin_app.algorithms.copo.settings import CopoSettings
 from coin_app.algorithms.ppo_family.config import (
     checked,
     driving_scenario,
@@ -36,7 +36,6 @@ from coin_app.algorithms.ppo_family.config import (
     ppo_base_config,
     ppo_settings,
 )
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map
 
@@ -90,14 +89,3 @@ def build_copo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: 
     if config.num_learners > 1:
         errors.append(f"num_learners={config.num_learners}; allowed: 0 or 1 (one LCF distribution, one meta-gradient)")
     return checked("COPO", config, errors)
-
-
-COPO = AlgorithmSpec(
-    name="copo",
-    description="CoPO: PPO on LCF-coordinated ego/neighbour advantages, LCF meta-gradient",
-    build=build_copo_config,
-    # the neighbour and global value heads learn from the other agents' rewards
-    capabilities=Capabilities(on_policy=True, centralized_critic=True, joint_replay=False),
-    settings=CopoSettings,
-    presets=PRESETS,
-)

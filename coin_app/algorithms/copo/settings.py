@@ -1,4 +1,4 @@
-"""CoPO's settings: IPPO's (``ppo_family/settings.py``) plus the local coordination factors and their meta-gradient."""
+"""CoPO's settings (IPPO's, ``ppo_family/settings.py``, plus the local coordination factors and their meta-gradient) and spec."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from coin_app.algorithms.checks import INF, Rule, choice, non_negative, positive
 from coin_app.algorithms.choices import LCF_MODES
 from coin_app.algorithms.ppo_family.settings import PpoSettings, lifted
 from coin_app.algorithms.settings import setting
+from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 
 LCF = "the LCF meta-gradient (copo/learner.py)"
 DRAWS = "the envs' LCF draws (adapters/lcf.py)"
@@ -54,3 +55,13 @@ class CopoSettings(PpoSettings):
 
 
 PRESETS = lifted(CopoSettings)  # the PPO family's presets
+
+COPO = AlgorithmSpec(
+    name="copo",
+    description="CoPO: PPO on LCF-coordinated ego/neighbour advantages, LCF meta-gradient",
+    build="coin_app.algorithms.copo.copo:build_copo_config",
+    # the neighbour and global value heads learn from the other agents' rewards
+    capabilities=Capabilities(on_policy=True, centralized_critic=True, joint_replay=False),
+    settings=CopoSettings,
+    presets=PRESETS,
+)

@@ -38,18 +38,12 @@ from coin_app.adapters.rllib_env import env_config_of, parse_env_config
 from coin_app.algorithms.checkpoint_files import SHARED_MODULE_ID
 from coin_app.algorithms.common import set_on_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
-from coin_app.algorithms.nav_ppo.settings import PRESETS, NavPpoSettings
+from coin_app.algorithms.nav_ppo.settings import NavPpoSettings, stage_of
 from coin_app.algorithms.nav_ppo.warm_start import bc_weight, warm_start
 from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.arena.config import ArenaConfig
-
-STAGES: dict[str, dict[str, Any]] = {
-    "long": {"num_vehicles": 4, "num_obstacles": 3, "generator": "agnn"},
-    "short": {"num_vehicles": 1, "max_vehicles": 8, "num_obstacles": 0, "max_obstacles": 8, "generator": "short"},
-}
 
 # the learner's keys (its learner_config_dict): the warm start's and the teacher loss's, named by their prefixes
 WARM_KEYS = tuple(k for k in NavPpoSettings.keys() if k.startswith(("warm_start", "bc_")))
@@ -58,16 +52,6 @@ WARM_KEYS = tuple(k for k in NavPpoSettings.keys() if k.startswith(("warm_start"
 def progress(line: str) -> None:
     """One progress line of a long phase on standard output (the warm start's rounds)."""
     print(line, flush=True)
-
-
-def stage_of(algo_cfg: Mapping[str, Any]) -> str:
-    """The training stage of nav_ppo's ``--set`` values (default ``"long"``); a ValueError if it is not one of ``STAGES``."""
-    return NavPpoSettings.of({"stage": algo_cfg["stage"]} if "stage" in algo_cfg else {}).stage
-
-
-def stage_scenario(algo_cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """The arena values of the stage's scenario mix (beneath the user's arena ``--set`` values)."""
-    return dict(STAGES[stage_of(algo_cfg)])
 
 
 def curriculum_difficulty(env_steps: int, steps: int, start: float) -> float:
@@ -161,15 +145,3 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
         .evaluation(evaluation_interval=None)
     )
     return shared_policy_config(config)
-
-
-NAV_PPO = AlgorithmSpec(
-    name="nav_ppo",
-    description="seed-2 paper: PPO-Clip navigation (--set stage=long) and parking (stage=short) policies on the arena",
-    build=build_nav_ppo_config,
-    capabilities=Capabilities(on_policy=True, centralized_critic=False, joint_replay=False),
-    scenarios=("arena",),
-    settings=NavPpoSettings,
-    presets=PRESETS,
-    scenario_defaults=stage_scenario,
-)

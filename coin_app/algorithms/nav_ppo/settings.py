@@ -1,13 +1,22 @@
-"""nav_ppo's settings: the PPO core (``ppo_family/settings.py``) with the seed-2 paper's values, its stages and options."""
+"""nav_ppo's settings (the PPO core, ``ppo_family/settings.py``, with the seed-2 paper's values, its stages and options) and spec."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from typing import Any
 
 from coin_app.algorithms.checks import Rule, choice, non_negative, positive, unit
-from coin_app.algorithms.choices import NAV_STAGES, NAV_WARM_STARTS
+from coin_app.algorithms.choices import NAV_WARM_STARTS
 from coin_app.algorithms.ppo_family.settings import PpoCore
 from coin_app.algorithms.settings import redeclare, setting
+from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+
+# the training stages and the arena scenario mix each trains on (beneath the user's arena --set values)
+STAGES: dict[str, dict[str, Any]] = {
+    "long": {"num_vehicles": 4, "num_obstacles": 3, "generator": "agnn"},
+    "short": {"num_vehicles": 1, "max_vehicles": 8, "num_obstacles": 0, "max_obstacles": 8, "generator": "short"},
+}
 
 WARM = "the warm start (nav_ppo/warm_start.py)"
 ALGO = "NavPPO.training_step (nav_ppo/config.py)"
@@ -27,9 +36,9 @@ class NavPpoSettings(PpoCore):
     num_env_runners: int = redeclare(PpoCore, "num_env_runners", 0, "remote env runners (0 = sample in the training process)")
     stage: str = setting(
         "long",
-        choice(*NAV_STAGES),
+        choice(*STAGES),
         "training stage: 'long' (4 vehicles, 3 obstacles) or 'short' (1-8 vehicles, 0-8 obstacles, starts near targets)",
-        reads="the arena's scenario mix (nav_ppo/config.py STAGES)",
+        reads="the arena's scenario mix (STAGES)",
     )
     log_std_init: float = setting(
         0.0,
@@ -102,3 +111,25 @@ PRESETS: dict[str, NavPpoSettings] = {
     # the smallest scale (registry.tiny_settings, which adds the arena's short episodes): one epoch of two minibatches
     "tiny": replace(DEFAULT, train_batch_size_per_learner=100, minibatch_size=50, num_epochs=1, hidden=16),
 }
+
+
+def stage_of(algo_cfg: Mapping[str, Any]) -> str:
+    """The training stage of nav_ppo's ``--set`` values (default ``"long"``); a ValueError if it is not one of ``STAGES``."""
+    return NavPpoSettings.of({"stage": algo_cfg["stage"]} if "stage" in algo_cfg else {}).stage
+
+
+def stage_scenario(algo_cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The arena values of the stage's scenario mix (beneath the user's arena ``--set`` values)."""
+    return dict(STAGES[stage_of(algo_cfg)])
+
+
+NAV_PPO = AlgorithmSpec(
+    name="nav_ppo",
+    description="seed-2 paper: PPO-Clip navigation (--set stage=long) and parking (stage=short) policies on the arena",
+    build="coin_app.algorithms.nav_ppo.config:build_nav_ppo_config",
+    capabilities=Capabilities(on_policy=True, centralized_critic=False, joint_replay=False),
+    scenarios=("arena",),
+    settings=NavPpoSettings,
+    presets=PRESETS,
+    scenario_defaults=stage_scenario,
+)

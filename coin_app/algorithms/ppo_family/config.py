@@ -1,4 +1,4 @@
-"""IPPO, CPPO and MFPO: their specs and RLlib configs, with every PPO hyper-parameter documented in one table.
+"""IPPO, CPPO and MFPO: their RLlib configs (their settings, presets and specs: ``settings.py``).
 
 Values are those of the PPO baselines of the COIN paper, which ran CoPO's code (Peng et al.,
 "Learning to Simulate Self-Driven Particles System with Coordinated Policy Optimization",
@@ -39,9 +39,8 @@ from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.centralized import CentralizedCriticPPOLearner, CentralizedCriticPPOModule, critic_input_dim
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
-from coin_app.algorithms.ppo_family.settings import PRESETS, CppoSettings, MfpoSettings, PpoSettings, lifted
+from coin_app.algorithms.ppo_family.settings import CppoSettings, MfpoSettings, PpoSettings
 from coin_app.algorithms.settings import Settings
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map
 from coin_app.sim.scenarios import scenario_name
@@ -145,32 +144,3 @@ def build_cppo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: 
 def build_mfpo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """MFPO: the critic reads the own observation and the mean (observation, action) of the others within 10 m."""
     return centralized_config("MFPO", "mean_field", MfpoSettings, scenario, algo_cfg, seed)
-
-
-PPO_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=False, joint_replay=False)
-CENTRAL_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=True, joint_replay=False)
-
-IPPO = AlgorithmSpec(
-    name="ippo",
-    description="IPPO: PPO with one shared policy, value on the own observation",
-    build=build_ippo_config,
-    capabilities=PPO_CAPABILITIES,
-    settings=PpoSettings,
-    presets=PRESETS,
-)
-CPPO = AlgorithmSpec(
-    name="cppo",
-    description="CPPO: PPO, value on own + 4 nearest neighbours' (obs, action)",
-    build=build_cppo_config,
-    capabilities=CENTRAL_CAPABILITIES,
-    settings=CppoSettings,
-    presets=lifted(CppoSettings),
-)
-MFPO = AlgorithmSpec(
-    name="mfpo",
-    description="MFPO: PPO, value on own obs + mean neighbour obs and action",
-    build=build_mfpo_config,
-    capabilities=CENTRAL_CAPABILITIES,
-    settings=MfpoSettings,
-    presets=lifted(MfpoSettings),
-)

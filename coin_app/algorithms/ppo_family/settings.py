@@ -1,4 +1,4 @@
-"""The PPO family's settings, each declared once, and its presets (values of these classes).
+"""The PPO family's settings, each declared once, its presets (values of these classes) and the IPPO, CPPO and MFPO specs.
 
 The defaults are the PPO baselines of the COIN paper, which ran CoPO's code (Peng et al., NeurIPS
 2021) on Ray 1.2's PPO, as the MetaDrive benchmark did (docs/guides/ppo-family.md;
@@ -17,6 +17,7 @@ from typing import Any
 from coin_app.algorithms.checks import BOOL, INF, choice, non_negative, positive, unit
 from coin_app.algorithms.choices import KL_SIGNALS, PRECISIONS, WEIGHT_INITS
 from coin_app.algorithms.settings import Settings, redeclare, setting
+from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 
 TRAINING = "PPOConfig.training"
 RUNNERS = "PPOConfig.env_runners"
@@ -128,3 +129,33 @@ PRESETS: dict[str, PpoSettings] = {
 def lifted(cls: type[Settings], presets: dict[str, Any] | None = None) -> dict[str, Any]:
     """The family's presets as values of ``cls`` (a child class of ``PpoSettings``)."""
     return {name: cls.lift(value) for name, value in (presets or PRESETS).items()}
+
+
+CONFIG = "coin_app.algorithms.ppo_family.config"  # the builders (RLlib), imported when a config is built
+PPO_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=False, joint_replay=False)
+CENTRAL_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=True, joint_replay=False)
+
+IPPO = AlgorithmSpec(
+    name="ippo",
+    description="IPPO: PPO with one shared policy, value on the own observation",
+    build=f"{CONFIG}:build_ippo_config",
+    capabilities=PPO_CAPABILITIES,
+    settings=PpoSettings,
+    presets=PRESETS,
+)
+CPPO = AlgorithmSpec(
+    name="cppo",
+    description="CPPO: PPO, value on own + 4 nearest neighbours' (obs, action)",
+    build=f"{CONFIG}:build_cppo_config",
+    capabilities=CENTRAL_CAPABILITIES,
+    settings=CppoSettings,
+    presets=lifted(CppoSettings),
+)
+MFPO = AlgorithmSpec(
+    name="mfpo",
+    description="MFPO: PPO, value on own obs + mean neighbour obs and action",
+    build=f"{CONFIG}:build_mfpo_config",
+    capabilities=CENTRAL_CAPABILITIES,
+    settings=MfpoSettings,
+    presets=lifted(MfpoSettings),
+)
