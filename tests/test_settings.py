@@ -36,7 +36,9 @@ def test_a_child_redeclares_a_default_keeps_the_rule_and_field_order_and_adds_it
     decl = Child.declarations()
     assert list(decl) == ["rate", "width", "depth"]  # an inherited field keeps its place
     assert decl["rate"].default == 0.25 and decl["rate"].rule == unit() and decl["rate"].meaning == "a rate"
-    assert Child.lift(Parent(width=3)) == Child(rate=0.5, width=3, depth=2)  # a parent's preset as a value of the child
+    # a parent's preset as a value of the child: its changes over the child's defaults (the redeclared rate stays the child's)
+    assert Child.lift(Parent(width=3)) == Child(rate=0.25, width=3, depth=2)
+    assert Child.lift(Parent(rate=0.1)) == Child(rate=0.1) and Child.lift(Parent()) == Child()
 
 
 def test_of_refuses_unknown_keys_and_bad_values_in_one_line():

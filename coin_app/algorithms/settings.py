@@ -108,8 +108,9 @@ class Settings:
 
     @classmethod
     def lift(cls: type[S], other: Settings) -> S:
-        """A preset of a parent family's class as a value of this class (the child's own keys at their defaults)."""
-        return cls(**{k: v for k, v in other.values().items() if k in cls.keys()})
+        """A preset of a parent class as a value of this class: what it changed from the parent's defaults, over this class's
+        defaults (a default the child redeclared stays the child's unless the preset changed it)."""
+        return cls(**{k: v for k, v in other.changes().items() if k in cls.keys()})
 
     def values(self) -> dict[str, Any]:
         """Every setting's value, in field order."""
