@@ -80,6 +80,8 @@ class Scale:
     keep: int  # checkpoints kept per trial (the newest)
     test_seeds: int = 20  # episodes per (checkpoint, agent count) in the generalization evaluation
     counts: dict[str, tuple[int, ...]] = field(default_factory=dict)  # scenario -> agent counts to evaluate at
+    # the scenes the scale was made for (its horizon, budget and settings were chosen there); None = every scene
+    made_for: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -97,8 +99,8 @@ class Experiment:
     smoke_variants: tuple[str, ...] | None = None  # a subset of variants at smoke scale (None = all)
     allowed_methods: tuple[str, ...] | None = None  # methods the variants apply to (None = every registry algorithm)
 
-    def scale(self, name: str) -> Scale:
-        """The scale called ``name`` (paper, reduced or smoke)."""
+    def scale(self, name: str, scenario: str | None = None) -> Scale:
+        """The scale called ``name`` (paper, reduced or smoke); a ValueError if it was not made for ``scenario``."""
         scales = {"paper": self.paper, "reduced": self.reduced, "smoke": self.smoke}
         allowed = ", ".join(n for n in SCALES if scales[n] is not None)
         if name not in SCALES:
@@ -106,6 +108,12 @@ class Experiment:
         found = scales[name]
         if found is None:
             raise ValueError(f"experiment {self.name!r} has no {name} scale; allowed: {allowed}")
+        if scenario is not None and found.made_for is not None and scenario not in found.made_for:
+            fits = ", ".join(n for n in SCALES if scales[n] is not None and scales[n].made_for is None)
+            raise ValueError(
+                f"the {name} scale was made for the {' and '.join(found.made_for)} (its horizon, budget and settings were chosen "
+                f"there), not the {scenario}; allowed: --scenario {' | '.join(found.made_for)}, or a scale for every scene: {fits}"
+            )
         return found
 
     def variant_names(self, scale: str) -> tuple[str, ...]:
@@ -146,7 +154,7 @@ class Experiment:
         overrides: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
         """The Tune param space: grid over method x variant x seed."""
-        sc = self.scale(scale)
+        sc = self.scale(scale, scenario)
         methods = tuple(methods or self.methods)
         self.check(scenario, methods, seeds)
         return self.base_config(scenario, scale, steps or sc.steps, overrides or {}) | {
@@ -184,7 +192,7 @@ def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     spec = registry.get(algo)
     layers: list[tuple[str, dict[str, Any]]] = []
     if scale in ("smoke", "reduced"):
-        layers.append(("quick scenario (registry.QUICK_SCENARIO)", dict(registry.QUICK_SCENARIO)))
+        layers.append((f"quick scenario (registry.quick_scenario({config['scenario']!r}))", registry.quick_scenario(config["scenario"])))
     if spec.settings is not None:  # the scale is a preset of the algorithm's settings (its family's settings.py)
         if scale in spec.presets:
             layers.append((f"preset {scale!r} ({spec.settings.__module__})", spec.presets[scale].changes()))
