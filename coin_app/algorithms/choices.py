@@ -15,7 +15,6 @@ PRECISIONS = ("fp32", "bf16")  # the learner's update precision
 KL_SIGNALS = ("epoch_mean", "last_minibatch")  # PPO: which KL drives the adaptive KL coefficient
 WEIGHT_INITS = ("normc", "torch")  # PPO family: RLlib's normc initialization or torch's default
 LCF_MODES = ("sampled", "mean")  # how evaluation gives each vehicle its LCF (CoordinatedActorModule.evaluation_lcf)
-NAV_STAGES = ("long", "short")  # nav_ppo's training stages
 # nav_ppo's warm start: from scratch (the paper) or a scripted driver's clone
 NAV_WARM_STARTS = ("none", "heuristic", "avoiding", "planning")
 DOMAIN_REWARDS = ("mean", "neighbours", "own")  # TraCo's domain reward: mean over ego + domain, over the domain only, own
