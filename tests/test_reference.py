@@ -149,7 +149,7 @@ def _rows(scene, backend, per_seed):
             n = a + c + o + t
             rows.append(
                 {"scene": scene, "backend": backend, "train_seed": seed, "episode_seed": 1000 + 100 * k, "success_rate": a / n}
-                | {"collision_rate": c / n, "out_of_road_rate": o / n, "timeout_rate": t / n, "num_timeout": t}
+                | {"collision_rate": c / n, "out_of_road_rate": o / n, "timeout_rate": t / n, "num_timeout": t, "wall_s": 30.0}
             )
     return pd.DataFrame(rows)
 
@@ -166,7 +166,7 @@ def test_summary_is_the_mean_over_seeds_of_episode_means_with_their_spread():
     assert row.collision_rate_mean == pytest.approx((20 + 20 + 0 + 0) / 4)
     assert row.timeout_rate_mean == pytest.approx(2.5) and row.timeouts_per_episode == pytest.approx(0.25)
     text = reference.to_markdown(table)
-    assert "| intersection (30) | native | 82.5 ± 17.7 (70.0–95.0) | 10.0 | 5.0 | 2.5 | 2 × 2 | 88.78 |" in text
+    assert "| intersection (30) | native | 82.5 ± 17.7 (70.0–95.0) | 10.0 | 5.0 | 2.5 | 2 × 2 | 2 | 88.78 |" in text
 
 
 def test_run_resumes_and_keeps_every_finished_episode(tmp_path, monkeypatch):

@@ -19,7 +19,6 @@ def cmd_evaluate_reference(args: argparse.Namespace) -> int:
     results = run_reference(tasks, out, args.workers, (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None)
     settings = {
         "command": getattr(args, "command_line", ""),
-        "actors": str(root),
         "scenes": list(args.scenes),
         "backends": list(args.backends),
         "episode_seeds": episode_seeds(args.episodes),

@@ -193,6 +193,7 @@ def summary_table(results: pd.DataFrame) -> pd.DataFrame:
             per_seed = part.groupby("train_seed")[list(RATES)].mean() * 100
             row: dict[str, Any] = {"scene": scene, "vehicles": SCENES[scene].default_vehicles, "backend": backend}
             row |= {"seeds": len(per_seed), "episodes": len(part), "timeouts_per_episode": part.num_timeout.mean()}
+            row |= {"wall_min": part.wall_s.sum() / 60 if "wall_s" in part else np.nan}
             for rate in RATES:
                 v = per_seed[rate].to_numpy()
                 row |= {f"{rate}_mean": v.mean(), f"{rate}_sd": v.std(ddof=1) if len(v) > 1 else np.nan}
@@ -214,15 +215,16 @@ def to_markdown(table: pd.DataFrame) -> str:
     names = {"native": "native", "metadrive": "MetaDrive 0.4.3"}
     lines = [
         "| scene (vehicles) | simulator | success % (± sd, range over seeds) | collision % | off-road % | time-out % "
-        "| seeds × episodes | paper |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "| seeds × episodes | wall (min) | paper |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for _, row in table.iterrows():
         cells = [_cell(row, "success_rate", True)] + [_cell(row, r, False) for r in list(RATES)[1:]]
         per_seed = row["episodes"] / row["seeds"]
         count = f"{row['seeds']} × {per_seed:g}" if per_seed == int(per_seed) else f"{row['episodes']} episodes"
         lines.append(
-            f"| {row['scene']} ({row['vehicles']}) | {names[row['backend']]} | {' | '.join(cells)} | {count} | {row['paper_success']:.2f} |"
+            f"| {row['scene']} ({row['vehicles']}) | {names[row['backend']]} | {' | '.join(cells)} | {count} "
+            f"| {row['wall_min']:.0f} | {row['paper_success']:.2f} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -236,7 +238,8 @@ def write_tables(results: pd.DataFrame, out: Path, settings: dict[str, Any]) -> 
         f"{to_markdown(table)}\n"
         "Deterministic actions; episode seeds 1000 + 100·i; `metadrive_compat` preset, MetaDrive's observation, the "
         "bottleneck's solid neck centre line (the authors' patched MetaDrive). Rates are the mean over training seeds of "
-        "each seed's mean over its episodes; paper: COIN's Table 5.1 success.\n\n"
+        "each seed's mean over its episodes; time-outs are vehicles that reached their own step limit; wall: the "
+        "episodes' wall time on the machine that ran them; paper: COIN's Table 5.1 success.\n\n"
         f"Actors: {SOURCE}.\n\nCommand: `{settings.get('command', '')}`\n"
     )
     (out / TABLE_MD).write_text(text)
