@@ -3,6 +3,7 @@
 import math
 import pickle
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -185,8 +186,9 @@ def test_run_resumes_and_keeps_every_finished_episode(tmp_path, monkeypatch):
     tasks = [reference.Task("intersection", "native", 1000, actor, (1000, 1100))]
     tasks += [reference.Task("intersection", "metadrive", 1000, actor, (s,)) for s in (1000, 1100)]
     out = tmp_path / "out"
-    reference.run_reference(tasks[:2], out)
+    reference.run_reference(tasks[:2], out, settings={"command": "python -m coin_app evaluate-reference"})
     assert len(ran) == 2 and len(reference.load_results(out)) == 3
+    assert "| intersection (30) | MetaDrive 0.4.3 | 100.0 | 0.0 | 0.0 | 0.0 | 1 × 1 |" in (out / "table.md").read_text()
     reference.run_reference(tasks, out)  # only the missing MetaDrive episode runs
     assert ran[2:] == [("metadrive", 1000, (1100,))]
     results = reference.load_results(out)
@@ -203,3 +205,12 @@ def test_command_refuses_a_missing_actors_directory_in_one_line(tmp_path, capsys
     assert main(["evaluate-reference", "--actors", str(tmp_path), "--backends", "native", "--out", str(tmp_path / "out")]) == 2
     assert "no intersection actors" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_the_readme_shows_the_committed_reference_table():
+    committed = Path(__file__).resolve().parents[1] / "docs" / "results" / "reference" / reference.TABLE_MD
+    if not committed.is_file():
+        pytest.skip("no committed reference table")
+    rows = [line for line in committed.read_text().splitlines() if line.startswith("|")]
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text().splitlines()
+    assert rows and all(row in readme for row in rows)

@@ -141,8 +141,13 @@ def run_reference(
     out: Path,
     workers: int = 1,
     progress: Callable[[str], None] | None = None,
+    settings: dict[str, Any] | None = None,
 ) -> pd.DataFrame:
-    """Run the tasks whose rows ``out/results.csv`` lacks (``workers`` processes), adding their rows as each ends; all rows."""
+    """Run the tasks whose rows ``out/results.csv`` lacks (``workers`` processes); all rows.
+
+    After each task its rows join ``results.csv`` and, with ``settings``, the tables are rewritten (:func:`write_tables`),
+    so an interrupted run leaves a table of what finished.
+    """
     if workers < 1:
         raise ValueError(f"bad --workers {workers}; allowed: an integer >= 1")
     out.mkdir(parents=True, exist_ok=True)
@@ -158,6 +163,8 @@ def run_reference(
         results = new if results.empty else pd.concat([results, new], ignore_index=True)
         results = results.drop_duplicates(KEY, keep="last").sort_values(KEY, ignore_index=True)
         _write_csv(results, out / RESULTS)
+        if settings is not None:
+            write_tables(results, out, settings)
         elapsed = time.perf_counter() - start
         eta = elapsed / (k + 1) * (len(todo) - k - 1)
         success = " ".join(f"{r['success_rate']:.3f}" for r in rows)
