@@ -33,11 +33,11 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
-from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.cig_td3.learner import PRECISIONS, autocast, loss_config
 from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, local_critic_loss, td_targets
 from coin_app.algorithms.registry import quick_settings
+from coin_app.algorithms.td3 import columns as col
 from coin_app.sim import schema
 from coin_app.training import build_config
 

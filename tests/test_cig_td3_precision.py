@@ -6,8 +6,8 @@ import torch
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
-from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
+from coin_app.algorithms.td3 import columns as col
 from coin_app.sim import schema
 
 torch.set_num_threads(1)

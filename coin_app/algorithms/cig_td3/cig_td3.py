@@ -48,10 +48,8 @@ from ray.rllib.utils.metrics import (
 
 from coin_app.adapters.rllib_env import ENV_IDS, env_config_of, register_envs
 from coin_app.algorithms.checks import value_errors
-from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
 from coin_app.algorithms.cig_td3.learner import CigTd3TorchLearner
 from coin_app.algorithms.cig_td3.rl_module import CigTd3TorchRLModule
-from coin_app.algorithms.cig_td3.transitions import episodes_to_transitions
 from coin_app.algorithms.common import (
     SHARED_MODULE_ID,
     ProgressReporting,
@@ -60,6 +58,8 @@ from coin_app.algorithms.common import (
     scenario_config_of,
 )
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+from coin_app.algorithms.td3.buffer import JointStepReplayBuffer
+from coin_app.algorithms.td3.transitions import episodes_to_transitions
 from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map

@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.individual import full_precision
+from coin_app.algorithms.td3 import columns as col
 
 
 @dataclass(frozen=True)

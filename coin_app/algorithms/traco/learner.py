@@ -13,9 +13,9 @@ from typing import Any
 
 import torch
 
-from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.learner import CigTd3TorchLearner, autocast
 from coin_app.algorithms.cig_td3.losses import local_critic_loss
+from coin_app.algorithms.td3 import columns as col
 from coin_app.algorithms.traco.losses import (
     TracoLossConfig,
     actor_loss,

@@ -32,9 +32,9 @@ import torch
 from torch import nn
 
 from coin_app.algorithms.choices import DOMAIN_REWARDS
-from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.individual import full_precision
 from coin_app.algorithms.cig_td3.losses import actor_objective_loss, not_done, smoothed_target_action
+from coin_app.algorithms.td3 import columns as col
 from coin_app.algorithms.traco.networks import compact_domain, counterfactual_advantage, neighbourhood_mask
 
 
