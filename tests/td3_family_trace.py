@@ -7,8 +7,8 @@ update counter, the learning rates, and a sha256 plus a few raw values of every 
 included) and of every optimizer state after the 50 updates. The committed trace (``td3_family_trace.json``) is
 what ``tests/test_td3_family_trace.py`` compares against; the refactor of issue 54 was checked bit for bit with it.
 
-    python tests/td3_family_trace.py --out trace.json [--dump tensors.pt]   # record (dump: every tensor in full)
-    python tests/td3_family_trace.py --compare old.pt new.pt                # max |diff| of losses and tensors
+    PYTHONPATH=. python tests/td3_family_trace.py --out trace.json [--dump tensors.pt]   # record (dump: every tensor in full)
+    PYTHONPATH=. python tests/td3_family_trace.py --compare old.pt new.pt                # max |diff| of losses and tensors
 """
 
 from __future__ import annotations
@@ -22,6 +22,10 @@ from typing import Any
 
 import numpy as np
 import torch
+from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+from coin_app.adapters.rllib_env import CoinMultiAgentEnv
+from coin_app.training import build_config
 
 TRACE = Path(__file__).with_name("td3_family_trace.json")
 UPDATES = 50
@@ -106,6 +110,12 @@ def _tensors(learner: Any) -> dict[str, torch.Tensor]:
     return out
 
 
+def _bytes(t: torch.Tensor) -> bytes:
+    """A CPU tensor's raw bytes (bf16 through int16, which numpy lacks)."""
+    t = t.contiguous()
+    return (t.view(torch.int16) if t.dtype == torch.bfloat16 else t).numpy().tobytes()
+
+
 def _sha(t: torch.Tensor) -> str:
     """sha256 of a tensor's dtype, shape and bytes."""
     return hashlib.sha256(f"{t.dtype}|{tuple(t.shape)}|".encode() + _bytes(t)).hexdigest()
@@ -122,15 +132,10 @@ def _raw_value_keys(tensors: dict[str, torch.Tensor]) -> list[str]:
 
 def run_case(algo: str, settings: dict[str, Any]) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     """(the trace of one case, its tensors after the updates, with its losses as tensors under "loss.<update>.<key>")."""
-    from coin_app.adapters.rllib_env import CoinMultiAgentEnv
-    from coin_app.training import build_config
-
     torch.manual_seed(0)
     cfg = build_config(algo, SCENARIO, {**SMALL_SCENARIO, **settings}, 0)
     torch.manual_seed(0)
     learner = cfg.build_learner(env=CoinMultiAgentEnv(cfg.env_config))
-    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
-
     losses: list[dict[str, str]] = []
     for i in range(UPDATES):
         cols = batch(cfg, i)
@@ -171,12 +176,6 @@ def record(cases: list[str] | None = None) -> tuple[dict[str, Any], dict[str, di
         traces[name], tensors[name] = run_case(algo, settings)
     meta = {"cpu_capability": torch.backends.cpu.get_cpu_capability(), "torch": torch.__version__, "updates": UPDATES}
     return {"meta": meta, "cases": traces}, tensors
-
-
-def _bytes(t: torch.Tensor) -> bytes:
-    """A CPU tensor's raw bytes (bf16 through int16, which numpy lacks)."""
-    t = t.contiguous()
-    return (t.view(torch.int16) if t.dtype == torch.bfloat16 else t).numpy().tobytes()
 
 
 def _same_bits(a: torch.Tensor, b: torch.Tensor) -> bool:

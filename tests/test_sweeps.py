@@ -20,7 +20,7 @@ from coin_app import training
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoint_files import verify
-from coin_app.algorithms.cig_td3.learner import lr_schedule
+from coin_app.algorithms.td3.learner import lr_schedule
 from coin_app.cli import main
 from coin_app.evaluation.sweep_results import load_trials, trial_name
 from coin_app.training import checkpoint_meta

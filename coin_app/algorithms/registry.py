@@ -13,11 +13,12 @@ from typing import Any
 
 from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.choices import ALGORITHM_NAMES
-from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3, ITD3
+from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3
 from coin_app.algorithms.copo.copo import COPO
 from coin_app.algorithms.nav_ppo.config import NAV_PPO
 from coin_app.algorithms.ppo_family.config import CPPO, IPPO, MFPO
 from coin_app.algorithms.spec import AlgorithmSpec
+from coin_app.algorithms.td3.td3 import ITD3
 from coin_app.algorithms.traco.traco import TRACO
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import PRESETS, ScenarioConfig

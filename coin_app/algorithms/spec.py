@@ -1,7 +1,7 @@
 """The algorithm contract: what every algorithm package exports, as BenchMARL's ``Algorithm`` base declares it.
 
 Each package under ``coin_app/algorithms/`` exports one :class:`AlgorithmSpec` per algorithm it
-holds (``cig_td3`` holds CIG-TD3 and ITD3, ``ppo_family`` IPPO, CPPO and MFPO). The spec says
+holds (``td3`` holds ITD3, the TD3 family's base, ``ppo_family`` IPPO, CPPO and MFPO). The spec says
 what the algorithm is, its documented hyper-parameters (the ``--set`` keys), the scenarios it
 trains on, its capabilities, and builds its RLlib config from a typed scenario config. Its
 RLModule implements :class:`ActorModule`, so evaluation and export never guess by attribute.
