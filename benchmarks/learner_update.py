@@ -43,6 +43,7 @@ from coin_app.algorithms.td3.learner import autocast
 from coin_app.algorithms.td3.losses import local_critic_loss
 from coin_app.algorithms.td3.td3 import Td3Config
 from coin_app.sim import schema
+from coin_app.sim.scenes import env_id
 from coin_app.training import build_config
 
 
@@ -152,7 +153,7 @@ def base_config(size: str, threads: int) -> tuple[CigTd3Config, int]:
     """The CIG-TD3 config timed at ``size`` and the number of other agents present per batch row."""
     if size == "paper":
         env_config = {"scenario": "intersection"}
-        cfg = CigTd3Config().environment("coin-intersection-v0", env_config=env_config).debugging(seed=0)
+        cfg = CigTd3Config().environment(env_id("intersection"), env_config=env_config).debugging(seed=0)
         return cfg.training(learner_threads=threads), 29
     settings = {**quick_settings("cig_td3"), "learner_threads": threads}
     cfg = build_config("cig_td3", "intersection", settings, 0)

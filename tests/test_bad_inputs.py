@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from coin_app.algorithms import registry
-from coin_app.algorithms.checks import RULES
 from coin_app.cli import main, one_line
 from coin_app.inference import export_policy
 
@@ -82,7 +81,7 @@ def test_bad_input_ends_in_one_clear_line(argv, phrase, paths, capsys, tmp_path,
 def test_every_algorithm_key_refuses_inf_nan_and_wrong_types_through_train(name, capsys, tmp_path):
     scenario = registry.get(name).scenarios[0]
     for key in registry.get(name).hyperparameters:
-        rule = RULES[key]
+        rule = registry.get(name).rule(key)
         for raw in ("inf", "nan", "'abc'", "[1]"):
             if rule.kind == "choice" and raw == "'abc'":
                 raw = "'abc-not-a-choice'"

@@ -560,3 +560,22 @@ def test_restart_marks_the_methods_trials_moves_their_directories_and_guards_a_p
     # a crash before the rerun: a plain --resume is refused before any work, the same --restart is the way on
     assert main(["sweep", "seeds", "--storage", str(tmp_path), "--name", "crafted", "--resume"]) == 2
     assert "has an unfinished --restart of a b; allowed: --resume --restart a b" in capsys.readouterr().err
+
+
+def test_a_scale_fits_its_scenes_or_refuses_the_others_in_one_line():
+    seeds = get_experiment("seeds")
+    # the reduced protocol was chosen on the intersection: other scenes are refused before any work
+    for scenario in ("roundabout", "bottleneck"):
+        with pytest.raises(ValueError) as err:
+            seeds.param_space(scenario, "reduced", methods=("cig_td3",))
+        assert "\n" not in str(err.value) and f"not the {scenario}; allowed: --scenario intersection" in str(err.value)
+    assert main(["sweep", "seeds", "--scale", "reduced", "--scenario", "roundabout", "--algos", "cig_td3", "--seeds", "0"]) == 2
+    # the quick scenario (smoke scale, --quick) fits each scene's longest route as 300 steps fit the intersection's 150.5 m
+    road = {s: registry.longest_route(s) for s in ("intersection", "roundabout", "bottleneck")}
+    assert road["intersection"] == pytest.approx(150.5) and road["bottleneck"] == pytest.approx(170.0)
+    for scenario, metres in road.items():
+        quick = registry.quick_scenario(scenario)
+        assert quick["horizon"] == quick["max_agent_steps"] and quick["horizon"] % 10 == 0
+        assert abs(quick["horizon"] - 300 * metres / road["intersection"]) <= 5  # to the nearest 10 steps
+    smoke = {t["seed"]: t for t in validate_trials(seeds.param_space("roundabout", "smoke", methods=("ippo",)))}
+    assert trial_overrides(smoke[0])["horizon"] == registry.quick_scenario("roundabout")["horizon"] > 600

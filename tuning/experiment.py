@@ -21,16 +21,9 @@ from coin_app.algorithms import registry
 SCALES = ("paper", "reduced", "smoke")
 
 # Smoke scale: the quick scenario and small networks of the learning tests, and batch sizes so a
-# trial is a few iterations of a few seconds each (tests and CI).
+# trial is a few iterations of a few seconds each (tests and CI). The PPO family's scales are its presets
+# (coin_app/algorithms/ppo_family/settings.py PRESETS: paper = CoPO's 4 sampling workers, reduced, smoke).
 SMOKE_TD3 = {"warmup_steps": 200, "updates_per_env_step": 0.1}
-SMOKE_PPO = {"train_batch_size_per_learner": 256, "minibatch_size": 128, "num_epochs": 1}
-SMOKE_CHUNK = {"rollout_fragment_length": 128}  # the PPO family's chunk at smoke scale (its default 200 needs a batch of 200 k)
-# Paper scale of the PPO family: the CoPO paper runs' sampling, 4 workers x 200-step chunks (the
-# batch of 1600 env steps and the chunk are the algorithms' own defaults, so this adds the workers;
-# each trial then asks Tune for 1 + 4 CPUs).
-PAPER_PPO = {"num_env_runners": 4}
-# the driving algorithms that learn from fresh rollouts (IPPO, CPPO, MFPO, CoPO); the others replay (the TD3 family)
-PPO_FAMILY = tuple(n for n, s in registry.ALGORITHMS.items() if s.capabilities.on_policy and "intersection" in s.scenarios)
 
 
 # Reduced scale: COIN's comparison sized for one small machine (the protocol and its evidence are in
@@ -75,7 +68,6 @@ REDUCED_LR_FINAL_FRACTION = 0.1
 # throttle ~-0.7: braking) on seeds 0 and 1 under the protocol's guard; with its optional individual critic (Q^l_1 added to
 # its actor objective, one of TraCo's inferred options in docs/guides/traco.md) both seeds drove (docs/results/journal.md).
 REDUCED_ALGO: dict[str, dict[str, Any]] = {"traco": {"individual_critic": True}}
-REDUCED_PPO: dict[str, Any] = {}  # the reference settings: 1,600 env steps per update, sampled in the trial's process
 
 
 @dataclass(frozen=True)
@@ -88,6 +80,8 @@ class Scale:
     keep: int  # checkpoints kept per trial (the newest)
     test_seeds: int = 20  # episodes per (checkpoint, agent count) in the generalization evaluation
     counts: dict[str, tuple[int, ...]] = field(default_factory=dict)  # scenario -> agent counts to evaluate at
+    # the scenes the scale was made for (its horizon, budget and settings were chosen there); None = every scene
+    made_for: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -105,8 +99,8 @@ class Experiment:
     smoke_variants: tuple[str, ...] | None = None  # a subset of variants at smoke scale (None = all)
     allowed_methods: tuple[str, ...] | None = None  # methods the variants apply to (None = every registry algorithm)
 
-    def scale(self, name: str) -> Scale:
-        """The scale called ``name`` (paper, reduced or smoke)."""
+    def scale(self, name: str, scenario: str | None = None) -> Scale:
+        """The scale called ``name`` (paper, reduced or smoke); a ValueError if it was not made for ``scenario``."""
         scales = {"paper": self.paper, "reduced": self.reduced, "smoke": self.smoke}
         allowed = ", ".join(n for n in SCALES if scales[n] is not None)
         if name not in SCALES:
@@ -114,6 +108,12 @@ class Experiment:
         found = scales[name]
         if found is None:
             raise ValueError(f"experiment {self.name!r} has no {name} scale; allowed: {allowed}")
+        if scenario is not None and found.made_for is not None and scenario not in found.made_for:
+            fits = ", ".join(n for n in SCALES if scales[n] is not None and scales[n].made_for is None)
+            raise ValueError(
+                f"the {name} scale was made for the {' and '.join(found.made_for)} (its horizon, budget and settings were chosen "
+                f"there), not the {scenario}; allowed: --scenario {' | '.join(found.made_for)}, or a scale for every scene: {fits}"
+            )
         return found
 
     def variant_names(self, scale: str) -> tuple[str, ...]:
@@ -154,7 +154,7 @@ class Experiment:
         overrides: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
         """The Tune param space: grid over method x variant x seed."""
-        sc = self.scale(scale)
+        sc = self.scale(scale, scenario)
         methods = tuple(methods or self.methods)
         self.check(scenario, methods, seeds)
         return self.base_config(scenario, scale, steps or sc.steps, overrides or {}) | {
@@ -182,32 +182,28 @@ def reduced_decay(steps: int) -> dict[str, Any]:
 def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     """The named layers of one trial's registry overrides, lowest first: the scale's, the variant's, the user's ``--set``.
 
-    Smoke scale: the quick scenario and small batches; reduced scale: the quick scenario with each
-    family's reduced settings (the TD3 family's rates decaying over the second half of the budget)
-    and the per-algorithm ones (``REDUCED_ALGO``: TraCo's individual critic);
-    paper scale: the PPO family's 4 env runners. ``python -m coin_app config`` prints them.
+    Smoke and reduced scales: the quick scenario, then the algorithm's preset of that name (the PPO
+    family's settings.py) or the TD3 family's quick settings with its scale's (its rates decaying over the
+    second half of the budget) and the per-algorithm ones (``REDUCED_ALGO``: TraCo's individual critic);
+    paper scale: the algorithm's ``paper`` preset (the PPO family's 4 env runners).
+    ``python -m coin_app config`` prints them.
     """
     algo, scale = config["algo"], config["scale"]
-    on_policy = algo in PPO_FAMILY  # the rest replay (the TD3 family)
+    spec = registry.get(algo)
     layers: list[tuple[str, dict[str, Any]]] = []
     if scale in ("smoke", "reduced"):
-        layers.append(("quick settings (registry.quick_settings)", registry.quick_settings(algo)))
-    if scale == "smoke":
-        layers.append(
-            (
-                "smoke scale (SMOKE_PPO, SMOKE_CHUNK)" if on_policy else "smoke scale (SMOKE_TD3)",
-                SMOKE_PPO | SMOKE_CHUNK if on_policy else SMOKE_TD3,
-            )
-        )
-    elif scale == "reduced" and on_policy:
-        layers.append(("reduced scale (REDUCED_PPO)", dict(REDUCED_PPO)))
-    elif scale == "reduced":
-        layers.append(("reduced scale (REDUCED_TD3)", dict(REDUCED_TD3)))
-        layers.append(
-            (f"reduced scale: decay over the second half of {int(config['steps']):,} env steps", reduced_decay(int(config["steps"])))
-        )
-    elif on_policy:
-        layers.append(("paper scale (PAPER_PPO)", dict(PAPER_PPO)))
+        layers.append((f"quick scenario (registry.quick_scenario({config['scenario']!r}))", registry.quick_scenario(config["scenario"])))
+    if spec.settings is not None:  # the scale is a preset of the algorithm's settings (its family's settings.py)
+        if scale in spec.presets:
+            layers.append((f"preset {scale!r} ({spec.settings.__module__})", spec.presets[scale].changes()))
+    elif scale in ("smoke", "reduced"):  # the TD3 family: its quick settings, then the scale's
+        layers.append(("quick settings (the spec's quick)", dict(spec.quick)))
+        if scale == "smoke":
+            layers.append(("smoke scale (SMOKE_TD3)", dict(SMOKE_TD3)))
+        else:
+            layers.append(("reduced scale (REDUCED_TD3)", dict(REDUCED_TD3)))
+            steps = int(config["steps"])
+            layers.append((f"reduced scale: decay over the second half of {steps:,} env steps", reduced_decay(steps)))
     if scale == "reduced" and algo in REDUCED_ALGO:
         layers.append((f"reduced scale (REDUCED_ALGO[{algo!r}])", dict(REDUCED_ALGO[algo])))
     layers.append((f"variant {config['variant']!r}", dict(config["variant_overrides"][config["variant"]])))

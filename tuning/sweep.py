@@ -132,7 +132,7 @@ def run_sweep(
 
     extra_loggers = tracking_callbacks(wandb_project, mlflow_uri, name or experiment)
     exp = get_experiment(experiment)
-    sc = exp.scale(scale)
+    sc = exp.scale(scale, scenario)
     if max_concurrent is not None and max_concurrent < 1:
         raise ValueError(f"bad --max-concurrent {max_concurrent}; allowed: an integer >= 1")
     if steps is not None and steps < 1:

@@ -53,15 +53,17 @@ from coin_app.sim import schema
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.scenarios import config_from_dict, scenario_name
-from coin_app.sim.scenes import SCENES
+from coin_app.sim.scenes import SCENARIOS, env_id
 
 OUTCOMES = ("finished", "succeeded", "collided", "agent_steps", "speed_sum")  # CoinMultiAgentEnv.outcomes (module doc)
 SCENARIO_CONFIG_KEY = "scenario_config"  # env_config key of an already parsed (typed) scenario config
 ADAPTER_KEYS = ("scenario", "lcf", SCENARIO_CONFIG_KEY)  # env_config keys of the adapter itself, not of the scenario
-ENV_IDS: dict[str, str] = {
-    **{s.env_id: name for name, s in SCENES.items()},
-    "coin-arena-v0": "arena",
-}
+ENV_IDS: dict[str, str] = {env_id(name): name for name in SCENARIOS}
+
+
+def env_id_of(config: ScenarioConfig | ArenaConfig) -> str:
+    """The registered env id of a parsed scenario config (``coin-<scenario>-v0``)."""
+    return env_id(scenario_name(config))
 
 
 class CoinMultiAgentEnv(MultiAgentEnv):
@@ -203,7 +205,7 @@ def make_env(scenario: str, env_config: Mapping[str, Any] | None = None) -> Coin
 
 def register_envs() -> list[str]:
     """Register ``coin-<scenario>-v0`` for every scenario with Ray Tune; returns the env ids."""
-    for env_id, scenario in ENV_IDS.items():
+    for name, scenario in ENV_IDS.items():
         creator: Callable[[Mapping[str, Any] | None], CoinMultiAgentEnv] = partial(make_env, scenario)
-        register_env(env_id, creator)
+        register_env(name, creator)
     return list(ENV_IDS)

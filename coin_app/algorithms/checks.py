@@ -28,15 +28,10 @@ from coin_app.algorithms.choices import (
     DOMAIN_REWARDS,
     GAT_INITS,
     GLOBAL_MODULES,
-    KL_SIGNALS,
-    LCF_MODES,
     LOCAL_MODULES,
-    NAV_STAGES,
-    NAV_WARM_STARTS,
     NEIGHBOUR_FEATURES,
     PRECISIONS,
     UPDATE_ORDERS,
-    WEIGHT_INITS,
 )
 
 INF = math.inf
@@ -112,14 +107,13 @@ def choice(*values: Any) -> Rule:
 
 BOOL = Rule("bool")
 
-# Every hyper-parameter of every algorithm (its meaning is documented once in the algorithm's HYPERPARAMETERS).
+# The TD3 family's hyper-parameters (their meaning is documented once in the algorithm's HYPERPARAMETERS); the PPO family
+# declares each setting with its rule in its settings class (coin_app.algorithms.settings).
 RULES: dict[str, Rule] = {
     # learning rates and TD3
     "actor_lr": positive("float", 1.0),
     "critic_lr": positive("float", 1.0),
     "central_critic_lr": positive("float", 1.0),
-    "lr": positive("float", 1.0),
-    "lcf_lr": positive("float", 1.0),
     "gamma": unit(),
     "tau": unit(lo_open=True),
     "policy_delay": positive("int"),
@@ -173,41 +167,7 @@ RULES: dict[str, Rule] = {
     "null_token": BOOL,
     "individual_critic": BOOL,
     "domain_weight": non_negative(),
-    # the PPO family
-    "lambda_": unit(),
-    "clip_param": positive(),
-    "vf_clip_param": positive(),
-    "vf_loss_coeff": non_negative(),
-    "entropy_coeff": non_negative(),
-    "kl_coeff": non_negative(),
-    "kl_target": positive(),
-    "kl_signal": choice(*KL_SIGNALS),
-    "num_epochs": positive("int"),
-    "minibatch_size": positive("int"),
     "timeout_bootstrap": BOOL,
-    "weight_init": choice(*WEIGHT_INITS),
-    "num_neighbours": positive("int"),
-    "neighbour_radius": positive("float", INF, None),
-    # CoPO
-    "initial_lcf_mean": Rule("float", -1.0, 1.0, lo_open=True, hi_open=True),
-    "initial_lcf_std": Rule("float", 0.0, 7.0, lo_open=True, hi_open=True),
-    "lcf_num_iters": non_negative("int"),
-    "lcf_minibatch_size": positive("int", INF, None),
-    "eval_lcf": choice(*LCF_MODES),
-    # nav_ppo
-    "stage": choice(*NAV_STAGES),
-    "log_std_init": Rule("float", -5.0, 2.0),
-    "log_std_min": Rule("float", -5.0, 2.0, also=(None,)),
-    "curriculum_steps": non_negative("int"),
-    "curriculum_start": unit(lo_open=True),
-    "warm_start": choice(*NAV_WARM_STARTS),
-    "warm_start_episodes": positive("int"),
-    "warm_start_noise": non_negative(),
-    "warm_start_epochs": non_negative("int"),
-    "warm_start_rounds": positive("int"),
-    "warm_start_weight": positive(),
-    "bc_coeff": non_negative(),
-    "bc_steps": non_negative("int"),
 }
 
 

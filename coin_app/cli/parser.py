@@ -94,8 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument(
         "--quick",
         action="store_true",
-        help="the algorithm's small settings that show learning within minutes (4 agents, horizon 300, small networks, "
-        "TD3 family: warm-up 500); --set values override them",
+        help="the algorithm's small settings that show learning within minutes (4 agents, a horizon that fits the scene: 300 "
+        "on the intersection; small networks; TD3 family: warm-up 500); --set values override them",
     )
     tr.add_argument(
         "--threads",

@@ -18,7 +18,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     overrides = parse_overrides(args.set)
     if args.quick:  # the small settings that learn within minutes, beneath the user's --set
-        overrides = {**quick_settings(args.algo), **overrides}
+        overrides = {**quick_settings(args.algo, args.scenario), **overrides}
     if args.num_agents is not None:
         overrides["num_agents"] = args.num_agents
     if args.backend != "native":
@@ -27,7 +27,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     resume = Path(args.resume) if args.resume else None
     print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
     if args.quick:
-        print(f"  --quick: {', '.join(f'{k}={v}' for k, v in quick_settings(args.algo).items())} (your --set wins)")
+        print(f"  --quick: {', '.join(f'{k}={v}' for k, v in quick_settings(args.algo, args.scenario).items())} (your --set wins)")
     summary = train(
         args.algo,
         args.scenario,

@@ -81,7 +81,7 @@ class Route:
 class RoadMap:
     """Lane geometry, roads, routes, lines, sidewalks and spawn places of one map."""
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, solid_center_line: bool = False):
         if name not in MAP_NAMES:
             raise ValueError(f"unknown map {name!r}; allowed: {', '.join(MAP_NAMES)}")
         data = json.loads((MAP_DIR / f"{name}.json").read_text())
@@ -144,11 +144,11 @@ class RoadMap:
         self.hull_grid = GridIndex(self.hull_bbox, reach=0.1)
 
         # physical solid lines (touching one is out of road); broken lines never terminate
-        segs = [s for s in data["line_segments_physical"] if s["type"] in SOLID_LINE_TYPES]
+        all_segs = self._solid_center_lines(data) if solid_center_line else data["line_segments_physical"]
+        segs = [s for s in all_segs if s["type"] in SOLID_LINE_TYPES]
         self.solid_p1 = np.array([s["p1"] for s in segs], dtype=float).reshape(-1, 2)
         self.solid_p2 = np.array([s["p2"] for s in segs], dtype=float).reshape(-1, 2)
         self.solid_half_width = float(segs[0]["half_width"]) if segs else 0.0375
-        all_segs = data["line_segments_physical"]
         self.line_p1 = np.array([s["p1"] for s in all_segs], dtype=float).reshape(-1, 2)
         self.line_p2 = np.array([s["p2"] for s in all_segs], dtype=float).reshape(-1, 2)
         self.line_solid = np.array([s["type"] in SOLID_LINE_TYPES for s in all_segs], dtype=bool)
@@ -222,6 +222,24 @@ class RoadMap:
         self.bounds = np.concatenate([allp.min(0), allp.max(0)])
         self.centre = 0.5 * (self.bounds[:2] + self.bounds[2:])
         self.scale = 0.5 * float(np.max(self.bounds[2:] - self.bounds[:2]))
+
+    def _solid_center_lines(self, data: dict) -> list[dict]:
+        """The line boxes with every broken yellow centre line built solid, as MetaDrive builds a continuous line.
+
+        A continuous line is boxes between the lane's left-edge points every 4 m and at its end
+        (``PGBlock._construct_lane_line_in_block``, ``LANE_SEGMENT_LENGTH``); COIN's patched MetaDrive
+        builds the bottleneck's neck centre line so (``BOTTLENECK_PARAMETER["solid_center_line"] = 1``).
+        """
+        broken = "ROAD_LINE_BROKEN_SINGLE_YELLOW"
+        segs = [s for s in data["line_segments_physical"] if s["type"] != broken]
+        box = next((s for s in data["line_segments_physical"] if s["type"] == broken), None)
+        for i, lane in enumerate(data["lanes"]):
+            if box is None or lane["line_types"][0] != "broken" or lane["line_colors"][0] != "yellow":
+                continue
+            s = np.array([*np.arange(0.0, self.length[i], 4.0), self.length[i]])
+            pts = self.position(np.full(len(s), i), s, np.full(len(s), -self.width[i] / 2))
+            segs += [{**box, "type": SOLID_LINE_TYPES[1], "p1": list(a), "p2": list(b)} for a, b in zip(pts[:-1], pts[1:])]
+        return segs
 
     # ----------------------------------------------------------------- lane queries
     def position(self, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -297,6 +315,6 @@ class RoadMap:
 
 
 @cache
-def load_map(name: str) -> RoadMap:
-    """The (cached, read-only) road map of a scenario."""
-    return RoadMap(name)
+def load_map(name: str, solid_center_line: bool = False) -> RoadMap:
+    """The (cached, read-only) road map of a scenario; ``solid_center_line`` builds broken yellow centre lines solid."""
+    return RoadMap(name, solid_center_line)

@@ -6,6 +6,7 @@ from typing import Any
 
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.config import ScenarioConfig, make_config
+from coin_app.sim.scenes import ARENA
 
 AnyScenarioConfig = ScenarioConfig | ArenaConfig
 
@@ -17,7 +18,7 @@ def config_from_dict(scenario: str, env_config: dict[str, Any]) -> AnyScenarioCo
     :class:`~coin_app.sim.arena.config.ArenaConfig` (no presets).
     """
     values = dict(env_config)
-    if scenario == "arena":
+    if scenario == ARENA:
         if "preset" in values:
             raise ValueError(f"the arena has no presets (got preset={values['preset']!r})")
         return make_arena_config(**values)
@@ -26,4 +27,4 @@ def config_from_dict(scenario: str, env_config: dict[str, Any]) -> AnyScenarioCo
 
 def scenario_name(config: AnyScenarioConfig) -> str:
     """The scenario name of a parsed config (``"arena"`` for an :class:`ArenaConfig`)."""
-    return "arena" if isinstance(config, ArenaConfig) else config.scenario
+    return ARENA if isinstance(config, ArenaConfig) else config.scenario

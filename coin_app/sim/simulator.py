@@ -9,8 +9,8 @@ separating axes and over respawn *events*. Each env has its own random generator
 ``e`` of a batch reproduces a single env seeded the same way.
 
 Step order (as MetaDrive): clip actions -> dynamics -> lane localisation and reference
-road update -> arrival / out-of-road / crash tests -> rewards -> retire done vehicles ->
-respawn -> observations of every agent that acted or spawned.
+road update -> arrival / out-of-road / crash tests -> rewards (the rules: ``rules.py``) ->
+retire done vehicles -> respawn -> observations of every agent that acted or spawned.
 """
 
 from __future__ import annotations
@@ -19,17 +19,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coin_app.sim import schema
+from coin_app.sim import rules, schema
 from coin_app.sim.collision import boxes_overlap, footprint_samples
 from coin_app.sim.config import PHYSICS_DT, ScenarioConfig
 from coin_app.sim.dynamics import bicycle_step, wrap_angle
 from coin_app.sim.road_map import GridIndex, load_map
+from coin_app.sim.scenes import scene
 from coin_app.sim.sensors import ego_features, lidar_scan, line_detector, local_state
 from coin_app.sim.vehicle import RaycastVehicles
 
 EMPTY, ACTIVE, DYING = 0, 1, 2
 CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
-ARRIVE_LONG_TOLERANCE = 5.0  # m around the end of the final lane
 MAX_RESPAWN_PER_STEP = 8  # one per respawn place
 
 
@@ -72,7 +72,7 @@ class DrivingSimulator:
                 "use coin_app.sim.driving_env.make_driving_env(config) (or backend='native')"
             )
         self.cfg = config
-        self.map = load_map(config.scenario)
+        self.map = load_map(config.scenario, config.solid_center_line)
         m = self.map
         self.num_envs = num_envs
         # spare slots so that a slot vacated in a step is never refilled in the same step
@@ -81,7 +81,7 @@ class DrivingSimulator:
         self.env_of = np.repeat(np.arange(num_envs), self.slots_per_env)
         self.half = np.array([config.vehicle_length / 2, config.vehicle_width / 2])
         self.half_diag = float(np.hypot(*self.half))
-        self.no_sign_quirk = config.scenario == "bottleneck"  # MetaDrive's bottleneck reward
+        self.scene = scene(config.scenario)
         seg = m.solid_p2 - m.solid_p1
         self.seg_center = 0.5 * (m.solid_p1 + m.solid_p2)
         self.seg_heading = np.arctan2(seg[:, 1], seg[:, 0])
@@ -260,37 +260,23 @@ class DrivingSimulator:
         on_lane = self._localize(idx)
         ref_road = m.route_roads[self.route[idx], self.ref_idx[idx]]
 
-        # terminations
-        # lane coordinates on the final lane (arrival) and on the reward lane now and before (progress), in one call
+        # the rules (coin_app/sim/rules.py) on this step's geometry: lane coordinates on the final lane (arrival) and on
+        # the reward lane now and before (progress), in one call
         fl = m.route_final_lane[self.route[idx]]
-        lane = self.lane[idx]
-        on_ref = m.lane_road[lane] == ref_road
-        rw_lane = np.where(on_ref, lane, m.road_first_lane[ref_road])
+        rw_lane, on_ref = rules.reward_lane(self.lane[idx], m.lane_road, ref_road, m.road_first_lane)
         s_all, r_all = m.local_coordinates(np.concatenate([fl, rw_lane, rw_lane]), np.concatenate([pos, pos, self.prev_pos[idx]]))
         n_idx = len(idx)
-        s_f, r_f = s_all[:n_idx], r_all[:n_idx]
-        s_now, s_last = s_all[n_idx : 2 * n_idx], s_all[2 * n_idx :]
-        n_ref = m.road_nlanes[ref_road]
-        w = m.width[fl]
-        length = m.length[fl]
-        arrive = (
-            (s_f > length - ARRIVE_LONG_TOLERANCE) & (s_f < length + ARRIVE_LONG_TOLERANCE) & (r_f >= (0.5 - n_ref) * w) & (r_f <= w / 2)
-        )
-        oor = ~on_lane | self._touches_solid_line(pos, hd) | self._on_sidewalk(pos, hd)
+        arrive = rules.arrived(s_all[:n_idx], r_all[:n_idx], m.length[fl], m.width[fl], m.road_nlanes[ref_road])
+        oor = rules.off_road(on_lane, self._touches_solid_line(pos, hd), self._on_sidewalk(pos, hd))
         crash = self._crashes()[idx]
         self.ep_len[idx] += 1
-        max_step = self.ep_len[idx] >= cfg.max_agent_steps
-        force_env = self.env_step >= cfg.force_stop_factor * cfg.horizon
+        max_step = rules.step_limit_reached(self.ep_len[idx], cfg)
+        force_env = rules.force_stopped(self.env_step, cfg)
         force = force_env[self.env_of[idx]]
-
-        # rewards (MetaDrive: progress on the localised lane if it is a reference lane)
-        neg = m.road_negative[ref_road] & (not self.no_sign_quirk)
-        sign = np.where(on_ref | ~neg, 1.0, -1.0)
-        reward = cfg.driving_reward * (s_now - s_last) * sign + cfg.speed_reward * (v * 3.6 / cfg.dynamics.max_speed_kmh) * sign
-        reward = np.where(arrive, cfg.success_reward, np.where(oor, -cfg.out_of_road_penalty, np.where(crash, -cfg.crash_penalty, reward)))
-
-        terminated = arrive | oor | crash
-        truncated = (max_step | force) & ~terminated
+        sign = rules.progress_sign(on_ref, m.road_negative[ref_road], self.scene.progress_sign_flip)
+        r_step = rules.step_reward(cfg, s_all[n_idx : 2 * n_idx], s_all[2 * n_idx :], v, sign)
+        reward = rules.reward(cfg, r_step, arrive, oor, crash)
+        terminated, truncated = rules.done(arrive, oor, crash, max_step, force)
 
         # retire: dying vehicles count down; arrived ones vanish, other done ones linger
         dying = self.status == DYING
@@ -319,9 +305,6 @@ class DrivingSimulator:
             out[idx] = vals
             return out
 
-        env_idx = self.env_of[idx]
-        count = np.bincount(env_idx, minlength=self.num_envs)
-        global_reward = np.bincount(env_idx, weights=reward, minlength=self.num_envs) / np.maximum(count, 1)
         result = self._result(
             acted,
             spawned_mask,
@@ -330,7 +313,7 @@ class DrivingSimulator:
             scatter(oor),
             scatter(max_step),
             scatter(reward),
-            global_reward,
+            rules.global_reward(reward, self.env_of[idx], self.num_envs),
             terminated=scatter(terminated),
             truncated=scatter(truncated),
         )
