@@ -38,9 +38,9 @@ from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, td_targets
 from coin_app.algorithms.registry import quick_settings
 from coin_app.algorithms.td3 import columns as col
-from coin_app.algorithms.td3 import td3
 from coin_app.algorithms.td3.learner import autocast
 from coin_app.algorithms.td3.losses import local_critic_loss
+from coin_app.algorithms.td3.settings import RLLIB_KEYS, Td3Settings
 from coin_app.algorithms.td3.td3 import Td3Config
 from coin_app.sim import schema
 from coin_app.sim.scenes import env_id
@@ -162,7 +162,7 @@ def base_config(size: str, threads: int) -> tuple[CigTd3Config, int]:
 
 def itd3_config(cig: CigTd3Config) -> Td3Config:
     """ITD3 (the TD3 base) with ``cig``'s scenario, seed and TD3 settings."""
-    own = {k: getattr(cig, k) for k in td3.HYPERPARAMETERS if k != "precision"}  # ITD3 keeps its own default precision
+    own = {k: getattr(cig, k) for k in Td3Settings.keys() if k not in ("precision", *RLLIB_KEYS)}  # ITD3 keeps its own precision
     cfg = Td3Config().environment(cig.env, env_config=cig.env_config).debugging(seed=cig.seed)
     return cfg.training(**own, train_batch_size_per_learner=cig.train_batch_size_per_learner)
 

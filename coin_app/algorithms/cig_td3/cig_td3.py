@@ -1,6 +1,6 @@
-"""CIG-TD3 (COIN): what it adds to the TD3 family's base (``td3/``): config, algorithm and spec in one file (as RLlib's ``tqc.py``).
+"""CIG-TD3 (COIN): what it adds to the TD3 family's base (``td3/``): config and algorithm (as RLlib's ``tqc.py``).
 
-``CigTd3Config`` is ``Td3Config`` plus CIG-TD3's keys, documented once in ``HYPERPARAMETERS`` with
+``CigTd3Config`` is ``Td3Config`` plus CIG-TD3's keys, declared once in ``settings.py`` (``CigTd3Settings``) with
 the paper's defaults (COIN §5.1; where the official code differs, its value is noted, and
 ``docs/decisions.md`` §2.1 says which side coin_app follows): the centralized critic (twin global Q,
 counterfactual baseline V, CVAE pair latents, GAT; ``critic.py``, ``pairwise.py``, ``graph.py``),
@@ -9,7 +9,7 @@ its learning rate and loss weights, and the ablation switches of COIN's Tables 5
 The algorithm is ``Td3``'s (sample -> joint-step replay -> updates -> sync); the module and the
 learner add the centralized critic (``rl_module.py``, ``learner.py``, ``losses.py``).
 
-``CIG_TD3`` is its :class:`~coin_app.algorithms.spec.AlgorithmSpec` entry.
+``CIG_TD3``, its :class:`~coin_app.algorithms.spec.AlgorithmSpec` entry, is in ``settings.py``.
 """
 
 from __future__ import annotations
@@ -20,42 +20,14 @@ from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
 from coin_app.algorithms.cig_td3.learner import CigTd3TorchLearner
 from coin_app.algorithms.cig_td3.rl_module import CigTd3TorchRLModule
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
-from coin_app.algorithms.td3 import td3
+from coin_app.algorithms.cig_td3.settings import CigTd3Settings
 from coin_app.algorithms.td3.td3 import Td3, Td3Config, config_builder
-
-# name -> (default, meaning): TD3's keys and CIG-TD3's; the single source of the documentation and of training() kwargs
-HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
-    **td3.HYPERPARAMETERS,
-    "critic_lr": (3e-4, "Adam learning rate of the twin local critics"),
-    "central_critic_lr": (3e-4, "Adam learning rate of the centralized critic: twin global Q, baseline V and CVAE (official 2e-4)"),
-    "tau": (0.005, "soft target update rate of actor, local and global critics"),
-    "hidden": (256, "width of actor, local-critic and CVAE layers"),
-    "precision": (
-        "bf16",
-        "learner update precision: bf16 | fp32 (bf16: every loss forward pass under torch.autocast bfloat16; parameters, "
-        "optimizer state, TD targets, loss reductions and soft updates stay fp32; 0.37x the fp32 update time at the paper's "
-        "sizes on this CPU, no loss of success at equal env steps: docs/studies/learning_curves_precision)",
-    ),
-    "global_critic": (True, "use the centralized critic (False: TD3's losses only; ITD3 is --algo itd3)"),
-    "counterfactual_baseline": (True, "subtract the counterfactual baseline V in the actor loss (Eq. 12)"),
-    "local_module": ("cvae", "pairwise interaction module: cvae | attention (Table B.1) | none (w/o VAE)"),
-    "global_module": ("gat", "global interaction module: gat | gcn | graphsage | none (w/o GAT: mean-pool)"),
-    "graph": ("full", "'full' graph, or a radius in metres for a sparse graph (Tables B.2/B.3: 40)"),
-    "global_weight": (1.0, "weight of the global term in the actor loss (paper 1.0; official 0.8)"),
-    "vae_weight": (1.0, "weight of the CVAE loss in the centralized-critic loss (official 0.01)"),
-    "kl_beta": (1.0, "weight of the KL term inside the CVAE loss"),
-    "latent_dim": (20, "CVAE latent size"),
-    "node_width": (128, "GAT node feature width"),
-    "gat_heads": (2, "heads of the first GAT layer, concatenated (official code 2; the paper is silent; 1 before coin_app 0.2)"),
-    "gat_init": ("xavier", "GAT weight initialization: xavier (gain 1.414, official code) | default (torch Linear, before 0.2)"),
-}
 
 
 class CigTd3Config(Td3Config):
     """Configuration of CIG-TD3 on RLlib's new API stack: TD3's with the centralized critic's keys."""
 
-    HYPERPARAMETERS: ClassVar[dict[str, tuple[Any, str]]] = HYPERPARAMETERS
+    SETTINGS: ClassVar[type[CigTd3Settings]] = CigTd3Settings
     LABEL: ClassVar[str] = "CIG-TD3"
 
     def __init__(self, algo_class: type | None = None):
@@ -110,18 +82,4 @@ class CigTd3(Td3):
         return CigTd3Config()
 
 
-# ---------------------------------------------------------------------- the spec (algorithm contract)
-# the quick scenario: TD3's small settings, and the centralized critic's widths and rate
-QUICK_CIG_TD3: dict[str, Any] = {**td3.QUICK_TD3, "latent_dim": 8, "node_width": 16, "central_critic_lr": 1e-3}
-# the smallest scale: TD3's, and the centralized critic's widths
-TINY_CIG_TD3: dict[str, Any] = {**td3.TINY_TD3, "latent_dim": 4, "node_width": 8}
-
-CIG_TD3 = AlgorithmSpec(
-    name="cig_td3",
-    description="COIN: CIG-TD3 with the interaction-aware centralized critic",
-    hyperparameters={**HYPERPARAMETERS, **td3.RLLIB_KEYS},
-    build=config_builder(CigTd3Config),
-    capabilities=Capabilities(on_policy=False, centralized_critic=True, joint_replay=True, periodic_evaluation=True),
-    quick=QUICK_CIG_TD3,
-    tiny=TINY_CIG_TD3,
-)
+build_cig_td3_config = config_builder(CigTd3Config)  # CIG-TD3's spec (settings.py) names it

@@ -1,7 +1,7 @@
 """The TD3 family's base on RLlib's new API stack, ITD3 as it is: config, algorithm and spec in one file (as RLlib's ``sac.py``).
 
-``Td3Config`` holds the TD3 hyper-parameters every member of the family takes, documented once in
-``HYPERPARAMETERS`` with COIN's defaults (COIN §5.1: "consistent with TD3" for ITD3, TraCo and
+``Td3Config`` holds the TD3 hyper-parameters every member of the family takes, declared once in
+``settings.py`` (``Td3Settings``) with COIN's defaults (COIN §5.1: "consistent with TD3" for ITD3, TraCo and
 COIN; where the official code differs, its value is noted, and ``docs/decisions.md`` §2.1 says which
 side coin_app follows). ITD3 is this config as it is: independent TD3 with parameter sharing.
 CIG-TD3 (``cig_td3/``) and TraCo (``traco/``) subclass the config, the module and the learner and add
@@ -22,7 +22,7 @@ sent to (``num_learners=1``; more would need more than one replay), on a GPU wit
 ``num_gpus_per_learner=1``. ``precision="bf16"`` runs the learner's loss forward passes in
 bfloat16 (``learner.py``).
 
-``ITD3`` is its :class:`~coin_app.algorithms.spec.AlgorithmSpec` entry.
+``ITD3``, its :class:`~coin_app.algorithms.spec.AlgorithmSpec` entry, is in ``settings.py``.
 """
 
 from __future__ import annotations
@@ -50,7 +50,6 @@ from ray.rllib.utils.metrics import (
 )
 
 from coin_app.adapters.rllib_env import ENV_IDS, env_config_of, register_envs
-from coin_app.algorithms.checks import value_errors
 from coin_app.algorithms.common import (
     SHARED_MODULE_ID,
     ProgressReporting,
@@ -58,10 +57,10 @@ from coin_app.algorithms.common import (
     policy_mapping_fn,
     scenario_config_of,
 )
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.algorithms.td3.buffer import JointStepReplayBuffer
 from coin_app.algorithms.td3.learner import Td3TorchLearner
 from coin_app.algorithms.td3.rl_module import Td3TorchRLModule
+from coin_app.algorithms.td3.settings import RLLIB_KEYS, Td3Settings
 from coin_app.algorithms.td3.transitions import episodes_to_transitions
 from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig
@@ -69,85 +68,24 @@ from coin_app.sim.road_map import load_map
 from coin_app.sim.scenarios import scenario_name
 from coin_app.sim.simulator import MAX_RESPAWN_PER_STEP
 
-# name -> (default, meaning); the single source of the documentation and of training() kwargs
-HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
-    "actor_lr": (2e-4, "Adam learning rate of the actor (paper; official code 1e-4)"),
-    "critic_lr": (3e-4, "Adam learning rate of the twin individual (local) critics"),
-    "tau": (0.005, "soft target update rate of every target network (actor and critics)"),
-    "policy_delay": (5, "actor and target updates every this many critic updates (official code 3)"),
-    "exploration_noise": (0.05, "std of the Gaussian noise added to actions while collecting"),
-    "target_noise": (0.1, "std of the target-policy smoothing noise (Eq. 8)"),
-    "target_noise_clip": (0.5, "clip of the target-policy smoothing noise"),
-    "timeout_bootstrap": (
-        True,
-        "True: a vehicle's time-out (its own step limit or the force stop, reported truncated) bootstraps its TD targets; "
-        "False: every done is terminal, time-outs too (the paper's d_i and the official code)",
-    ),
-    "warmup_steps": (30_000, "env steps with uniform random actions before the policy acts (official code)"),
-    "replay_capacity": (10_000_000, "agent transitions kept in the joint-step replay buffer (official code; memory grows with use)"),
-    "updates_per_env_step": (1.0, "gradient updates per sampled env step (official: one per env step)"),
-    "hidden": (256, "width of the actor's and the critics' hidden layers"),
-    "actor_layers": (3, "hidden layers of the actor (paper: a three-layer MLP; official code 3 x 256; 2 before coin_app 0.2)"),
-    "update_order": (
-        "critic_first",
-        "critic_first: the critics step, then the actor loss on the updated critics (TD3, official code) | "
-        "joint: every loss from the critics before the update (before coin_app 0.2)",
-    ),
-    # guards against the saturated full-brake freeze of TD3-family actors (docs/guides/train-cig-td3.md, "TD3 freeze"); all off = the paper
-    "actor_preact_penalty": (0.0, "weight w of w * mean(max(|u| - actor_preact_threshold, 0)^2) over the actor's pre-tanh outputs u"),
-    "actor_preact_threshold": (0.0, "pre-tanh magnitude the penalty starts at (0 = the plain penalty w * mean(u^2))"),
-    "critic_feature_norm": (
-        False,
-        "divide every critic's last hidden features by their L2 norm before its output layer (the penultimate "
-        "normalization of Bjorck et al., 2022, against seed-to-seed variance; not in COIN or its code)",
-    ),
-    "actor_start_steps": (0, "env steps after the warm-up before the actor's first update (the critics learn the warm-up data first)"),
-    "exploration_noise_initial": (
-        None,
-        "exploration std right after the warm-up, decaying linearly to exploration_noise (None = constant)",
-    ),
-    "exploration_noise_decay_steps": (0, "env steps of that decay"),
-    "exploration_noise_decay_start": (None, "env step at which that decay starts (None = the end of the warm-up)"),
-    # an optional late decay of every Adam learning rate (off = constant rates, the paper)
-    "lr_decay_start": (0, "env steps at which the learning rates start to decay linearly"),
-    "lr_decay_steps": (0, "env steps of that decay (0 = constant learning rates, the paper)"),
-    "lr_final_fraction": (1.0, "fraction of each learning rate reached at the decay's end and kept after it"),
-    "learner_threads": (1, "torch threads for updates in the learner's process (more only if a benchmark shows it helps)"),
-    "precision": (
-        "fp32",
-        "learner update precision: fp32 | bf16 (bf16: every loss forward pass under torch.autocast bfloat16; ITD3: fp32 until "
-        "a learning-curve comparison backs bf16)",
-    ),
-    "checkpoint_replay": (
-        True,
-        "keep the replay buffer in checkpoints (at its used size), so --resume continues exactly; False = small "
-        "checkpoints, and a resumed run refills an empty buffer (its updates wait for a batch of new transitions)",
-    ),
-    "eval_every": (25, "training iterations between deterministic evaluations on validation seeds (0 = off)"),
-    "eval_episodes": (5, "validation episodes (seeds) per periodic evaluation"),
-}
-
 
 class Td3Config(AlgorithmConfig):
     """Configuration of TD3 with parameter sharing (ITD3) on RLlib's new API stack; the base of every TD3-family config."""
 
-    HYPERPARAMETERS: ClassVar[dict[str, tuple[Any, str]]] = HYPERPARAMETERS  # this config's own keys (children have theirs)
+    SETTINGS: ClassVar[type[Td3Settings]] = Td3Settings  # this config's settings (children have theirs)
     LABEL: ClassVar[str] = "ITD3"  # the name in error messages
 
     def __init__(self, algo_class: type | None = None):
         super().__init__(algo_class=algo_class or Td3)
-        for name, (default, _) in self.HYPERPARAMETERS.items():
-            setattr(self, name, default)
-        self.gamma = 0.99
-        self.train_batch_size_per_learner = 256
-        self.rollout_fragment_length = 1
+        for name, value in self.SETTINGS().values().items():  # every setting at its declared default, RLlib's keys too
+            setattr(self, name, value)
         self.min_sample_timesteps_per_iteration = 500
         self.lr = None  # one optimizer per network; see actor_lr, critic_lr (and the children's rates)
         self.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)  # parameter sharing
 
     def training(self, **kwargs: Any) -> Td3Config:
-        """Set training options; this algorithm's keys are those of ``HYPERPARAMETERS``, the rest go to RLlib."""
-        own = {k: kwargs.pop(k) for k in list(kwargs) if k in self.HYPERPARAMETERS}
+        """Set training options; this algorithm's keys are its ``SETTINGS``' own (not RLlib's), the rest go to RLlib."""
+        own = {k: kwargs.pop(k) for k in list(kwargs) if k in self.SETTINGS.keys() and k not in RLLIB_KEYS}
         super().training(**kwargs)
         for name, value in own.items():
             if value is not NotProvided:
@@ -168,7 +106,7 @@ class Td3Config(AlgorithmConfig):
     def validate(self) -> None:
         """Refuse bad values and invalid combinations before any work starts."""
         super().validate()
-        errors = value_errors({key: getattr(self, key) for key in self.HYPERPARAMETERS})  # types, finiteness, ranges, choices
+        errors = self.SETTINGS.value_errors({key: getattr(self, key) for key in self.SETTINGS.keys()})  # types, ranges, choices
         if errors:  # the combinations below assume well-typed values
             raise ValueError(f"invalid {self.LABEL} config: " + "; ".join(errors))
         errors = self.combination_errors()
@@ -361,41 +299,6 @@ def copy_weights(source: torch.nn.Module, dest: torch.nn.Module) -> None:
             tensor.copy_(source.get_buffer(name))
 
 
-# ---------------------------------------------------------------------- the spec (algorithm contract)
-# RLlib keys every TD3-family algorithm also takes from --set: name -> (default, meaning)
-RLLIB_KEYS: dict[str, tuple[Any, str]] = {
-    "gamma": (0.99, "discount"),
-    "train_batch_size_per_learner": (256, "agent transitions per gradient update (paper: 256)"),
-    "rollout_fragment_length": (1, "env steps each env runner samples per training step"),
-    "num_env_runners": (0, "remote env runners (0 = sample in the algorithm process)"),
-}
-
-# the TD3 family on the small quick scenario (CI learning test, learning curves): small networks, faster rates
-QUICK_TD3: dict[str, Any] = {
-    "warmup_steps": 500,
-    "train_batch_size_per_learner": 128,
-    "hidden": 64,
-    "policy_delay": 2,
-    "actor_lr": 6e-4,
-    "critic_lr": 1e-3,
-    "eval_every": 0,
-    # The freeze guard is the reduced-scale default of every TD3-family method (quick settings, smoke sweeps), chosen by
-    # 5 seeds x 40k env steps of CIG-TD3 and of ITD3 with and without it (docs/studies/learning_curves_freeze*); the paper scale
-    # keeps the paper's setting (no guard).
-    "actor_preact_penalty": 1e-3,
-    "actor_preact_threshold": 2.0,
-}
-
-# the TD3 family at the smallest scale (registry.tiny_settings: tests that build, update and checkpoint in seconds)
-TINY_TD3: dict[str, Any] = {
-    "warmup_steps": 60,
-    "train_batch_size_per_learner": 16,
-    "hidden": 16,
-    "policy_delay": 2,
-    "eval_every": 0,
-}
-
-
 def config_builder(config_class: type[Td3Config]) -> Callable[[ScenarioConfig, dict[str, Any], int], Td3Config]:
     """The spec builder of a TD3-family config class: a validated config on a parsed scenario."""
 
@@ -411,12 +314,4 @@ def config_builder(config_class: type[Td3Config]) -> Callable[[ScenarioConfig, d
     return build
 
 
-ITD3 = AlgorithmSpec(
-    name="itd3",
-    description="ITD3: independent TD3 with parameter sharing",
-    hyperparameters={**HYPERPARAMETERS, **RLLIB_KEYS},
-    build=config_builder(Td3Config),
-    capabilities=Capabilities(on_policy=False, centralized_critic=False, joint_replay=True, periodic_evaluation=True),
-    quick=QUICK_TD3,
-    tiny=TINY_TD3,
-)
+build_itd3_config = config_builder(Td3Config)  # ITD3's spec (td3/settings.py) names it

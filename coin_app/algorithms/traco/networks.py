@@ -37,6 +37,7 @@ from torch import Tensor, nn
 from coin_app.algorithms.choices import NEIGHBOUR_FEATURES
 from coin_app.algorithms.masked_softmax import masked_softmax
 from coin_app.algorithms.td3.networks import mlp
+from coin_app.algorithms.traco.settings import TracoSettings
 from coin_app.sim import schema
 
 __all__ = [
@@ -51,7 +52,7 @@ __all__ = [
     "neighbourhood_mask",
 ]
 
-DOMAIN_RADIUS = 40.0  # metres: COIN §5.2 ("a neighborhood range of 40 meters"), CoPO's neighbours_distance=40
+DOMAIN_RADIUS: float = TracoSettings.declarations()["domain_radius"].default  # metres: COIN §5.2 (declared in settings.py)
 # Inference: COIN's released code replaces the ego's action by the constant -1 vector in its counterfactual V.
 DEFAULT_ACTION = (-1.0, -1.0)
 
