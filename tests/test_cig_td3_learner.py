@@ -398,3 +398,27 @@ def test_soft_update_is_taus_blend_of_every_state_tensor():
     for k, v in target.state_dict().items():
         expected = main.state_dict()[k] if k == "num_batches_tracked" else 0.25 * main.state_dict()[k] + 0.75 * old[k]
         assert torch.allclose(v.float(), expected.float(), atol=1e-7), k
+
+
+@pytest.mark.parametrize("clip", [None, 0.01])
+def test_grad_clip_bounds_every_optimizers_gradient_norm(clip):
+    # one declaration in td3/settings.py: --set takes it, and RLlib's own gradient post-processing reads it for each optimizer
+    from coin_app.algorithms import registry
+    from coin_app.training import build_config
+
+    overrides = registry.tiny_settings("itd3", "bottleneck") | ({} if clip is None else {"grad_clip": clip})
+    cfg = build_config("itd3", "bottleneck", overrides, 0)
+    assert cfg.grad_clip == clip
+    learner = cfg.build_learner(env=CoinMultiAgentEnv({"scenario": "bottleneck", **ENV_CFG}))
+    grads = {ref: torch.full_like(p, 3.0) for ref, p in learner._params.items()}
+    out = learner.postprocess_gradients(grads)
+    optimizers = learner.get_optimizers_for_module("shared")
+    assert len(optimizers) >= 2  # the actor's and the critics'
+    for _, optimizer in optimizers:
+        refs = learner._optimizer_parameters[optimizer]
+        n = sum(learner._params[r].numel() for r in refs)
+        norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(out[r]) for r in refs])).item()
+        expected = 3.0 * math.sqrt(n) if clip is None else clip  # clipping rescales the whole group to the bound
+        assert norm == pytest.approx(expected, rel=1e-4)
+    with pytest.raises(ValueError, match=r"^bad value for 'grad_clip': -1; allowed: None or a finite number > 0$"):
+        build_config("itd3", "bottleneck", {"grad_clip": -1}, 0)

@@ -36,6 +36,12 @@ class Td3Settings(Settings):
         1, positive("int", INF, "auto"), "env steps each env runner samples per training step", reads=RLLIB
     )
     num_env_runners: int = setting(0, non_negative("int"), "remote env runners (0 = sample in the algorithm process)", reads=RLLIB)
+    grad_clip: float | None = setting(
+        None,
+        positive("float", INF, None),
+        "clip each optimizer's gradients to this global L2 norm before its step (None: no clipping, the paper)",
+        reads=RLLIB,
+    )
     # TD3
     actor_lr: float = setting(2e-4, positive("float", 1.0), "Adam learning rate of the actor", reads=OPTIM, official=1e-4)
     critic_lr: float = setting(3e-4, positive("float", 1.0), "Adam learning rate of the twin individual (local) critics", reads=OPTIM)
