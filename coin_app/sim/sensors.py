@@ -7,8 +7,7 @@ trained on one simulator can be evaluated on the other.
 
 from __future__ import annotations
 
-from functools import cache
-
+import numba
 import numpy as np
 
 from coin_app.sim.road_map import RoadMap
@@ -20,11 +19,63 @@ CURVE_RADIUS_MAX = 60.0
 CURVE_ANGLE_MAX_DEG = 135.0
 
 
-@cache
-def _beam_table(n_beams: int) -> tuple[np.ndarray, np.ndarray]:
-    """cos and sin of every beam's angle offset."""
-    ang = 2 * np.pi * np.arange(n_beams) / n_beams
-    return np.cos(ang), np.sin(ang)
+@numba.njit(cache=True, error_model="numpy")
+def _scan_box(
+    out: np.ndarray, ox0: float, oy0: float, own_h: float, cx: float, cy: float, box_h: float, hl: float, hw: float, max_range: float
+) -> None:
+    """Lower the beams ``out`` (n_beams,) of an observer at (ox0, oy0) heading ``own_h`` to the box at (cx, cy), ``box_h``, half
+    extents (hl, hw) where they hit it, ray-casting only the beams inside the box's angular extent (boxes beyond the range
+    plus the box's bounding radius are skipped)."""
+    n_beams = len(out)
+    rx, ry = cx - ox0, cy - oy0
+    d = np.hypot(rx, ry)
+    if not d < max_range + np.hypot(hl, hw):  # bounding-circle radius: the range cut
+        return
+    step = 2 * np.pi / n_beams
+    bearing = np.arctan2(ry, rx) - own_h
+    # observer position in the box's frame
+    c, s = np.cos(box_h), np.sin(box_h)
+    ox = -(rx * c + ry * s)
+    oy = rx * s - ry * c
+    # angular half-width of the box seen from the observer, bounded by its extent across
+    # the line of sight (p) over its nearest depth along it (d - q)
+    inv_d = 1.0 / max(d, 1e-9)
+    p = (hl * abs(oy) + hw * abs(ox)) * inv_d
+    depth = d - (hl * abs(ox) + hw * abs(oy)) * inv_d
+    full = depth <= 1e-6
+    half_ang = np.arctan2(p, max(depth, 1e-6))
+    k0 = 0 if full else int(np.ceil((bearing - half_ang) / step))
+    k1 = int(np.floor((bearing + half_ang) / step))
+    count = min(max(n_beams if full else k1 - k0 + 1, 0), n_beams)
+    rel_h = own_h - box_h
+    cr, sr = np.cos(rel_h), np.sin(rel_h)
+    for k in range(k0, k0 + count):
+        kk = k % n_beams
+        # beam direction in the box frame: angle rel_h + k * step, by angle addition
+        ang = 2 * np.pi * kk / n_beams
+        ck, sk = np.cos(ang), np.sin(ang)
+        dx = cr * ck - sr * sk
+        dy = sr * ck + cr * sk
+        tx1, tx2 = (-hl - ox) / dx, (hl - ox) / dx
+        ty1, ty2 = (-hw - oy) / dy, (hw - oy) / dy
+        t_in = np.maximum(np.minimum(tx1, tx2), np.minimum(ty1, ty2))
+        t_out = np.minimum(np.maximum(tx1, tx2), np.maximum(ty1, ty2))
+        if t_out >= np.maximum(t_in, 0.0) and t_out < np.inf:
+            out[kk] = min(out[kk], max(t_in, 0.0))
+
+
+@numba.njit(cache=True)
+def _lidar_pairs(
+    obs_pos: np.ndarray, obs_heading: np.ndarray, pair_obs: np.ndarray, pair_center: np.ndarray, pair_heading: np.ndarray,
+    hl: float, hw: float, n_beams: int, max_range: float,
+) -> np.ndarray:  # fmt: skip
+    out = np.full((len(obs_heading), n_beams), max_range)
+    for q in range(len(pair_obs)):
+        i = pair_obs[q]
+        _scan_box(
+            out[i], obs_pos[i, 0], obs_pos[i, 1], obs_heading[i], pair_center[q, 0], pair_center[q, 1], pair_heading[q], hl, hw, max_range
+        )
+    return out
 
 
 def lidar_scan(
@@ -42,58 +93,41 @@ def lidar_scan(
     Beam k points at ``heading + 2 pi k / n_beams`` (CCW; 0 = ahead). The boxes an observer
     can see are given as pairs: observer ``pair_obs[p]`` and a box of half extents ``half``
     at ``pair_center[p]`` with ``pair_heading[p]`` (the caller lists nearby boxes only).
-    Each pair is ray-cast only on the beams inside the box's angular extent, so the cost
-    grows with the number of nearby pairs, not with beams x vehicles.
+    Each pair is ray-cast only on the beams inside the box's angular extent (``_scan_box``).
     """
-    a_n = len(obs_pos)
-    out = np.full(a_n * n_beams, max_range)
-    if a_n == 0 or len(pair_obs) == 0:
-        return out.reshape(a_n, n_beams)
-    hl, hw = half
-    rad_b = float(np.hypot(hl, hw))  # bounding-circle radius: the range cut
-    rel = pair_center - obs_pos[pair_obs]
-    d = np.hypot(rel[:, 0], rel[:, 1])
-    keep = d < max_range + rad_b
-    pair_obs, rel, d, pair_heading = pair_obs[keep], rel[keep], d[keep], pair_heading[keep]
-    step = 2 * np.pi / n_beams
-    own_h = obs_heading[pair_obs]
-    bearing = np.arctan2(rel[:, 1], rel[:, 0]) - own_h
-    # observer position in each box's frame, once per pair
-    c, s = np.cos(pair_heading), np.sin(pair_heading)
-    ox = -(rel[:, 0] * c + rel[:, 1] * s)
-    oy = rel[:, 0] * s - rel[:, 1] * c
-    # angular half-width of the box seen from the observer, bounded by its extent across
-    # the line of sight (p) over its nearest depth along it (d - q)
-    inv_d = 1.0 / np.maximum(d, 1e-9)
-    p = (hl * np.abs(oy) + hw * np.abs(ox)) * inv_d
-    depth = d - (hl * np.abs(ox) + hw * np.abs(oy)) * inv_d
-    full = depth <= 1e-6
-    half_ang = np.arctan2(p, np.maximum(depth, 1e-6))
-    k0 = np.where(full, 0, np.ceil((bearing - half_ang) / step)).astype(np.int64)
-    k1 = np.floor((bearing + half_ang) / step).astype(np.int64)
-    counts = np.clip(np.where(full, n_beams, k1 - k0 + 1), 0, n_beams)
-    total = int(counts.sum())
-    if total == 0:
-        return out.reshape(a_n, n_beams)
-    rel_h = own_h - pair_heading
-    pair = np.repeat(np.arange(len(pair_obs)), counts)
-    k = np.repeat(k0 - np.cumsum(counts) + counts, counts) + np.arange(total)
-    # beam direction in the box frame: angle rel_h + k * step, by angle addition
-    kk = k % n_beams
-    cr, sr = np.cos(rel_h)[pair], np.sin(rel_h)[pair]
-    ck, sk = _beam_table(n_beams)
-    dx = cr * ck[kk] - sr * sk[kk]
-    dy = sr * ck[kk] + cr * sk[kk]
-    oxp, oyp = ox[pair], oy[pair]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tx1, tx2 = (-hl - oxp) / dx, (hl - oxp) / dx
-        ty1, ty2 = (-hw - oyp) / dy, (hw - oyp) / dy
-    t_in = np.maximum(np.minimum(tx1, tx2), np.minimum(ty1, ty2))
-    t_out = np.minimum(np.maximum(tx1, tx2), np.maximum(ty1, ty2))
-    hit = (t_out >= np.maximum(t_in, 0.0)) & (t_out < np.inf)
-    flat = pair_obs[pair[hit]] * n_beams + kk[hit]
-    np.minimum.at(out, flat, np.maximum(t_in[hit], 0.0))
-    return np.minimum(out, max_range).reshape(a_n, n_beams)
+    f = np.float64
+    return _lidar_pairs(
+        np.ascontiguousarray(obs_pos, f).reshape(-1, 2), np.ascontiguousarray(obs_heading, f), np.ascontiguousarray(pair_obs, np.int64),
+        np.ascontiguousarray(pair_center, f).reshape(-1, 2), np.ascontiguousarray(pair_heading, f), float(half[0]), float(half[1]),
+        int(n_beams), float(max_range),
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def lidar_same_env(
+    slots: np.ndarray,
+    pos: np.ndarray,
+    heading: np.ndarray,
+    live: np.ndarray,
+    slots_per_env: int,
+    half: np.ndarray,
+    n_beams: int,
+    max_range: float,
+) -> np.ndarray:
+    """``lidar_scan`` of the vehicles ``slots`` (per-slot arrays) against every other live vehicle of their env closer than the
+    range plus the box's half diagonal (env e: slots ``e S .. e S + S - 1``); (len(slots), n_beams)."""
+    out = np.full((len(slots), n_beams), max_range)
+    reach = max_range + np.hypot(half[0], half[1])
+    for q in range(len(slots)):
+        i = slots[q]
+        base = i - i % slots_per_env
+        for j in range(base, base + slots_per_env):
+            if j == i or not live[j]:
+                continue
+            dx, dy = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1]
+            if dx * dx + dy * dy < reach**2:
+                _scan_box(out[q], pos[i, 0], pos[i, 1], heading[i], pos[j, 0], pos[j, 1], heading[j], half[0], half[1], max_range)
+    return out
 
 
 def line_detector(

@@ -1,0 +1,147 @@
+"""The compiled kernels (issue 59) against the numpy step they replaced (tests/numpy_reference.py), to float64 round-off."""
+
+import numpy as np
+import pytest
+from numpy_reference import NumpyRaycastVehicles, NumpyRoadMap, NumpySimulator
+from numpy_reference import boxes_overlap as numpy_boxes_overlap
+from numpy_reference import footprint_samples as numpy_footprint_samples
+from numpy_reference import lidar_scan as numpy_lidar_scan
+from numpy_reference import turn_matrices as numpy_turn_matrices
+
+from coin_app.sim.collision import boxes_overlap, footprint_samples
+from coin_app.sim.config import make_config
+from coin_app.sim.heuristic import HeuristicDriver
+from coin_app.sim.road_map import load_map
+from coin_app.sim.scenes import DRIVING_SCENARIOS
+from coin_app.sim.sensors import lidar_scan
+from coin_app.sim.simulator import DrivingSimulator
+from coin_app.sim.vehicle import RaycastVehicles, chassis_basis, turn_matrices
+
+STATE = ("pos", "rot", "vel", "ang")
+
+
+def test_turn_matrices_equal_the_numpy_ones_to_the_bit():
+    w = np.random.default_rng(0).normal(0.0, 3.0, (200, 3))
+    w[0] = 0.0
+    np.testing.assert_array_equal(turn_matrices(w, 0.02), numpy_turn_matrices(w, 0.02))
+
+
+def test_car_kernel_steps_every_state_as_the_numpy_step_did():
+    """Cars at rest, settling, driving, sliding at full lock, tipped over and airborne: each env step from the same state agrees
+    to round-off (a few ulp of the state's scale), over 150 steps of random actions (the states synchronised after each)."""
+    rng = np.random.default_rng(1)
+    n = 24
+    new, old = RaycastVehicles(n), NumpyRaycastVehicles(n)
+    new.place(np.arange(n), rng.uniform(-50, 50, (n, 2)), rng.uniform(-3, 3, n), rng.uniform(0, 25, n), settled=True)
+    new.place(np.arange(4), rng.uniform(-50, 50, (4, 2)), rng.uniform(-3, 3, 4))  # spawned: falling onto the suspension
+    new.rot[4] = chassis_basis(np.array([0.3]), np.array([2.0]))[0]  # tipped over
+    new.pos[5, 2] = 2.0  # in the air
+    slots = rng.permutation(n)[: n - 3]  # a subset, in no order
+    skids = 0
+    for _ in range(150):
+        for name in STATE:
+            getattr(old, name)[:] = getattr(new, name)
+        action = rng.uniform(-1.0, 1.0, (len(slots), 2))
+        xy, heading = new.step(slots, action)
+        xy_old, heading_old = old.step(slots, action)
+        np.testing.assert_allclose(xy, xy_old, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(heading, heading_old, rtol=0, atol=1e-13)
+        for name in STATE:
+            np.testing.assert_allclose(getattr(new, name), getattr(old, name), rtol=1e-13, atol=1e-13)
+        lateral = np.abs(np.einsum("nij,nj->ni", new.rot[slots], new.vel[slots])[:, 0])
+        skids += int((lateral > 1.0).sum())
+    untouched = np.setdiff1d(np.arange(n), slots)
+    assert skids > 100  # the friction circle was reached (sliding sideways at over 1 m/s)
+    assert np.array_equal(new.vel[untouched], old.vel[untouched])
+
+
+def test_lane_queries_equal_the_numpy_ones():
+    rng = np.random.default_rng(2)
+    for name in DRIVING_SCENARIOS:
+        m, ref = load_map(name), NumpyRoadMap(name)
+        lane = rng.integers(0, m.num_lanes, 500)
+        pos = rng.uniform(m.bounds[:2], m.bounds[2:], (500, 2))
+        s = rng.uniform(-5, 60, 500)
+        for got, want in zip(m.local_coordinates(lane, pos), ref.local_coordinates(lane, pos)):
+            np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(m.heading_at(lane, s), ref.heading_at(lane, s))
+        contains = m.hull_contains(pos)
+        np.testing.assert_array_equal(contains, ref.hull_contains(pos))
+        assert contains.any() and not contains.all()
+
+
+def test_boxes_footprints_and_lidar_equal_the_numpy_ones():
+    rng = np.random.default_rng(3)
+    n = 4000
+    c1, c2 = rng.uniform(-4, 4, (n, 2)), rng.uniform(-4, 4, (n, 2))
+    h1, h2 = rng.uniform(-4, 4, n), rng.uniform(-4, 4, n)
+    half1, half2 = rng.uniform(0.2, 3, (n, 2)), rng.uniform(0.2, 3, (n, 2))
+    hit = boxes_overlap(c1, h1, half1, c2, h2, half2)
+    np.testing.assert_array_equal(hit, numpy_boxes_overlap(c1, h1, half1, c2, h2, half2))
+    assert 0.2 < hit.mean() < 0.8
+    np.testing.assert_array_equal(footprint_samples(c1, h1, 2.3, 0.9), numpy_footprint_samples(c1, h1, 2.3, 0.9))
+    pos, hd = rng.uniform(-30, 30, (40, 2)), rng.uniform(-4, 4, 40)
+    pos[1] = pos[0] + 0.5  # an observer inside another's box
+    i, j = np.nonzero(~np.eye(40, dtype=bool))
+    scan = lidar_scan(pos, hd, i, pos[j], hd[j], (2.3, 0.9), 72, 50.0)
+    np.testing.assert_array_equal(scan, numpy_lidar_scan(pos, hd, i, pos[j], hd[j], (2.3, 0.9), 72, 50.0))
+    assert (scan < 50.0).mean() > 0.1 and (scan == 0.0).any()
+
+
+def _episode(scenario: str, num_envs: int, steps: int, seed: int) -> dict[str, int]:
+    """Step the compiled and the numpy simulators side by side under heuristic traffic with noise (and every fifth step
+    uniform random actions); assert equal events and round-off-equal numbers at every step; count the events."""
+    cfg = make_config(scenario)
+    new, old = DrivingSimulator(cfg, num_envs), NumpySimulator(cfg, num_envs)
+    new.reset(seed)
+    old.reset(seed)
+    driver = HeuristicDriver(new)
+    rng = np.random.default_rng(seed)
+    counts = dict.fromkeys(("arrive_dest", "crash_vehicle", "out_of_road", "respawned", "resets"), 0)
+    for k in range(steps):
+        if k % 5 == 4:
+            actions = rng.uniform(-1.0, 1.0, (new.num_slots, 2))
+        else:
+            actions = np.clip(driver.act_all() + rng.normal(0.0, 0.15, (new.num_slots, 2)), -1.0, 1.0)
+        got, want = new.step(actions), old.step(actions)
+        for f in ("acted", "spawned", "agent_num", "arrive_dest", "crash_vehicle", "out_of_road", "max_step", "terminated", "truncated"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f"{f} at step {k}")
+        for f in ("episode_length", "episode_over", "env_step"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f"{f} at step {k}")
+        # observations and states are float32: equal up to a float32 rounding of a round-off-equal float64
+        np.testing.assert_allclose(got.obs, want.obs, rtol=0, atol=3e-7, err_msg=f"obs at step {k}")
+        np.testing.assert_allclose(got.state, want.state, rtol=0, atol=3e-7, err_msg=f"state at step {k}")
+        np.testing.assert_allclose(got.reward, want.reward, rtol=1e-12, atol=1e-12, err_msg=f"reward at step {k}")
+        for f in ("status", "lane", "ref_idx", "route"):
+            np.testing.assert_array_equal(getattr(new, f), getattr(old, f), err_msg=f"{f} at step {k}")
+        for f in ("pos", "heading", "speed", "vel"):
+            np.testing.assert_allclose(getattr(new, f), getattr(old, f), rtol=1e-12, atol=1e-12, err_msg=f"{f} at step {k}")
+        for f in ("arrive_dest", "crash_vehicle", "out_of_road"):
+            counts[f] += int(getattr(got, f).sum())
+        counts["respawned"] += int(got.spawned.sum())
+        # the car amplifies round-off where it slides (1e-15 grows to 1e-8 in ~150 steps on either path): continue both from
+        # the numpy step's state, so that every step is compared from the same state and no event flips on round-off
+        for f in ("pos", "prev_pos", "vel", "heading", "heading_prev", "speed", "yaw_rate"):
+            getattr(new, f)[:] = getattr(old, f)
+        for f in STATE:
+            getattr(new.bodies, f)[:] = getattr(old.bodies, f)
+        over = np.nonzero(got.episode_over)[0]
+        if len(over):
+            seeds = [seed + 1000 + k + e for e in over.tolist()]
+            new.reset_envs(over, seeds)
+            old.reset_envs(over, seeds)
+            counts["resets"] += len(over)
+    return counts
+
+
+@pytest.mark.parametrize(
+    ("scenario", "num_envs", "steps", "events"),
+    [
+        ("intersection", 1, 400, ("arrive_dest", "crash_vehicle", "out_of_road", "respawned")),
+        ("roundabout", 2, 300, ("crash_vehicle", "respawned")),  # a batch of two envs (no arrival within 300 steps)
+    ],
+)
+def test_a_long_seeded_episode_equals_the_numpy_step(scenario, num_envs, steps, events):
+    """Arrivals, exits, crashes and respawns happen, and every step's events, observations, rewards and states agree."""
+    counts = _episode(scenario, num_envs, steps, seed=5)
+    assert all(counts[e] > 0 for e in events), counts
