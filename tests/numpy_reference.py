@@ -10,10 +10,31 @@ import functools
 
 import numpy as np
 
+from coin_app.sim.arena.heuristic import (
+    CANDIDATES,
+    FILTER_HORIZON,
+    FILTER_MARGIN,
+    FOOTPRINT_OFFSET,
+    FOOTPRINT_RADIUS,
+    as_rows,
+    entity_views,
+    heuristic_actions,
+    may_come_near,
+)
+from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE
 from coin_app.sim.collision import box_axes
 from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.dynamics import wrap_angle
 from coin_app.sim.road_map import RoadMap
-from coin_app.sim.sensors import ego_features, line_detector, local_state
+from coin_app.sim.sensors import (
+    CURVE_ANGLE_MAX_DEG,
+    CURVE_RADIUS_MAX,
+    LANE_OFFSET_NORM,
+    MAX_LANE_SPAN,
+    STEERING_QUIRK,
+    line_detector,
+    local_state,
+)
 from coin_app.sim.simulator import CKPT_UPDATE_RANGE, EMPTY, DrivingSimulator
 from coin_app.sim.vehicle import RaycastVehicles
 
@@ -490,12 +511,121 @@ def observe(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return obs, state
 
 
+def position(self, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``RoadMap.position`` before the kernel: world positions (N, 2) of lane-local coordinates (s, r) on lanes ``lane``."""
+    circ = self.is_circ[lane]
+    u = self.unit[lane]
+    straight = self.start[lane] + u * s[:, None] + np.stack([u[:, 1], -u[:, 0]], 1) * r[:, None]
+    direc = self.direction[lane]
+    rad = self.radius[lane]
+    phi = self.start_phase[lane] + direc * s / rad
+    rr = rad + r * direc
+    curved = self.center[lane] + rr[:, None] * np.stack([np.cos(phi), np.sin(phi)], 1)
+    return np.where(circ[:, None], curved, straight)
+
+
+def right_normal(self, lane: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """``RoadMap.right_normal`` before the kernel: unit vector pointing to the right of the lane's direction at ``pos``."""
+    u = self.unit[lane]
+    straight = np.stack([u[:, 1], -u[:, 0]], 1)
+    delta = pos - self.center[lane]
+    nrm = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-9)[:, None]
+    curved = self.direction[lane][:, None] * delta / nrm
+    return np.where(self.is_circ[lane][:, None], curved, straight)
+
+
+def checkpoint_features(
+    road_map: RoadMap,
+    ref_lane: np.ndarray,
+    mid_offset: np.ndarray,
+    lane_span: np.ndarray,
+    pos: np.ndarray,
+    heading: np.ndarray,
+    navi_dist: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``sensors.checkpoint_features`` before the kernel: MetaDrive's 5 navigation features of one checkpoint, and its world position.
+
+    The checkpoint is the end of ``ref_lane`` shifted ``mid_offset`` to the right (the
+    lateral middle of the current road); features are [forward, left, radius, dir, angle].
+    """
+    ck = road_map.position(ref_lane, road_map.length[ref_lane], mid_offset)
+    d = ck - pos
+    norm = np.hypot(d[:, 0], d[:, 1])
+    d = d * np.where(norm > navi_dist, navi_dist / np.maximum(norm, 1e-9), 1.0)[:, None]
+    c, s = np.cos(heading), np.sin(heading)
+    fwd = (d[:, 0] * c + d[:, 1] * s) / navi_dist
+    left = (-d[:, 0] * s + d[:, 1] * c) / navi_dist
+    circ = road_map.is_circ[ref_lane]
+    radius = np.where(circ, road_map.radius[ref_lane] / (CURVE_RADIUS_MAX + lane_span), 0.0)
+    direc = np.where(circ, (-road_map.direction[ref_lane] + 1) / 2, 0.5)
+    angle = np.where(circ, (np.rad2deg(road_map.angle[ref_lane]) / CURVE_ANGLE_MAX_DEG + 1) / 2, 0.5)
+    feats = np.stack([(fwd + 1) / 2, (left + 1) / 2, radius, direc, angle], 1)
+    return feats, ck
+
+
+def ego_features(
+    road_map: RoadMap,
+    pos: np.ndarray,
+    heading: np.ndarray,
+    heading_prev: np.ndarray,
+    speed: np.ndarray,
+    action: np.ndarray,
+    lane: np.ndarray,
+    ref_road: np.ndarray,
+    next_road: np.ndarray,
+    max_speed_kmh: float,
+    navi_dist: float,
+    dt: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``sensors.ego_features`` before the kernel: the 19 ego + navigation features (N, 19) in [0, 1], and both checkpoints (N, 2) each."""
+    ref0 = road_map.road_first_lane[ref_road]
+    ref_last = road_map.road_last_lane[ref_road]
+    n_lanes = road_map.road_nlanes[ref_road].astype(float)
+    w = road_map.width[ref0]
+    n = len(pos)
+    _, r_both = road_map.local_coordinates(np.concatenate([ref0, lane]), np.concatenate([pos, pos]))  # one call for both
+    r_ref0, r_cur = r_both[:n], r_both[n:]
+    dl = r_ref0 + w / 2
+    hvec = np.stack([np.cos(heading), np.sin(heading)], 1)
+    heading_err = 0.5 + 0.5 * np.einsum("nd,nd->n", hvec, road_map.right_normal(ref_last, pos))
+    speed_f = (3.6 * speed + 1) / (max_speed_kmh + 1)
+    steer_f = (action[:, 0] / STEERING_QUIRK + 1) / 2
+    hprev = np.stack([np.cos(heading_prev), np.sin(heading_prev)], 1)
+    yaw = np.arccos(np.clip(np.einsum("nd,nd->n", hvec, hprev), 0.0, 1.0)) / dt
+    mid = (n_lanes / 2 - 0.5) * w
+    span = n_lanes * w
+    # both checkpoints in one call: the end of the reference road and of the next one
+    two = np.concatenate
+    nav, ck = checkpoint_features(
+        road_map, two([ref0, road_map.road_first_lane[next_road]]), two([mid, mid]), two([span, span]), two([pos, pos]),
+        two([heading, heading]), navi_dist,
+    )  # fmt: skip
+    nav1, nav2, ck1, ck2 = nav[:n], nav[n:], ck[:n], ck[n:]
+    ego = np.stack(
+        [
+            dl / MAX_LANE_SPAN,
+            (span - dl) / MAX_LANE_SPAN,
+            heading_err,
+            speed_f,
+            steer_f,
+            (action[:, 0] + 1) / 2,
+            (action[:, 1] + 1) / 2,
+            np.minimum(yaw, 1.0),
+            0.5 + r_cur / LANE_OFFSET_NORM,
+        ],
+        1,
+    )
+    return np.clip(np.concatenate([ego, nav1, nav2], 1), 0.0, 1.0), ck1, ck2
+
+
 class NumpyRoadMap(RoadMap):
     """A road map whose lane queries are the numpy ones before the kernels."""
 
     local_coordinates = local_coordinates
     heading_at = heading_at
     hull_contains = hull_contains
+    position = position
+    right_normal = right_normal
 
 
 class NumpyRaycastVehicles(RaycastVehicles):
@@ -523,3 +653,88 @@ class NumpySimulator(DrivingSimulator):
     _crashes = _crashes
     _respawn = _respawn
     observe = observe
+
+
+def friction_bicycle_step(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    pedal: np.ndarray,
+    steer: np.ndarray,
+    dt: float,
+    wheelbase: float,
+    friction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``dynamics.friction_bicycle_step`` before the kernel.
+
+    One step of the seed-2 paper's kinematic bicycle with friction (Eq. 1) for N vehicles.
+
+    Semi-implicit order, as the paper's text describes (the action acts on the very next
+    position): ``v' = friction * v + pedal * dt``; ``psi' = psi + v' * tan(steer) * dt / L``
+    (wrapped to [-pi, pi)); ``(x, y)' = (x, y) + v' * dt * (cos psi', sin psi')``. The speed
+    may be negative (reversing).
+    """
+    v_new = friction * speed + pedal * dt
+    heading_new = wrap_angle(heading + v_new * np.tan(steer) * dt / wheelbase)
+    pos_new = pos + (v_new * dt)[:, None] * np.stack([np.cos(heading_new), np.sin(heading_new)], axis=1)
+    return pos_new, heading_new, v_new
+
+
+def rollout_clearance(
+    obs: np.ndarray,
+    actions: np.ndarray,
+    horizon: int,
+    dt: float = 0.1,
+    friction: float = 0.99,
+    wheelbase: float = 2.0,
+    max_steer: float = 0.8,
+    max_pedal: float = 1.0,
+) -> np.ndarray:
+    """``arena.heuristic.rollout_clearance`` before the kernel.
+
+    (N, K) least clearance over ``horizon`` steps between each vehicle holding action k of ``actions`` (N, K, 2) and its
+    closest entity (moving at its observed speed and heading); inf without an entity. ``obs`` (N, 13): the paper's layout."""
+    obs = as_rows(obs)
+    n, k = actions.shape[:2]
+    speed = np.repeat(obs[:, 4] * SPEED_SCALE, k)  # the rollouts flat, (n * k), for the dynamics
+    pos, heading = np.zeros((n * k, 2)), np.zeros(n * k)  # in the vehicle's own frame
+    steer = actions[..., 0].reshape(-1) * max_steer
+    pedal = actions[..., 1].reshape(-1) * max_pedal
+    centre = (obs[:, 6:8] * POSITION_SCALE)[:, None, :]  # (n, 1, 2): broadcast over the k rollouts
+    velocity = ((obs[:, 11] * SPEED_SCALE)[:, None] * np.stack([obs[:, 9], obs[:, 8]], 1))[:, None, :]  # (cos, sin)
+    reach = (obs[:, 10] * SIZE_SCALE)[:, None] + FOOTPRINT_RADIUS
+    least = np.full((n, k), np.inf)
+    for t in range(1, horizon + 1):
+        pos, heading, speed = friction_bicycle_step(pos, heading, speed, pedal, steer, dt, wheelbase, friction)
+        other = centre + t * dt * velocity
+        axis = (FOOTPRINT_OFFSET * np.stack([np.cos(heading), np.sin(heading)], 1)).reshape(n, k, 2)
+        at = pos.reshape(n, k, 2)
+        for sign in (1.0, -1.0):
+            least = np.minimum(least, np.linalg.norm(at + sign * axis - other, axis=2) - reach)
+    return np.where((obs[:, 12] > 0.5)[:, None], least, np.inf)
+
+
+def candidate_clearance(
+    obs: np.ndarray, horizon: int = FILTER_HORIZON, margin: float = FILTER_MARGIN, dt: float = 0.1, friction: float = 0.99, **physics: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``arena.heuristic.candidate_clearance`` before the kernel.
+
+    The planning filter's candidates (N, 22, 2), the plain driver's action first, and each one's least rollout clearance
+    (N, 22) over every observed entity (inf where none may come within ``margin``), for observations (N, 6 + 7 k [+ 44]).
+
+    Only the (vehicle, entity) pairs that ``may_come_near`` are rolled out: the others cannot
+    come within ``margin``, so a clearance left at inf stands for one of at least ``margin``.
+    ``physics``: the arena's ``wheelbase``, ``max_steer`` and ``max_pedal`` where they are not the defaults.
+    """
+    views = entity_views(obs)
+    n = len(views[0])
+    nominal = heuristic_actions(views[0], dt=dt, friction=friction, max_steer=physics.get("max_steer", 0.8))
+    candidates = np.concatenate([nominal[:, None, :], np.broadcast_to(CANDIDATES, (n, *CANDIDATES.shape))], axis=1)
+    clearance = np.full(candidates.shape[:2], np.inf)
+    pairs = np.concatenate(views)  # (k N, 13): entity block b of vehicle i at row b N + i
+    vehicle = np.tile(np.arange(n), len(views))
+    near = may_come_near(pairs, horizon, margin, dt, physics.get("max_pedal", 1.0))
+    if near.any():
+        least = rollout_clearance(pairs[near], candidates[vehicle[near]], horizon, dt=dt, friction=friction, **physics)
+        np.minimum.at(clearance, vehicle[near], least)
+    return candidates, clearance

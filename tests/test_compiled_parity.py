@@ -4,16 +4,25 @@ import numpy as np
 import pytest
 from numpy_reference import NumpyRaycastVehicles, NumpyRoadMap, NumpySimulator
 from numpy_reference import boxes_overlap as numpy_boxes_overlap
+from numpy_reference import candidate_clearance as numpy_candidate_clearance
+from numpy_reference import ego_features as numpy_ego_features
 from numpy_reference import footprint_samples as numpy_footprint_samples
+from numpy_reference import friction_bicycle_step as numpy_friction_bicycle_step
 from numpy_reference import lidar_scan as numpy_lidar_scan
+from numpy_reference import rollout_clearance as numpy_rollout_clearance
 from numpy_reference import turn_matrices as numpy_turn_matrices
 
+from coin_app.sim.arena.config import make_arena_config
+from coin_app.sim.arena.env import ArenaEnv
+from coin_app.sim.arena.generator import generate, training_rng
+from coin_app.sim.arena.heuristic import CANDIDATES, candidate_clearance, planning_actions, rollout_clearance
 from coin_app.sim.collision import boxes_overlap, footprint_samples
 from coin_app.sim.config import make_config
+from coin_app.sim.dynamics import friction_bicycle_step
 from coin_app.sim.heuristic import HeuristicDriver
 from coin_app.sim.road_map import load_map
 from coin_app.sim.scenes import DRIVING_SCENARIOS
-from coin_app.sim.sensors import lidar_scan
+from coin_app.sim.sensors import ego_features, lidar_scan
 from coin_app.sim.simulator import DrivingSimulator
 from coin_app.sim.vehicle import RaycastVehicles, chassis_basis, turn_matrices
 
@@ -65,9 +74,40 @@ def test_lane_queries_equal_the_numpy_ones():
         for got, want in zip(m.local_coordinates(lane, pos), ref.local_coordinates(lane, pos)):
             np.testing.assert_array_equal(got, want)
         np.testing.assert_array_equal(m.heading_at(lane, s), ref.heading_at(lane, s))
+        np.testing.assert_array_equal(m.position(lane, s, pos[:, 0] / 50), ref.position(lane, s, pos[:, 0] / 50))
+        np.testing.assert_array_equal(m.right_normal(lane, pos), ref.right_normal(lane, pos))
         contains = m.hull_contains(pos)
         np.testing.assert_array_equal(contains, ref.hull_contains(pos))
         assert contains.any() and not contains.all()
+
+
+@pytest.mark.parametrize("scenario", DRIVING_SCENARIOS)
+def test_ego_features_equal_the_numpy_ones(scenario):
+    """The 19 ego and navigation numbers and both checkpoints of every vehicle along heuristic traffic, to round-off."""
+    sim = DrivingSimulator(make_config(scenario))
+    sim.reset(3)
+    driver, ref_map = HeuristicDriver(sim), NumpyRoadMap(scenario)
+    m = sim.map
+    for _ in range(40):
+        sim.step(driver.act_all())
+        i = np.nonzero(sim.status == 1)[0]
+        ref_road = m.route_roads[sim.route[i], sim.ref_idx[i]]
+        next_road = m.route_roads[sim.route[i], np.minimum(sim.ref_idx[i] + 1, m.route_nroads[sim.route[i]] - 1)]
+        args = (
+            sim.pos[i],
+            sim.heading[i],
+            sim.heading_prev[i],
+            sim.speed[i],
+            sim.action[i],
+            sim.lane[i],
+            ref_road,
+            next_road,
+            80.0,
+            50.0,
+            0.1,
+        )
+        for got, want in zip(ego_features(m, *args), numpy_ego_features(ref_map, *args)):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
 
 
 def test_boxes_footprints_and_lidar_equal_the_numpy_ones():
@@ -145,3 +185,32 @@ def test_a_long_seeded_episode_equals_the_numpy_step(scenario, num_envs, steps, 
     """Arrivals, exits, crashes and respawns happen, and every step's events, observations, rewards and states agree."""
     counts = _episode(scenario, num_envs, steps, seed=5)
     assert all(counts[e] > 0 for e in events), counts
+
+
+def test_friction_bicycle_equals_the_numpy_step_to_the_bit():
+    rng = np.random.default_rng(4)
+    n = 1000
+    args = rng.uniform(-20, 20, (n, 2)), rng.uniform(-4, 4, n), rng.uniform(-8, 8, n), rng.uniform(-1, 1, n), rng.uniform(-0.8, 0.8, n)
+    for got, want in zip(friction_bicycle_step(*args, 0.1, 2.0, 0.99), numpy_friction_bicycle_step(*args, 0.1, 2.0, 0.99)):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_arena_rollouts_and_candidate_clearances_equal_the_numpy_ones():
+    """Observations of 20 vehicles among obstacles (the shipped pair's six entities), along a planning-driver episode."""
+    cfg = make_arena_config(observed_entities=6, candidate_features=True)
+    env = ArenaEnv(cfg)
+    obs, _ = env.reset(options={"layout": generate(training_rng(7), cfg, 20, 8)})
+    near = 0
+    for _ in range(15):
+        rows = np.stack([obs[a] for a in env.agents])
+        views = [np.concatenate([rows[:, :6], rows[:, 6 + 7 * b : 13 + 7 * b]], 1) for b in range(6)]
+        cand = np.concatenate([views[0][:, None, :2] * 0.0 + 0.3, np.broadcast_to(CANDIDATES, (len(rows), 21, 2))], 1)
+        for v in views:
+            np.testing.assert_array_equal(rollout_clearance(v, cand, 25), numpy_rollout_clearance(v, cand, 25))
+        for margin in (0.6, 3.0):
+            got, want = candidate_clearance(rows, margin=margin), numpy_candidate_clearance(rows, margin=margin)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+        near += int(np.isfinite(got[1]).sum())
+        obs = env.step(dict(zip(env.agents, planning_actions(rows))))[0]
+    assert near > 100  # many candidates came within the cap of an entity

@@ -81,6 +81,46 @@ def _heading_at(
     return out
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _lane_position(lanes: tuple, lane: int, s: float, r: float) -> tuple[float, float]:
+    """World position of lane-local (s, r) on ``lane``; ``lanes``: ``RoadMap.lane_arrays``."""
+    start, unit, center, start_phase, direction, radius, is_circ = lanes
+    if not is_circ[lane]:
+        u0, u1 = unit[lane, 0], unit[lane, 1]
+        return start[lane, 0] + u0 * s + u1 * r, start[lane, 1] + u1 * s + -u0 * r
+    direc, rad = direction[lane], radius[lane]
+    phi = start_phase[lane] + direc * s / rad
+    rr = rad + r * direc
+    return center[lane, 0] + rr * np.cos(phi), center[lane, 1] + rr * np.sin(phi)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lane_right_normal(lanes: tuple, lane: int, x: float, y: float) -> tuple[float, float]:
+    """Unit vector to the right of ``lane``'s direction at (x, y); ``lanes``: ``RoadMap.lane_arrays``."""
+    start, unit, center, start_phase, direction, radius, is_circ = lanes
+    if not is_circ[lane]:
+        return unit[lane, 1], -unit[lane, 0]
+    dx, dy = x - center[lane, 0], y - center[lane, 1]
+    nrm = max(np.hypot(dx, dy), 1e-9)
+    return direction[lane] * dx / nrm, direction[lane] * dy / nrm
+
+
+@numba.njit(cache=True)
+def _positions(lanes: tuple, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
+    out = np.empty((len(lane), 2))
+    for i in range(len(lane)):
+        out[i, 0], out[i, 1] = _lane_position(lanes, lane[i], s[i], r[i])
+    return out
+
+
+@numba.njit(cache=True)
+def _right_normals(lanes: tuple, lane: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    out = np.empty((len(lane), 2))
+    for i in range(len(lane)):
+        out[i, 0], out[i, 1] = _lane_right_normal(lanes, lane[i], pos[i, 0], pos[i, 1])
+    return out
+
+
 @numba.njit(cache=True)
 def _in_hull(normals: np.ndarray, offsets: np.ndarray, bbox: np.ndarray, lane: int, x: float, y: float, margin: float) -> bool:
     """Whether (x, y) lies within ``margin`` of lane ``lane``'s on-lane region (its bounding box, then its half-planes)."""
@@ -248,6 +288,8 @@ class RoadMap:
         self.lane_rows = np.column_stack(
             [self.start, self.unit, self.center, self.start_phase, self.direction, self.direction * self.angle / 2, self.radius]
         )
+        # what the position and normal kernels read of each lane (_lane_position, _lane_right_normal)
+        self.lane_arrays = (self.start, self.unit, self.center, self.start_phase, self.direction, self.radius, self.is_circ)
         self.polygons = [np.array(lane["polygon"], dtype=float) for lane in lanes]
         self.centerlines = [np.array(lane["centerline_s_x_y_heading"], dtype=float)[:, 1:3] for lane in lanes]
 
@@ -358,15 +400,9 @@ class RoadMap:
     # ----------------------------------------------------------------- lane queries
     def position(self, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
         """World positions (N, 2) of lane-local coordinates (s, r) on lanes ``lane``."""
-        circ = self.is_circ[lane]
-        u = self.unit[lane]
-        straight = self.start[lane] + u * s[:, None] + np.stack([u[:, 1], -u[:, 0]], 1) * r[:, None]
-        direc = self.direction[lane]
-        rad = self.radius[lane]
-        phi = self.start_phase[lane] + direc * s / rad
-        rr = rad + r * direc
-        curved = self.center[lane] + rr[:, None] * np.stack([np.cos(phi), np.sin(phi)], 1)
-        return np.where(circ[:, None], curved, straight)
+        lane = np.ascontiguousarray(lane, dtype=np.int64)
+        s, r = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), lane.shape)) for a in (s, r))
+        return _positions(self.lane_arrays, lane, s, r)
 
     def heading_at(self, lane: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Lane heading (rad) at longitudinal positions ``s``."""
@@ -381,12 +417,8 @@ class RoadMap:
 
     def right_normal(self, lane: np.ndarray, pos: np.ndarray) -> np.ndarray:
         """Unit vector pointing to the right of the lane's direction at ``pos``."""
-        u = self.unit[lane]
-        straight = np.stack([u[:, 1], -u[:, 0]], 1)
-        delta = pos - self.center[lane]
-        nrm = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-9)[:, None]
-        curved = self.direction[lane][:, None] * delta / nrm
-        return np.where(self.is_circ[lane][:, None], curved, straight)
+        lane = np.ascontiguousarray(lane, dtype=np.int64)
+        return _right_normals(self.lane_arrays, lane, np.ascontiguousarray(pos, dtype=np.float64).reshape(len(lane), 2))
 
     def hull_contains(self, pos: np.ndarray, margin: float = 0.05) -> np.ndarray:
         """(N, L) bool: point n lies in the on-lane region (convex hull) of lane l."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from coin_app.sim.road_map import RoadMap
+from coin_app.sim.road_map import RoadMap, _lane_position, _lane_right_normal, _lane_sr
 
 MAX_LANE_SPAN = 18.0  # (MAX_LANE_NUM 3 + 1) * MAX_LANE_WIDTH 4.5
 LANE_OFFSET_NORM = 4.5  # MAX_LANE_WIDTH
@@ -19,13 +19,25 @@ CURVE_RADIUS_MAX = 60.0
 CURVE_ANGLE_MAX_DEG = 135.0
 
 
+@numba.njit(cache=True)
+def _beam_table(n_beams: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of every beam's angle offset ``2 pi k / n_beams``."""
+    ck, sk = np.empty(n_beams), np.empty(n_beams)
+    for k in range(n_beams):
+        ang = 2 * np.pi * k / n_beams
+        ck[k], sk[k] = np.cos(ang), np.sin(ang)
+    return ck, sk
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _scan_box(
-    out: np.ndarray, ox0: float, oy0: float, own_h: float, cx: float, cy: float, box_h: float, hl: float, hw: float, max_range: float
-) -> None:
-    """Lower the beams ``out`` (n_beams,) of an observer at (ox0, oy0) heading ``own_h`` to the box at (cx, cy), ``box_h``, half
-    extents (hl, hw) where they hit it, ray-casting only the beams inside the box's angular extent (boxes beyond the range
-    plus the box's bounding radius are skipped)."""
+    out: np.ndarray, beams: tuple, ox0: float, oy0: float, own_h: float, cx: float, cy: float, box_h: float, box_cs: tuple,
+    hl: float, hw: float, max_range: float,
+) -> None:  # fmt: skip
+    """Lower the beams ``out`` (n_beams,) of an observer at (ox0, oy0) heading ``own_h`` to the box at (cx, cy), ``box_h``
+    (its cos and sin ``box_cs``), half extents (hl, hw) where they hit it, ray-casting only the beams inside the box's
+    angular extent (boxes beyond the range plus the box's bounding radius are skipped); ``beams``: ``_beam_table``."""
+    ck, sk = beams
     n_beams = len(out)
     rx, ry = cx - ox0, cy - oy0
     d = np.hypot(rx, ry)
@@ -34,7 +46,7 @@ def _scan_box(
     step = 2 * np.pi / n_beams
     bearing = np.arctan2(ry, rx) - own_h
     # observer position in the box's frame
-    c, s = np.cos(box_h), np.sin(box_h)
+    c, s = box_cs
     ox = -(rx * c + ry * s)
     oy = rx * s - ry * c
     # angular half-width of the box seen from the observer, bounded by its extent across
@@ -52,10 +64,8 @@ def _scan_box(
     for k in range(k0, k0 + count):
         kk = k % n_beams
         # beam direction in the box frame: angle rel_h + k * step, by angle addition
-        ang = 2 * np.pi * kk / n_beams
-        ck, sk = np.cos(ang), np.sin(ang)
-        dx = cr * ck - sr * sk
-        dy = sr * ck + cr * sk
+        dx = cr * ck[kk] - sr * sk[kk]
+        dy = sr * ck[kk] + cr * sk[kk]
         tx1, tx2 = (-hl - ox) / dx, (hl - ox) / dx
         ty1, ty2 = (-hw - oy) / dy, (hw - oy) / dy
         t_in = np.maximum(np.minimum(tx1, tx2), np.minimum(ty1, ty2))
@@ -70,11 +80,11 @@ def _lidar_pairs(
     hl: float, hw: float, n_beams: int, max_range: float,
 ) -> np.ndarray:  # fmt: skip
     out = np.full((len(obs_heading), n_beams), max_range)
+    beams = _beam_table(n_beams)
     for q in range(len(pair_obs)):
-        i = pair_obs[q]
-        _scan_box(
-            out[i], obs_pos[i, 0], obs_pos[i, 1], obs_heading[i], pair_center[q, 0], pair_center[q, 1], pair_heading[q], hl, hw, max_range
-        )
+        i, h = pair_obs[q], pair_heading[q]
+        cx, cy = pair_center[q, 0], pair_center[q, 1]
+        _scan_box(out[i], beams, obs_pos[i, 0], obs_pos[i, 1], obs_heading[i], cx, cy, h, (np.cos(h), np.sin(h)), hl, hw, max_range)
     return out
 
 
@@ -118,6 +128,8 @@ def lidar_same_env(
     range plus the box's half diagonal (env e: slots ``e S .. e S + S - 1``); (len(slots), n_beams)."""
     out = np.full((len(slots), n_beams), max_range)
     reach = max_range + np.hypot(half[0], half[1])
+    beams = _beam_table(n_beams)
+    cos_h, sin_h = np.cos(heading), np.sin(heading)  # each box's axes, once per slot
     for q in range(len(slots)):
         i = slots[q]
         base = i - i % slots_per_env
@@ -126,7 +138,8 @@ def lidar_same_env(
                 continue
             dx, dy = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1]
             if dx * dx + dy * dy < reach**2:
-                _scan_box(out[q], pos[i, 0], pos[i, 1], heading[i], pos[j, 0], pos[j, 1], heading[j], half[0], half[1], max_range)
+                box = pos[j, 0], pos[j, 1], heading[j], (cos_h[j], sin_h[j])
+                _scan_box(out[q], beams, pos[i, 0], pos[i, 1], heading[i], *box, half[0], half[1], max_range)
     return out
 
 
@@ -169,33 +182,69 @@ def line_detector(
     return np.minimum(out, max_range) / max_range
 
 
-def checkpoint_features(
-    road_map: RoadMap,
-    ref_lane: np.ndarray,
-    mid_offset: np.ndarray,
-    lane_span: np.ndarray,
-    pos: np.ndarray,
-    heading: np.ndarray,
-    navi_dist: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """MetaDrive's 5 navigation features of one checkpoint, and its world position.
+@numba.njit(cache=True, error_model="numpy")
+def _checkpoint(
+    lanes: tuple, length: np.ndarray, angle: np.ndarray, lane: int, mid: float, span: float, x: float, y: float, c: float, s: float,
+    navi_dist: float, out: np.ndarray,
+) -> tuple[float, float]:  # fmt: skip
+    """MetaDrive's 5 navigation features of the checkpoint at the end of ``lane`` shifted ``mid`` to the right, seen from
+    (x, y) with heading (cos, sin) = (c, s), into ``out`` (5,): [forward, left, radius, dir, angle]; its world position."""
+    _, _, _, _, direction, radius, is_circ = lanes
+    ck_x, ck_y = _lane_position(lanes, lane, length[lane], mid)
+    dx, dy = ck_x - x, ck_y - y
+    norm = np.hypot(dx, dy)
+    scale = navi_dist / max(norm, 1e-9) if norm > navi_dist else 1.0
+    dx, dy = dx * scale, dy * scale
+    out[0] = ((dx * c + dy * s) / navi_dist + 1) / 2
+    out[1] = ((-dx * s + dy * c) / navi_dist + 1) / 2
+    circ = is_circ[lane]
+    out[2] = radius[lane] / (CURVE_RADIUS_MAX + span) if circ else 0.0
+    out[3] = (-direction[lane] + 1) / 2 if circ else 0.5
+    out[4] = (np.rad2deg(angle[lane]) / CURVE_ANGLE_MAX_DEG + 1) / 2 if circ else 0.5
+    return ck_x, ck_y
 
-    The checkpoint is the end of ``ref_lane`` shifted ``mid_offset`` to the right (the
-    lateral middle of the current road); features are [forward, left, radius, dir, angle].
-    """
-    ck = road_map.position(ref_lane, road_map.length[ref_lane], mid_offset)
-    d = ck - pos
-    norm = np.hypot(d[:, 0], d[:, 1])
-    d = d * np.where(norm > navi_dist, navi_dist / np.maximum(norm, 1e-9), 1.0)[:, None]
-    c, s = np.cos(heading), np.sin(heading)
-    fwd = (d[:, 0] * c + d[:, 1] * s) / navi_dist
-    left = (-d[:, 0] * s + d[:, 1] * c) / navi_dist
-    circ = road_map.is_circ[ref_lane]
-    radius = np.where(circ, road_map.radius[ref_lane] / (CURVE_RADIUS_MAX + lane_span), 0.0)
-    direc = np.where(circ, (-road_map.direction[ref_lane] + 1) / 2, 0.5)
-    angle = np.where(circ, (np.rad2deg(road_map.angle[ref_lane]) / CURVE_ANGLE_MAX_DEG + 1) / 2, 0.5)
-    feats = np.stack([(fwd + 1) / 2, (left + 1) / 2, radius, direc, angle], 1)
-    return feats, ck
+
+@numba.njit(cache=True, error_model="numpy")
+def _ego_features(
+    lanes: tuple, rows: np.ndarray, is_circ: np.ndarray, roads: tuple, lane_data: tuple, pos: np.ndarray, heading: np.ndarray,
+    heading_prev: np.ndarray, speed: np.ndarray, action: np.ndarray, lane: np.ndarray, ref_road: np.ndarray, next_road: np.ndarray,
+    max_speed_kmh: float, navi_dist: float, dt: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    road_first_lane, road_last_lane, road_nlanes = roads
+    width, length, angle = lane_data
+    n = len(pos)
+    out = np.empty((n, 19))
+    ck1, ck2 = np.empty((n, 2)), np.empty((n, 2))
+    for i in range(n):
+        x, y, h = pos[i, 0], pos[i, 1], heading[i]
+        ref0, ref_last = road_first_lane[ref_road[i]], road_last_lane[ref_road[i]]
+        n_lanes = float(road_nlanes[ref_road[i]])
+        w = width[ref0]
+        r_ref0 = _lane_sr(rows, is_circ, ref0, x, y)[1]
+        r_cur = _lane_sr(rows, is_circ, lane[i], x, y)[1]
+        dl = r_ref0 + w / 2
+        c, s = np.cos(h), np.sin(h)
+        nx, ny = _lane_right_normal(lanes, ref_last, x, y)
+        yaw = np.arccos(min(max(c * np.cos(heading_prev[i]) + s * np.sin(heading_prev[i]), 0.0), 1.0)) / dt
+        mid = (n_lanes / 2 - 0.5) * w
+        span = n_lanes * w
+        f = out[i]
+        f[0] = dl / MAX_LANE_SPAN
+        f[1] = (span - dl) / MAX_LANE_SPAN
+        f[2] = 0.5 + 0.5 * (c * nx + s * ny)
+        f[3] = (3.6 * speed[i] + 1) / (max_speed_kmh + 1)
+        f[4] = (action[i, 0] / STEERING_QUIRK + 1) / 2
+        f[5] = (action[i, 0] + 1) / 2
+        f[6] = (action[i, 1] + 1) / 2
+        f[7] = min(yaw, 1.0)
+        f[8] = 0.5 + r_cur / LANE_OFFSET_NORM
+        # the checkpoints: the end of the reference road and of the next one, at the reference road's lateral middle
+        ck1[i, 0], ck1[i, 1] = _checkpoint(lanes, length, angle, ref0, mid, span, x, y, c, s, navi_dist, f[9:14])
+        next0 = road_first_lane[next_road[i]]
+        ck2[i, 0], ck2[i, 1] = _checkpoint(lanes, length, angle, next0, mid, span, x, y, c, s, navi_dist, f[14:19])
+        for k in range(19):
+            f[k] = min(max(f[k], 0.0), 1.0)
+    return out, ck1, ck2
 
 
 def ego_features(
@@ -212,45 +261,21 @@ def ego_features(
     navi_dist: float,
     dt: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The 19 ego + navigation features (N, 19) in [0, 1], and both checkpoints (N, 2) each."""
-    ref0 = road_map.road_first_lane[ref_road]
-    ref_last = road_map.road_last_lane[ref_road]
-    n_lanes = road_map.road_nlanes[ref_road].astype(float)
-    w = road_map.width[ref0]
-    n = len(pos)
-    _, r_both = road_map.local_coordinates(np.concatenate([ref0, lane]), np.concatenate([pos, pos]))  # one call for both
-    r_ref0, r_cur = r_both[:n], r_both[n:]
-    dl = r_ref0 + w / 2
-    hvec = np.stack([np.cos(heading), np.sin(heading)], 1)
-    heading_err = 0.5 + 0.5 * np.einsum("nd,nd->n", hvec, road_map.right_normal(ref_last, pos))
-    speed_f = (3.6 * speed + 1) / (max_speed_kmh + 1)
-    steer_f = (action[:, 0] / STEERING_QUIRK + 1) / 2
-    hprev = np.stack([np.cos(heading_prev), np.sin(heading_prev)], 1)
-    yaw = np.arccos(np.clip(np.einsum("nd,nd->n", hvec, hprev), 0.0, 1.0)) / dt
-    mid = (n_lanes / 2 - 0.5) * w
-    span = n_lanes * w
-    # both checkpoints in one call: the end of the reference road and of the next one
-    two = np.concatenate
-    nav, ck = checkpoint_features(
-        road_map, two([ref0, road_map.road_first_lane[next_road]]), two([mid, mid]), two([span, span]), two([pos, pos]),
-        two([heading, heading]), navi_dist,
+    """The 19 ego + navigation features (N, 19) in [0, 1], and both checkpoints (N, 2) each.
+
+    MetaDrive's 9 ego numbers (distances to the reference road's edges, heading error, speed, steering with
+    MetaDrive's 1/60 quirk, the action, yaw rate, offset from the lane centre), then the 5 navigation numbers of
+    the end of the reference road and of the next road (``_checkpoint``).
+    """
+    m = road_map
+    f = np.float64
+    return _ego_features(
+        m.lane_arrays, m.lane_rows, m.is_circ, (m.road_first_lane, m.road_last_lane, m.road_nlanes), (m.width, m.length, m.angle),
+        np.ascontiguousarray(pos, f), np.ascontiguousarray(heading, f), np.ascontiguousarray(heading_prev, f),
+        np.ascontiguousarray(speed, f), np.ascontiguousarray(action, f), np.ascontiguousarray(lane, np.int64),
+        np.ascontiguousarray(ref_road, np.int64), np.ascontiguousarray(next_road, np.int64),
+        float(max_speed_kmh), float(navi_dist), float(dt),
     )  # fmt: skip
-    nav1, nav2, ck1, ck2 = nav[:n], nav[n:], ck[:n], ck[n:]
-    ego = np.stack(
-        [
-            dl / MAX_LANE_SPAN,
-            (span - dl) / MAX_LANE_SPAN,
-            heading_err,
-            speed_f,
-            steer_f,
-            (action[:, 0] + 1) / 2,
-            (action[:, 1] + 1) / 2,
-            np.minimum(yaw, 1.0),
-            0.5 + r_cur / LANE_OFFSET_NORM,
-        ],
-        1,
-    )
-    return np.clip(np.concatenate([ego, nav1, nav2], 1), 0.0, 1.0), ck1, ck2
 
 
 def local_state(
