@@ -33,7 +33,6 @@ from coin_app.sim.sensors import (
     MAX_LANE_SPAN,
     STEERING_QUIRK,
     line_detector,
-    local_state,
 )
 from coin_app.sim.simulator import CKPT_UPDATE_RANGE, EMPTY, DrivingSimulator
 from coin_app.sim.vehicle import RaycastVehicles
@@ -616,6 +615,39 @@ def ego_features(
         1,
     )
     return np.clip(np.concatenate([ego, nav1, nav2], 1), 0.0, 1.0), ck1, ck2
+
+
+def local_state(
+    pos: np.ndarray,
+    vel: np.ndarray,
+    heading: np.ndarray,
+    ck1: np.ndarray,
+    ck2: np.ndarray,
+    centre: np.ndarray,
+    scale: float,
+    max_speed: float,
+    navi_dist: float,
+) -> np.ndarray:
+    """``sensors.local_state`` before the kernel: the 10-dim world-frame local state s_i of n vehicles (float32, (n, 10)).
+
+    ``[(p - centre) / scale, v / max_speed, cos h, sin h, (ck1 - p), (ck2 - p)]`` where each
+    checkpoint vector is clipped to ``navi_dist`` metres and divided by it.
+    """
+
+    def clip_vec(d: np.ndarray) -> np.ndarray:
+        n = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+        return d * np.minimum(1.0, navi_dist / n)[:, None] / navi_dist
+
+    return np.concatenate(
+        [
+            (pos - centre) / scale,
+            vel / max_speed,
+            np.stack([np.cos(heading), np.sin(heading)], 1),
+            clip_vec(ck1 - pos),
+            clip_vec(ck2 - pos),
+        ],
+        1,
+    ).astype(np.float32)
 
 
 class NumpyRoadMap(RoadMap):

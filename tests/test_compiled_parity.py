@@ -9,6 +9,7 @@ from numpy_reference import ego_features as numpy_ego_features
 from numpy_reference import footprint_samples as numpy_footprint_samples
 from numpy_reference import friction_bicycle_step as numpy_friction_bicycle_step
 from numpy_reference import lidar_scan as numpy_lidar_scan
+from numpy_reference import local_state as numpy_local_state
 from numpy_reference import rollout_clearance as numpy_rollout_clearance
 from numpy_reference import turn_matrices as numpy_turn_matrices
 
@@ -22,7 +23,7 @@ from coin_app.sim.dynamics import friction_bicycle_step
 from coin_app.sim.heuristic import HeuristicDriver
 from coin_app.sim.road_map import load_map
 from coin_app.sim.scenes import DRIVING_SCENARIOS
-from coin_app.sim.sensors import ego_features, lidar_scan
+from coin_app.sim.sensors import ego_features, lidar_scan, local_state
 from coin_app.sim.simulator import DrivingSimulator
 from coin_app.sim.vehicle import RaycastVehicles, chassis_basis, turn_matrices
 
@@ -83,7 +84,8 @@ def test_lane_queries_equal_the_numpy_ones():
 
 @pytest.mark.parametrize("scenario", DRIVING_SCENARIOS)
 def test_ego_features_equal_the_numpy_ones(scenario):
-    """The 19 ego and navigation numbers and both checkpoints of every vehicle along heuristic traffic, to round-off."""
+    """The 19 ego and navigation numbers and both checkpoints of every vehicle along heuristic traffic, to round-off, and
+    the local states (float32) to the bit."""
     sim = DrivingSimulator(make_config(scenario))
     sim.reset(3)
     driver, ref_map = HeuristicDriver(sim), NumpyRoadMap(scenario)
@@ -108,6 +110,9 @@ def test_ego_features_equal_the_numpy_ones(scenario):
         )
         for got, want in zip(ego_features(m, *args), numpy_ego_features(ref_map, *args)):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
+        _, ck1, ck2 = ego_features(m, *args)
+        state = (sim.pos[i], sim.vel[i], sim.heading[i], ck1, ck2, m.centre, m.scale, 22.0, 50.0)
+        np.testing.assert_array_equal(local_state(*state), numpy_local_state(*state))
 
 
 def test_boxes_footprints_and_lidar_equal_the_numpy_ones():

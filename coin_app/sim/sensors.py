@@ -32,16 +32,17 @@ def _beam_table(n_beams: int) -> tuple[np.ndarray, np.ndarray]:
 @numba.njit(cache=True, error_model="numpy")
 def _scan_box(
     out: np.ndarray, beams: tuple, ox0: float, oy0: float, own_h: float, cx: float, cy: float, box_h: float, box_cs: tuple,
-    hl: float, hw: float, max_range: float,
+    hl: float, hw: float, rad_b: float, max_range: float,
 ) -> None:  # fmt: skip
     """Lower the beams ``out`` (n_beams,) of an observer at (ox0, oy0) heading ``own_h`` to the box at (cx, cy), ``box_h``
     (its cos and sin ``box_cs``), half extents (hl, hw) where they hit it, ray-casting only the beams inside the box's
-    angular extent (boxes beyond the range plus the box's bounding radius are skipped); ``beams``: ``_beam_table``."""
+    angular extent (boxes beyond the range plus the box's bounding radius ``rad_b`` = hypot(hl, hw) are skipped);
+    ``beams``: ``_beam_table``."""
     ck, sk = beams
     n_beams = len(out)
     rx, ry = cx - ox0, cy - oy0
     d = np.hypot(rx, ry)
-    if not d < max_range + np.hypot(hl, hw):  # bounding-circle radius: the range cut
+    if not d < max_range + rad_b:  # bounding-circle radius: the range cut
         return
     step = 2 * np.pi / n_beams
     bearing = np.arctan2(ry, rx) - own_h
@@ -80,11 +81,11 @@ def _lidar_pairs(
     hl: float, hw: float, n_beams: int, max_range: float,
 ) -> np.ndarray:  # fmt: skip
     out = np.full((len(obs_heading), n_beams), max_range)
-    beams = _beam_table(n_beams)
+    beams, rad_b = _beam_table(n_beams), np.hypot(hl, hw)
     for q in range(len(pair_obs)):
         i, h = pair_obs[q], pair_heading[q]
-        cx, cy = pair_center[q, 0], pair_center[q, 1]
-        _scan_box(out[i], beams, obs_pos[i, 0], obs_pos[i, 1], obs_heading[i], cx, cy, h, (np.cos(h), np.sin(h)), hl, hw, max_range)
+        box = pair_center[q, 0], pair_center[q, 1], h, (np.cos(h), np.sin(h))
+        _scan_box(out[i], beams, obs_pos[i, 0], obs_pos[i, 1], obs_heading[i], *box, hl, hw, rad_b, max_range)
     return out
 
 
@@ -127,7 +128,8 @@ def lidar_same_env(
     """``lidar_scan`` of the vehicles ``slots`` (per-slot arrays) against every other live vehicle of their env closer than the
     range plus the box's half diagonal (env e: slots ``e S .. e S + S - 1``); (len(slots), n_beams)."""
     out = np.full((len(slots), n_beams), max_range)
-    reach = max_range + np.hypot(half[0], half[1])
+    rad_b = np.hypot(half[0], half[1])
+    reach = max_range + rad_b
     beams = _beam_table(n_beams)
     cos_h, sin_h = np.cos(heading), np.sin(heading)  # each box's axes, once per slot
     for q in range(len(slots)):
@@ -139,7 +141,7 @@ def lidar_same_env(
             dx, dy = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1]
             if dx * dx + dy * dy < reach**2:
                 box = pos[j, 0], pos[j, 1], heading[j], (cos_h[j], sin_h[j])
-                _scan_box(out[q], beams, pos[i, 0], pos[i, 1], heading[i], *box, half[0], half[1], max_range)
+                _scan_box(out[q], beams, pos[i, 0], pos[i, 1], heading[i], *box, half[0], half[1], rad_b, max_range)
     return out
 
 
@@ -278,6 +280,24 @@ def ego_features(
     )  # fmt: skip
 
 
+@numba.njit(cache=True)
+def _local_state(
+    pos: np.ndarray, vel: np.ndarray, heading: np.ndarray, ck1: np.ndarray, ck2: np.ndarray, centre: np.ndarray, scale: float,
+    max_speed: float, navi_dist: float,
+) -> np.ndarray:  # fmt: skip
+    out = np.empty((len(heading), 10), np.float32)
+    for i in range(len(heading)):
+        x, y = pos[i, 0], pos[i, 1]
+        out[i, 0], out[i, 1] = (x - centre[0]) / scale, (y - centre[1]) / scale
+        out[i, 2], out[i, 3] = vel[i, 0] / max_speed, vel[i, 1] / max_speed
+        out[i, 4], out[i, 5] = np.cos(heading[i]), np.sin(heading[i])
+        for k, ck in ((6, ck1), (8, ck2)):  # each checkpoint vector clipped to navi_dist metres, over navi_dist
+            dx, dy = ck[i, 0] - x, ck[i, 1] - y
+            shrink = min(1.0, navi_dist / max(np.hypot(dx, dy), 1e-9))
+            out[i, k], out[i, k + 1] = dx * shrink / navi_dist, dy * shrink / navi_dist
+    return out
+
+
 def local_state(
     pos: np.ndarray,
     vel: np.ndarray,
@@ -294,18 +314,9 @@ def local_state(
     ``[(p - centre) / scale, v / max_speed, cos h, sin h, (ck1 - p), (ck2 - p)]`` where each
     checkpoint vector is clipped to ``navi_dist`` metres and divided by it.
     """
-
-    def clip_vec(d: np.ndarray) -> np.ndarray:
-        n = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-        return d * np.minimum(1.0, navi_dist / n)[:, None] / navi_dist
-
-    return np.concatenate(
-        [
-            (pos - centre) / scale,
-            vel / max_speed,
-            np.stack([np.cos(heading), np.sin(heading)], 1),
-            clip_vec(ck1 - pos),
-            clip_vec(ck2 - pos),
-        ],
-        1,
-    ).astype(np.float32)
+    f = np.float64
+    heading = np.ascontiguousarray(heading, f).reshape(-1)
+    n = len(heading)
+    pos, vel, ck1, ck2 = (np.ascontiguousarray(a, f).reshape(n, 2) for a in (pos, vel, ck1, ck2))
+    centre = np.ascontiguousarray(centre, f).reshape(2)
+    return _local_state(pos, vel, heading, ck1, ck2, centre, float(scale), float(max_speed), float(navi_dist))
