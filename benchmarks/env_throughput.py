@@ -261,20 +261,21 @@ def measure_arena(policy: str, steps: int, seed: int = 0) -> tuple[float, float,
 
 _COLD_START = """
 import json, time
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 import numpy as np
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.config import make_config
 from coin_app.sim.simulator import DrivingSimulator
-t1 = time.perf_counter()
+t1, c1 = time.perf_counter(), time.process_time()
 sim = DrivingSimulator(make_config("intersection"))
 sim.reset(0)
 sim.step(np.zeros((sim.num_slots, 2)))
 env = ArenaEnv(make_arena_config(observed_entities=6, candidate_features=True, num_vehicles=20, num_obstacles=8))
 obs, _ = env.reset(seed=0)
 env.step({a: np.zeros(2) for a in env.agents})
-print(json.dumps({"import": t1 - t0, "first_steps": time.perf_counter() - t1}))
+t2, c2 = time.perf_counter(), time.process_time()
+print(json.dumps({"import": t1 - t0, "first_steps": t2 - t1, "import_cpu": c1 - c0, "first_steps_cpu": c2 - c1}))
 """
 
 
@@ -299,8 +300,9 @@ def compile_cost() -> None:
             runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
     (cold, warm) = runs
     print("compile cost (a fresh process: import the simulator, one driving step and one arena step with the features):")
-    print(f"  empty Numba cache (first run, compiles): import {cold['import']:.2f} s + first steps {cold['first_steps']:.2f} s")
-    print(f"  cache filled (every later run):          import {warm['import']:.2f} s + first steps {warm['first_steps']:.2f} s")
+    for name, run in (("empty Numba cache (first run, compiles)", cold), ("cache filled (every later run)", warm)):
+        wall = f"import {run['import']:.2f} s + first steps {run['first_steps']:.2f} s"
+        print(f"  {name:<40} {wall} (CPU time {run['import_cpu']:.2f} s + {run['first_steps_cpu']:.2f} s)")
 
 
 def main() -> None:

@@ -18,7 +18,6 @@ from coin_app.sim.arena.heuristic import (
     FOOTPRINT_RADIUS,
     as_rows,
     entity_views,
-    heuristic_actions,
     may_come_near,
 )
 from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE
@@ -770,3 +769,29 @@ def candidate_clearance(
         least = rollout_clearance(pairs[near], candidates[vehicle[near]], horizon, dt=dt, friction=friction, **physics)
         np.minimum.at(clearance, vehicle[near], least)
     return candidates, clearance
+
+
+def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, friction: float = 0.99, max_steer: float = 0.8) -> np.ndarray:
+    """``arena.heuristic.heuristic_actions`` before the kernel.
+
+    (steering, pedal) in [-1, 1] for observations (N, 6 + 7 k) (only the target and own numbers are read)."""
+    obs = as_rows(obs)
+    target = obs[:, 0:2] * POSITION_SCALE  # in the vehicle frame
+    rel = np.arctan2(obs[:, 2], obs[:, 3])  # target heading in the vehicle frame
+    speed = obs[:, 4] * SPEED_SCALE
+    c, s = np.cos(rel), np.sin(rel)
+    # the vehicle (origin) in the target frame
+    a = -(c * target[:, 0] + s * target[:, 1])
+    e = -(-s * target[:, 0] + c * target[:, 1])
+    psi = -rel
+    line = (a < 1.0) & (np.abs(e) < 0.6 * np.maximum(-a, 0.0) + 0.8) & (np.abs(psi) < 1.4)
+    stanley = -psi - np.arctan(1.5 * e / (np.abs(speed) + 0.5))
+    behind = target - 10.0 * np.stack([c, s], 1)
+    pursuit = np.arctan2(behind[:, 1], behind[:, 0])
+    steer = np.clip(np.where(line, stanley, 1.5 * pursuit) / max_steer, -1.0, 1.0)
+    stop_dist = np.maximum(-a - 0.3, 0.0)
+    v_line = np.minimum(cruise, 0.8 * np.sqrt(2.0 * 0.8 * stop_dist))
+    v_approach = np.where(np.abs(pursuit) > 1.0, 1.5, np.minimum(cruise, 0.5 + 0.4 * np.linalg.norm(behind, axis=1)))
+    v_des = np.where(line, v_line, v_approach)
+    pedal = np.clip((v_des - friction * speed) / dt, -1.0, 1.0)
+    return np.stack([steer, pedal], 1)

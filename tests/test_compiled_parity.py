@@ -8,6 +8,7 @@ from numpy_reference import candidate_clearance as numpy_candidate_clearance
 from numpy_reference import ego_features as numpy_ego_features
 from numpy_reference import footprint_samples as numpy_footprint_samples
 from numpy_reference import friction_bicycle_step as numpy_friction_bicycle_step
+from numpy_reference import heuristic_actions as numpy_heuristic_actions
 from numpy_reference import lidar_scan as numpy_lidar_scan
 from numpy_reference import local_state as numpy_local_state
 from numpy_reference import rollout_clearance as numpy_rollout_clearance
@@ -16,7 +17,7 @@ from numpy_reference import turn_matrices as numpy_turn_matrices
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.generator import generate, training_rng
-from coin_app.sim.arena.heuristic import CANDIDATES, candidate_clearance, planning_actions, rollout_clearance
+from coin_app.sim.arena.heuristic import CANDIDATES, candidate_clearance, heuristic_actions, planning_actions, rollout_clearance
 from coin_app.sim.collision import boxes_overlap, footprint_samples
 from coin_app.sim.config import make_config
 from coin_app.sim.dynamics import friction_bicycle_step
@@ -192,6 +193,14 @@ def test_a_long_seeded_episode_equals_the_numpy_step(scenario, num_envs, steps, 
     assert all(counts[e] > 0 for e in events), counts
 
 
+def test_arena_heuristic_actions_equal_the_numpy_ones_to_the_bit():
+    """Random observations: the line phase and both kinds of approach (sharp and gentle pursuit) all occur."""
+    obs = np.random.default_rng(5).uniform(-1.0, 1.0, (3000, 13))
+    actions = heuristic_actions(obs)
+    np.testing.assert_array_equal(actions, numpy_heuristic_actions(obs))
+    assert len(np.unique(np.abs(actions[:, 1]) == 1.0)) == 2 and (np.abs(actions[:, 0]) < 1.0).mean() > 0.05
+
+
 def test_friction_bicycle_equals_the_numpy_step_to_the_bit():
     rng = np.random.default_rng(4)
     n = 1000
@@ -210,6 +219,7 @@ def test_arena_rollouts_and_candidate_clearances_equal_the_numpy_ones():
         rows = np.stack([obs[a] for a in env.agents])
         views = [np.concatenate([rows[:, :6], rows[:, 6 + 7 * b : 13 + 7 * b]], 1) for b in range(6)]
         cand = np.concatenate([views[0][:, None, :2] * 0.0 + 0.3, np.broadcast_to(CANDIDATES, (len(rows), 21, 2))], 1)
+        np.testing.assert_array_equal(heuristic_actions(rows), numpy_heuristic_actions(rows))
         for v in views:
             np.testing.assert_array_equal(rollout_clearance(v, cand, 25), numpy_rollout_clearance(v, cand, 25))
         for margin in (0.6, 3.0):

@@ -72,28 +72,35 @@ def entity_views(obs: np.ndarray) -> list[np.ndarray]:
     return [np.concatenate([own, rows[:, OWN_WIDTH + ENTITY_WIDTH * b : OWN_WIDTH + ENTITY_WIDTH * (b + 1)]], 1) for b in range(k)]
 
 
+@numba.njit(cache=True)
+def _heuristic_actions(obs: np.ndarray, cruise: float, dt: float, friction: float, max_steer: float) -> np.ndarray:
+    out = np.empty((len(obs), 2))
+    for i in range(len(obs)):
+        tx, ty = obs[i, 0] * POSITION_SCALE, obs[i, 1] * POSITION_SCALE  # the target in the vehicle frame
+        rel = np.arctan2(obs[i, 2], obs[i, 3])  # target heading in the vehicle frame
+        speed = obs[i, 4] * SPEED_SCALE
+        c, s = np.cos(rel), np.sin(rel)
+        # the vehicle (origin) in the target frame
+        a = -(c * tx + s * ty)
+        e = -(-s * tx + c * ty)
+        psi = -rel
+        line = a < 1.0 and abs(e) < 0.6 * max(-a, 0.0) + 0.8 and abs(psi) < 1.4
+        bx, by = tx - 10.0 * c, ty - 10.0 * s  # 10 m behind the target on its line
+        pursuit = np.arctan2(by, bx)
+        if line:
+            steer = -psi - np.arctan(1.5 * e / (abs(speed) + 0.5))  # Stanley
+            v_des = min(cruise, 0.8 * np.sqrt(2.0 * 0.8 * max(-a - 0.3, 0.0)))  # stop on the target at 0.8 m/s^2
+        else:
+            steer = 1.5 * pursuit
+            v_des = 1.5 if abs(pursuit) > 1.0 else min(cruise, 0.5 + 0.4 * np.sqrt(bx * bx + by * by))
+        out[i, 0] = min(max(steer / max_steer, -1.0), 1.0)
+        out[i, 1] = min(max((v_des - friction * speed) / dt, -1.0), 1.0)
+    return out
+
+
 def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, friction: float = 0.99, max_steer: float = 0.8) -> np.ndarray:
     """(steering, pedal) in [-1, 1] for observations (N, 6 + 7 k) (only the target and own numbers are read)."""
-    obs = as_rows(obs)
-    target = obs[:, 0:2] * POSITION_SCALE  # in the vehicle frame
-    rel = np.arctan2(obs[:, 2], obs[:, 3])  # target heading in the vehicle frame
-    speed = obs[:, 4] * SPEED_SCALE
-    c, s = np.cos(rel), np.sin(rel)
-    # the vehicle (origin) in the target frame
-    a = -(c * target[:, 0] + s * target[:, 1])
-    e = -(-s * target[:, 0] + c * target[:, 1])
-    psi = -rel
-    line = (a < 1.0) & (np.abs(e) < 0.6 * np.maximum(-a, 0.0) + 0.8) & (np.abs(psi) < 1.4)
-    stanley = -psi - np.arctan(1.5 * e / (np.abs(speed) + 0.5))
-    behind = target - 10.0 * np.stack([c, s], 1)
-    pursuit = np.arctan2(behind[:, 1], behind[:, 0])
-    steer = np.clip(np.where(line, stanley, 1.5 * pursuit) / max_steer, -1.0, 1.0)
-    stop_dist = np.maximum(-a - 0.3, 0.0)
-    v_line = np.minimum(cruise, 0.8 * np.sqrt(2.0 * 0.8 * stop_dist))
-    v_approach = np.where(np.abs(pursuit) > 1.0, 1.5, np.minimum(cruise, 0.5 + 0.4 * np.linalg.norm(behind, axis=1)))
-    v_des = np.where(line, v_line, v_approach)
-    pedal = np.clip((v_des - friction * speed) / dt, -1.0, 1.0)
-    return np.stack([steer, pedal], 1)
+    return _heuristic_actions(as_rows(obs), float(cruise), float(dt), float(friction), float(max_steer))
 
 
 def avoiding_actions(
@@ -135,19 +142,28 @@ def _least_clearance(
     actions ``steer``, ``pedal`` (K,)) over ``horizon`` steps against P entities moving at constant velocity
     (``entity`` (P, 5): centre x, y, velocity x, y, reach = radius + the footprint circles' radius). Each rollout is
     stepped once for all entities; the vehicle's footprint is two circles at +-``FOOTPRINT_OFFSET`` along its axis."""
-    least = np.full((len(entity), len(steer)), np.inf)
+    # the least clearance min_t sqrt(d_t^2) - reach is sqrt(min_t d_t^2) - reach to the bit (sqrt and "- reach" are
+    # monotonic in floating point), so the steps keep the least squared distance and take one square root at the end
+    nearest = np.full((len(entity), len(steer)), np.inf)
+    other = np.empty((horizon + 1, len(entity), 2))  # the entities' centres at each step
+    for t in range(1, horizon + 1):
+        for p in range(len(entity)):
+            other[t, p, 0], other[t, p, 1] = entity[p, 0] + t * dt * entity[p, 2], entity[p, 1] + t * dt * entity[p, 3]
     for c in range(len(steer)):
         x, y, h, sp, tan_steer = 0.0, 0.0, 0.0, speed, np.tan(steer[c])
         for t in range(1, horizon + 1):
             x, y, h, sp, cos_h, sin_h = friction_bicycle_tan(x, y, h, sp, pedal[c], tan_steer, dt, wheelbase, friction)
             ax, ay = FOOTPRINT_OFFSET * cos_h, FOOTPRINT_OFFSET * sin_h
             for p in range(len(entity)):
-                ox, oy = entity[p, 0] + t * dt * entity[p, 2], entity[p, 1] + t * dt * entity[p, 3]
+                ox, oy = other[t, p, 0], other[t, p, 1]
                 dx, dy = x + ax - ox, y + ay - oy
-                front = np.sqrt(dx * dx + dy * dy) - entity[p, 4]
+                front = dx * dx + dy * dy
                 dx, dy = x + -1.0 * ax - ox, y + -1.0 * ay - oy
-                back = np.sqrt(dx * dx + dy * dy) - entity[p, 4]
-                least[p, c] = min(min(least[p, c], front), back)
+                nearest[p, c] = min(min(nearest[p, c], front), dx * dx + dy * dy)
+    least = np.empty_like(nearest)
+    for p in range(len(entity)):
+        for c in range(len(steer)):
+            least[p, c] = np.sqrt(nearest[p, c]) - entity[p, 4]
     return least
 
 
