@@ -221,13 +221,14 @@ def side_by_side(scenarios: list[str], steps: int, backends: tuple[str, ...]) ->
 ARENA_VEHICLES, ARENA_OBSTACLES = 20, 8
 
 
-def measure_arena(policy: str, steps: int, seed: int = 0) -> tuple[float, float, float, float]:
-    """(agent-steps/s, env ms per step, candidate-feature ms per step, agent-steps per CPU second) of one arena env with the
-    shipped pair's observation.
+def measure_arena(policy: str, steps: int, seed: int = 0) -> tuple[float, float, float, float, float]:
+    """(agent-steps/s, env ms per step, candidate-feature ms per step, agent-steps per CPU second, candidate-feature CPU ms per
+    step) of one arena env with the shipped pair's observation.
 
     20 vehicles among 8 obstacles (new scenario when every vehicle is done); ``policy``: ``planning`` (the planning
     driver, timed apart) or ``random``. The feature time is part of the env time.
     """
+    import coin_app.sim.arena.simulator as arena_sim
     from coin_app.sim.arena.config import make_arena_config
     from coin_app.sim.arena.env import ArenaEnv
     from coin_app.sim.arena.generator import generate, training_rng
@@ -245,6 +246,17 @@ def measure_arena(policy: str, steps: int, seed: int = 0) -> tuple[float, float,
 
     obs, _ = env.reset(options=new_layout())
     agent_steps, env_time, feature_time, cpu_time = 0, 0.0, 0.0, 0.0
+    feature_cpu = [0.0]
+    features = arena_sim.candidate_features
+
+    def timed_features(*args: object, **kwargs: object) -> np.ndarray:
+        c0 = time.process_time()
+        try:
+            return features(*args, **kwargs)
+        finally:
+            feature_cpu[0] += time.process_time() - c0
+
+    arena_sim.candidate_features = timed_features  # the simulator's call, timed in CPU time too
     for _ in range(steps):
         rows = np.stack([obs[a] for a in env.agents])
         acts = planning_actions(rows) if policy == "planning" else rng.uniform(-1.0, 1.0, (len(rows), 2))
@@ -256,7 +268,9 @@ def measure_arena(policy: str, steps: int, seed: int = 0) -> tuple[float, float,
         cpu_time += time.process_time() - c0
         feature_time += env.sim.feature_time
         agent_steps += len(rows)
-    return agent_steps / env_time, 1000 * env_time / steps, 1000 * feature_time / steps, agent_steps / cpu_time
+    arena_sim.candidate_features = features
+    rates = agent_steps / env_time, agent_steps / cpu_time
+    return rates[0], 1000 * env_time / steps, 1000 * feature_time / steps, rates[1], 1000 * feature_cpu[0] / steps
 
 
 _COLD_START = """
@@ -352,8 +366,8 @@ def main() -> None:
                 cells = f"{rate:>15,.0f}{ms:>13.2f}{pms:>11.2f}{cpu:>11,.0f}"
                 print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{ne:>6}{pol:>11}{cells}", flush=True)
     for pol in ("random", "planning"):
-        rate, ms, fms, cpu = measure_arena(pol, args.steps)
-        cells = f"{rate:>15,.0f}{ms:>13.2f}{'':>11}{cpu:>11,.0f}   (candidate features {fms:.2f} ms/step)"
+        rate, ms, fms, cpu, fcpu = measure_arena(pol, args.steps)
+        cells = f"{rate:>15,.0f}{ms:>13.2f}{'':>11}{cpu:>11,.0f}   (candidate features {fms:.2f} ms/step, CPU {fcpu:.2f} ms)"
         print(f"{'arena':<13}{ARENA_VEHICLES:>7}{1:>6}{pol:>11}{cells}", flush=True)
     if args.scaling:
         print("\nenv step time vs agent count (heuristic traffic, intersection, one env and a batch of 32):")

@@ -7,6 +7,8 @@ trained on one simulator can be evaluated on the other.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -29,6 +31,25 @@ def _beam_table(n_beams: int) -> tuple[np.ndarray, np.ndarray]:
     return ck, sk
 
 
+WINDOW_PAD = 1e-4  # rad added on either side of a box's angular window: 30 times _atan2_bound's largest error
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _atan2_bound(y: float, x: float) -> float:
+    """arctan2(y, x) within 3.5e-6 rad (a degree-11 polynomial of the octant's ratio; measured against np.arctan2 on
+    millions of points): cheap, for bounds that are padded by ``WINDOW_PAD``."""
+    ax, ay = abs(x), abs(y)
+    big, small = max(ax, ay), min(ax, ay)
+    a = small / big if big > 0.0 else 0.0
+    q = a * a
+    r = (((((-0.013480470 * q + 0.057477314) * q - 0.121239071) * q + 0.195635925) * q - 0.332994597) * q + 0.999995630) * a
+    if ay > ax:
+        r = np.pi / 2 - r
+    if x < 0.0:
+        r = np.pi - r
+    return -r if math.copysign(1.0, y) < 0.0 else r
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _scan_box(
     out: np.ndarray, beams: tuple, ox0: float, oy0: float, own_h: float, cx: float, cy: float, box_h: float, box_cs: tuple,
@@ -37,7 +58,8 @@ def _scan_box(
     """Lower the beams ``out`` (n_beams,) of an observer at (ox0, oy0) heading ``own_h`` to the box at (cx, cy), ``box_h``
     (its cos and sin ``box_cs``), half extents (hl, hw) where they hit it, ray-casting only the beams inside the box's
     angular extent (boxes beyond the range plus the box's bounding radius ``rad_b`` = hypot(hl, hw) are skipped);
-    ``beams``: ``_beam_table``."""
+    ``beams``: ``_beam_table``. The extent is an upper bound: its half-angle atan(p / (d - q)) bounds the box's
+    across the line of sight (p, its half-width across; q, its half-depth along), so beams outside it cannot hit."""
     ck, sk = beams
     n_beams = len(out)
     rx, ry = cx - ox0, cy - oy0
@@ -45,7 +67,7 @@ def _scan_box(
     if not d < max_range + rad_b:  # bounding-circle radius: the range cut
         return
     step = 2 * np.pi / n_beams
-    bearing = np.arctan2(ry, rx) - own_h
+    bearing = _atan2_bound(ry, rx) - own_h
     # observer position in the box's frame
     c, s = box_cs
     ox = -(rx * c + ry * s)
@@ -56,7 +78,9 @@ def _scan_box(
     p = (hl * abs(oy) + hw * abs(ox)) * inv_d
     depth = d - (hl * abs(ox) + hw * abs(oy)) * inv_d
     full = depth <= 1e-6
-    half_ang = np.arctan2(p, max(depth, 1e-6))
+    # a bound: the beams of a window widened by WINDOW_PAD miss the box outside the exact window (cast for nothing),
+    # so the scan is the same as with the exact arctan2s
+    half_ang = _atan2_bound(p, max(depth, 1e-6)) + WINDOW_PAD
     k0 = 0 if full else int(np.ceil((bearing - half_ang) / step))
     k1 = int(np.floor((bearing + half_ang) / step))
     count = min(max(n_beams if full else k1 - k0 + 1, 0), n_beams)
