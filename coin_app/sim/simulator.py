@@ -3,9 +3,9 @@
 State lives in flat per-slot numpy arrays; env ``e`` owns slots ``e*S .. e*S+S-1``. A slot
 is EMPTY, ACTIVE (an agent that acts) or DYING (a crashed / off-road / timed-out vehicle
 left as a static obstacle for ``delay_done`` steps). Every per-vehicle computation in
-:meth:`DrivingSimulator.step` is one numpy call over all slots of all envs; pairwise
-tests only pair vehicles of the same env. The only Python loops run over the four
-separating axes and over respawn *events*. Each env has its own random generator, so env
+:meth:`DrivingSimulator.step` is one numpy call or one compiled kernel (``docs/decisions.md`` §3.6)
+over all slots of all envs; pairwise tests only pair vehicles of the same env. The only
+Python loops run over respawn *events*. Each env has its own random generator, so env
 ``e`` of a batch reproduces a single env seeded the same way.
 
 Step order (as MetaDrive): clip actions -> dynamics -> lane localisation and reference

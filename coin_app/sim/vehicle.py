@@ -5,7 +5,7 @@ inertia) on four raycast wheels with spring-damper suspensions, engine force and
 as per-wheel impulses, and Bullet's friction model (a damped lateral constraint per wheel, clamped
 by a friction circle of ``suspension force x friction slip``, which is where the car slides in
 hard turns and the rear wheels lock under hard braking). This module steps the same equations
-for every vehicle at once, in numpy, in Bullet's order per physics step of 0.02 s (MetaDrive's
+for every vehicle, compiled (Numba), in Bullet's order per physics step of 0.02 s (MetaDrive's
 ``physics_world_step_size``; 5 per env step, its ``decision_repeat``):
 
 1. gravity: ``v += g dt`` (``integrateVelocities``);
