@@ -93,6 +93,7 @@ TEST_CLASS: dict[str, str] = {
             "test_agnn.py::test_evaluate_arena_runs_the_agnn",
             "test_agnn.py::test_suite_runs_the_agnn_in_its_physics_under_both_protocols",
             "test_agnn.py::test_u_attention_matches_the_edge_by_edge_formula",
+            "test_architecture.py::test_forbidden_internal_imports_are_absent_directly_and_through_other_modules",
             "test_architecture.py::test_function_level_imports_name_their_reason",
             "test_architecture.py::test_layers_import_only_downward",
             "test_architecture.py::test_no_import_cycles",

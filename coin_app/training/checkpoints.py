@@ -36,7 +36,9 @@ def check_resume(checkpoint: Path, meta: dict[str, Any], name: str, scenario: st
         trained = meta.get("scenario")
         raise ValueError(f"--resume {checkpoint} was trained on scenario {trained!r}, not {scenario!r}; allowed: --scenario {trained}")
     spec = registry.get(name)
-    old_overrides = dict(meta.get("overrides", {}))
+    # keys the algorithm no longer takes shaped nothing of it (an ITD3 run from before td3/ carries CIG-TD3's unused keys)
+    known = set(registry.keys(name)) | set(registry.scenario_keys(scenario))
+    old_overrides = {k: v for k, v in meta.get("overrides", {}).items() if k in known}
     old_env, old_algo = registry.split_overrides(name, old_overrides, scenario)
     new_env, _ = registry.split_overrides(name, overrides, scenario)
     old_cfg = config_from_dict(scenario, {**spec.scenario_defaults(old_algo), **old_env})
