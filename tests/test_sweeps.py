@@ -560,3 +560,48 @@ def test_restart_marks_the_methods_trials_moves_their_directories_and_guards_a_p
     # a crash before the rerun: a plain --resume is refused before any work, the same --restart is the way on
     assert main(["sweep", "seeds", "--storage", str(tmp_path), "--name", "crafted", "--resume"]) == 2
     assert "has an unfinished --restart of a b; allowed: --resume --restart a b" in capsys.readouterr().err
+
+
+def _real_crafted_sweep(root: Path) -> Path:
+    """A smoke seeds sweep of itd3 (seeds 0 and 1) as its driver leaves it, without running it: settings and Tune's state."""
+    from tuning import experiment as experiment_module
+
+    space = get_experiment("seeds").param_space("intersection", "smoke", ("itd3",), (0, 1), 300, {})
+    trials = expand_grid(space)
+    path = root / "seeds-intersection-smoke"
+    path.mkdir(parents=True)
+    settings = {"experiment": "seeds", "scenario": "intersection", "scale": "smoke", "methods": ["itd3"], "code_version": "v-then"}
+    sweep_module.write_settings(path, settings | {sweep_module.RESOLVED: sweep_module.resolved_settings(trials)})
+    data = [[json.dumps({"status": "PENDING", "config": t, "relative_logdir": trial_name(t)}), "{}"] for t in trials]
+    (path / "experiment_state-2026-01-01_00-00-00.json").write_text(json.dumps({"trial_data": data, "runner_data": {}, "stats": {}}))
+    assert experiment_module.SMOKE_TD3["warmup_steps"] == 200
+    return path
+
+
+def test_resume_refuses_settings_the_code_now_resolves_differently_and_accept_changes_records_them(tmp_path, monkeypatch, capsys):
+    from tuning import experiment as experiment_module
+
+    path = _real_crafted_sweep(tmp_path)
+    argv = ["sweep", "seeds", "--smoke", "--algos", "itd3", "--storage", str(tmp_path), "--resume"]
+    settings = json.loads((path / "coin_sweep.json").read_text())
+    assert sweep_module.check_protocol(path, settings, (), False, "cmd", print) == settings  # the same code: nothing changed
+    monkeypatch.setitem(experiment_module.SMOKE_TD3, "warmup_steps", 300)  # the smoke scale edited since the sweep started
+    monkeypatch.setitem(registry.get("itd3").hyperparameters, "tau", (0.01, registry.get("itd3").hyperparameters["tau"][1]))  # a default
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "this code resolves other settings than the sweep ran with (" in err
+    assert "warmup_steps: 200 -> 300 (2 trial(s))" in err and "tau: 0.005 -> 0.01 (2 trial(s))" in err
+    assert "allowed: --accept-changes to continue with them (recorded), --restart METHOD" in err and "(v-then)" in err
+    assert json.loads((path / "coin_sweep.json").read_text()) == settings  # refused: nothing written
+    # --accept-changes: continues, and the sweep's record says what changed, when and by which command
+    after = sweep_module.check_protocol(path, settings, (), True, "the accepting command", print)
+    assert "--accept-changes: the trials continue with 2 changed setting(s): tau, warmup_steps" in capsys.readouterr().out
+    (entry,) = after[sweep_module.ACCEPTED]
+    assert entry["command"] == "the accepting command" and entry["changes"]["warmup_steps"] == "200 -> 300 (2 trial(s))"
+    assert all(t["warmup_steps"] == 300 and t["tau"] == 0.01 for t in after[sweep_module.RESOLVED].values())
+    assert json.loads((path / "coin_sweep.json").read_text()) == after
+    assert sweep_module.check_protocol(path, after, (), False, "cmd", print) == after  # accepted: the next --resume goes on
+    # a restarted method's trials run this code's settings afresh: not a change to refuse
+    assert (
+        sweep_module.check_protocol(path, settings, ("itd3",), False, "cmd", print)[sweep_module.RESOLVED] == after[sweep_module.RESOLVED]
+    )
