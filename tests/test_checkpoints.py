@@ -394,3 +394,50 @@ def test_two_trains_on_one_out_started_together_exactly_one_runs(tmp_path):
     assert "python -m coin_app train --algo itd3" in err[0]
     assert verify(run / "checkpoint")["algo"] == "itd3" and json.loads((run / "summary.json").read_text())["env_steps"] >= 1500
     assert not list(tmp_path.glob(".run.lock"))  # released (and removed) at the end
+
+
+def _train_until(tmp_path: Path, marker: str, name: str) -> tuple[subprocess.Popen, Path, Path]:
+    """A real ``train`` in its own process group, once its log shows ``marker``: (process, run directory, log)."""
+    run, log_path = tmp_path / name, tmp_path / f"{name}.log"
+    repo = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1"}
+    argv = [sys.executable, "-m", "coin_app", "train", "--algo", "itd3", "--out", str(run), *TINY, "--steps", "1000000"]
+    argv += ["--checkpoint-every", "100000"]  # the last word wins: no periodic checkpoint
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(argv, cwd=repo, env=env, stdout=log, stderr=log, start_new_session=True)
+    t0 = time.time()
+    while marker not in log_path.read_text():
+        assert proc.poll() is None and time.time() - t0 < 240, log_path.read_text()[-2000:]
+        time.sleep(0.05)
+    return proc, run, log_path
+
+
+@pytest.mark.parametrize(
+    ("sig", "marker", "group"),
+    [(signal.SIGINT, "sampling:", False), (signal.SIGTERM, "sampling:", True), (signal.SIGTERM, "train:", True)],
+    ids=["SIGINT while the algorithm is built", "SIGTERM to the group then", "SIGTERM to the group in Ray's start-up"],
+)
+def test_a_signal_during_start_up_stops_train_at_once_with_its_code(tmp_path, sig, marker, group):
+    """Ctrl-C or a scheduler's SIGTERM (to the process or its whole group) before the first iteration: exit 128 + signal
+    (130, 143) in one line, no checkpoint (nothing trained). It used to be ignored, or to end in exit 1 after a minute."""
+    proc, run, log_path = _train_until(tmp_path, marker, "run")
+    (os.killpg if group else os.kill)(proc.pid, sig)
+    t0 = time.time()
+    code = proc.wait(timeout=120)
+    text = log_path.read_text()
+    assert code == 128 + sig, text[-2000:]
+    assert f"interrupted: {sig.name} during start-up: stopped before any training (no checkpoint was due)" in text
+    assert "Traceback" not in text and not (run / "checkpoint").exists() and time.time() - t0 < 90
+
+
+def test_sigterm_to_the_process_group_stops_train_after_its_iteration_with_a_checkpoint(tmp_path):
+    """SIGTERM to the whole group (the local Ray's GCS and raylet included): the iteration ends, a checkpoint, exit 0.
+    Before, the group's SIGTERM killed the GCS and the run hung 60 s on it, then exited 1."""
+    proc, run, log_path = _train_until(tmp_path, "iter    2", "run")
+    os.killpg(proc.pid, signal.SIGTERM)
+    code = proc.wait(timeout=240)
+    text = log_path.read_text()
+    assert code == 0, text[-2000:]
+    assert "SIGTERM: stopped after this iteration; saving a checkpoint" in text and "stopped early (SIGTERM)" in text
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["stopped"] == "SIGTERM" and summary["env_steps"] == verify(run / "checkpoint")["env_steps"] > 0

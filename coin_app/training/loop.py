@@ -55,6 +55,11 @@ class Interrupted(KeyboardInterrupt):
         self.signal_name = signal_name
         self.exit_code = 128 + int(signal.Signals[signal_name])  # the shell's convention: 130 for SIGINT, 143 for SIGTERM
 
+    @classmethod
+    def at_startup(cls, signal_name: str) -> Interrupted:
+        """The stop of a signal received before the first iteration."""
+        return cls(signal_name, f"{signal_name} during start-up: stopped before any training (no checkpoint was due)")
+
 
 class StopRequest:
     """Set by SIGTERM or SIGINT while :func:`stop_on_signal` is active: the run stops after its current iteration."""
@@ -76,7 +81,7 @@ def stop_on_signal() -> Iterator[StopRequest]:
         name = signal.Signals(signum).name
         if not request.started:
             request.startup_signal = name  # also seen at the loop's start, should the exception be caught on its way
-            raise Interrupted(name, f"{name} during start-up: stopped before any training (no checkpoint was due)")
+            raise Interrupted.at_startup(name)
         if request.signal is not None:
             raise Interrupted(name, f"second {name}: stopped at once (the last checkpoint is kept)")
         request.signal = name
@@ -168,8 +173,15 @@ def train(
                 log(f"warning: --threads {threads} > the {cores} CPU cores this process may use; extra torch threads only slow it down")
             torch.set_num_threads(threads)
             if not ray.is_initialized():
-                ray.init(address=address or "local", include_dashboard=False, log_to_driver=False, configure_logging=False)
-                stop.install()  # Ray's init sets its own SIGTERM handler (exit 1 after draining): ours again
+                with sigterm_blocked_in_children():  # a SIGTERM to the process group leaves the local Ray to this run's own stop
+                    try:
+                        ray.init(address=address or "local", include_dashboard=False, log_to_driver=False, configure_logging=False)
+                    except SystemExit as exc:  # Ray's init answers a SIGTERM with sys.exit(15): the same stop as ours
+                        if exc.code != int(signal.SIGTERM):
+                            raise
+                        raise Interrupted.at_startup("SIGTERM") from None
+                    stop.install()  # Ray's init set its own SIGTERM handlers (Python's and a native one): ours again, before
+                    # a SIGTERM held during the init is delivered
                 where = f"the cluster at {address}" if address else "a local session (all of this machine's cores)"
                 resources = ray.cluster_resources()
                 log(f"ray: {where} with {int(resources.get('CPU', 0))} CPUs, {int(resources.get('GPU', 0))} GPUs")
@@ -233,7 +245,7 @@ def _run(
             stop.started = True  # from here a first signal stops after the current iteration, with a checkpoint
             if stop.startup_signal is not None:
                 name = stop.startup_signal
-                raise Interrupted(name, f"{name} during start-up: stopped before any training (no checkpoint was due)")
+                raise Interrupted.at_startup(name)
             while sampled < steps and stop.signal is None:
                 if max_minutes is not None and time.perf_counter() - t0 >= 60.0 * max_minutes:
                     stopped = STOPPED_AT_MAX_MINUTES
@@ -288,6 +300,31 @@ def _run(
         )
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     return summary
+
+
+@contextmanager
+def sigterm_blocked_in_children() -> Iterator[None]:
+    """While inside, SIGTERM is blocked in this thread, so the processes started here (a local Ray's GCS, raylet and
+    workers) inherit it blocked, as Ray's own processes inherit SIGINT blocked (``ray._private.services``).
+
+    A terminal or a scheduler signals a whole process group: unblocked, the GCS died with the driver's first SIGTERM and
+    the driver hung 60 s on it, then exited 1 without its checkpoint. Ray still stops these processes at shutdown (SIGKILL
+    after a second), and they end with this process (Ray's fate sharing). This process still takes a SIGTERM at once: a
+    helper thread started before the block keeps it unblocked, the kernel delivers it there, and Python runs the handler in
+    the main thread at its next step.
+    """
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    done = threading.Event()
+    receiver = threading.Thread(target=done.wait, name="sigterm-receiver", daemon=True)
+    receiver.start()  # its signal mask is the main thread's before the block: SIGTERM open
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        done.set()
 
 
 def usable_cores() -> int:
