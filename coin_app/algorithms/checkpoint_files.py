@@ -166,7 +166,7 @@ def verify(checkpoint: Path) -> dict[str, Any]:
             )
     if SHAPES_KEY in meta:
         recorded = {k: tuple(v) for k, v in meta[SHAPES_KEY].items()}
-        differ = shape_difference(recorded, module_shapes(checkpoint), "its metadata", "its tensors")
+        differ = shape_difference(recorded, module_shapes(checkpoint), "in its metadata", "in its tensors")
         if differ:
             raise ValueError(f"checkpoint {checkpoint}: its tensors are not the network its metadata records ({differ})")
     _VERIFIED[key] = meta
@@ -192,7 +192,7 @@ def shape_difference(
     if not diff:
         return None
     k = diff[0]
-    return f"{k}: {there.get(k, 'absent')} in {there_name}, {here.get(k, 'absent')} in {here_name}; {len(diff)} tensor(s) differ"
+    return f"{k}: {there.get(k, 'absent')} {there_name}, {here.get(k, 'absent')} {here_name}; {len(diff)} tensor(s) differ"
 
 
 def _previous_hint(checkpoint: Path) -> str:

@@ -54,7 +54,7 @@ def check_resume(checkpoint: Path, meta: dict[str, Any], name: str, scenario: st
     seed = int(meta.get("seed", 0))
     new_shapes = _parameter_shapes(fresh_module(name, scenario, dict(overrides), seed))
     if SHAPES_KEY in meta:  # the shapes as saved: a default changed in the code since is seen too
-        old_shapes = {k: tuple(v) for k, v in meta[SHAPES_KEY].items()}
+        old_shapes = recorded_shapes(meta, new_shapes)
     else:  # a checkpoint from before the shapes were recorded: rebuilt from its settings
         old_shapes = _parameter_shapes(fresh_module(name, scenario, old_overrides, seed))
     differ = shape_difference(old_shapes, new_shapes)
@@ -69,6 +69,13 @@ def _parameter_shapes(module: RLModule) -> dict[str, tuple[int, ...]]:
     return {k: tuple(v.shape) for k, v in module.state_dict().items() if hasattr(v, "shape")}
 
 
+def recorded_shapes(meta: dict[str, Any], here: dict[str, tuple[int, ...]]) -> dict[str, tuple[int, ...]]:
+    """The shapes a checkpoint's metadata records, for the tensors a module built here has (a learner's module also
+    holds target networks, copies of its networks that a freshly built module creates later)."""
+    saved = {k: tuple(v) for k, v in meta[SHAPES_KEY].items()}
+    return {k: saved[k] for k in here if k in saved} | {k: v for k, v in saved.items() if k not in here and "target" not in k}
+
+
 def check_restorable(algo: Algorithm, checkpoint: Path, meta: dict[str, Any], hint: str) -> None:
     """Refuse to restore ``checkpoint`` into ``algo`` when the network its metadata records is not the one ``algo`` built."""
     if SHAPES_KEY not in meta:
@@ -77,10 +84,11 @@ def check_restorable(algo: Algorithm, checkpoint: Path, meta: dict[str, Any], hi
     module = learner.module[SHARED_MODULE_ID] if learner is not None else algo.get_module(SHARED_MODULE_ID)
     if module is None:
         return
-    differ = shape_difference({k: tuple(v) for k, v in meta[SHAPES_KEY].items()}, _parameter_shapes(module), "the checkpoint", "this code")
-    if differ and learner is None:  # an env runner's module: compare the tensors it has
-        here = _parameter_shapes(module)
-        differ = shape_difference({k: tuple(v) for k, v in meta[SHAPES_KEY].items() if k in here}, here, "the checkpoint", "this code")
+    here = _parameter_shapes(module)
+    saved = recorded_shapes(meta, here)
+    if learner is None:  # an env runner's module may hold the actor only: compare the tensors it has
+        saved = {k: v for k, v in saved.items() if k in here}
+    differ = shape_difference(saved, here, "in the checkpoint", "in this code")
     if differ:
         raise ValueError(f"checkpoint {checkpoint} holds another network than this code builds ({differ}); allowed: {hint}")
 
