@@ -605,3 +605,23 @@ def test_resume_refuses_settings_the_code_now_resolves_differently_and_accept_ch
     assert (
         sweep_module.check_protocol(path, settings, ("itd3",), False, "cmd", print)[sweep_module.RESOLVED] == after[sweep_module.RESOLVED]
     )
+
+
+def test_a_trial_restore_refuses_a_checkpoint_of_another_network_than_this_code_builds(tmp_path):
+    """What ``CoinTrial.load_checkpoint`` checks before RLlib's restore (which printed 180 lines of size mismatch)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from coin_app.algorithms.checkpoint_files import SHAPES_KEY
+    from coin_app.training import check_restorable
+
+    def algo(module):
+        return SimpleNamespace(learner_group=SimpleNamespace(_learner=SimpleNamespace(module={"shared": module})))
+
+    meta = {SHAPES_KEY: {"weight": [16, 91], "bias": [16], "actor_target.weight": [16, 91]}}
+    check_restorable(algo(torch.nn.Linear(91, 16)), tmp_path, meta, "x")  # the same network (targets are the learner's own)
+    hint = "sweep --resume --restart itd3 (reruns its trials with this code)"
+    with pytest.raises(ValueError, match=r"holds another network than this code builds \(bias: \(16,\) in the checkpoint, \(32,\) in this"):
+        check_restorable(algo(torch.nn.Linear(91, 32)), tmp_path, meta, hint)
+    check_restorable(algo(torch.nn.Linear(91, 32)), tmp_path, {}, hint)  # a checkpoint without recorded shapes: not checked
