@@ -23,6 +23,7 @@ FILE_CLASS: dict[str, str] = {
             "test_metadrive_rllib.py",
             "test_ppo_critic_inputs.py",
             "test_reproducible.py",
+            "test_reproducible_evaluation.py",
             "test_rllib_ppo_smoke.py",
         ),
         "e2e",

@@ -128,6 +128,34 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--replay", default=None, metavar="HTML", help="also write the first seed's episode as a replay page (native backend)")
     ev.set_defaults(run="evaluate.cmd_evaluate")
 
+    er = sub.add_parser(
+        "evaluate-reference",
+        help="the COIN authors' released actors on every scene, natively and on MetaDrive (their protocol): the reference table",
+    )
+    er.add_argument(
+        "--actors",
+        default=None,
+        help="directory of the released actors (<scene>/TD3_<scene>_<seed>_best_model_*_actor) or a clone of "
+        "github.com/marmotlab/COIN (default: $COIN_OFFICIAL_ACTORS)",
+    )
+    er.add_argument("--scenes", nargs="+", default=list(DRIVING), choices=DRIVING, help="scenes, each at COIN's vehicle count")
+    er.add_argument("--backends", nargs="+", default=["native", "metadrive"], choices=("native", "metadrive"), help="simulators")
+    er.add_argument(
+        "--seeds", type=int, nargs="+", default=None, help="training seeds of the actors (default: every one found, 1000..8000)"
+    )
+    er.add_argument(
+        "--episodes",
+        type=int,
+        default=5,
+        help="episodes per actor, seeded 1000 + 100 i as coin_eval.py seeds them (it runs 20 per actor; the README table 5)",
+    )
+    er.add_argument("--workers", type=int, default=1, help="evaluation processes (each MetaDrive episode runs in one)")
+    er.add_argument("--out", default="runs/reference", help="output directory; a run there resumes (finished episodes are kept)")
+    er.add_argument(
+        "--progress", choices=("auto", "always", "never"), default="auto", help="a line per finished task (auto: on a terminal only)"
+    )
+    er.set_defaults(run="reference.cmd_evaluate_reference")
+
     pr = sub.add_parser("probe", help="a TD3-family checkpoint's critics at its stopped vehicles: do they prefer braking or driving on?")
     pr.add_argument("checkpoint", help="a CIG-TD3 or ITD3 checkpoint directory (native backend)")
     pr.add_argument("--episodes", type=int, default=10, help="test seeds to run (default 10)")

@@ -10,6 +10,12 @@ engine per process; if this process already has one open (an env runner's), the
 episodes run in a worker process instead. Both backends go through the one rollout loop,
 :func:`coin_app.sim.rollout.rollout`.
 
+The policy's matrix products run on one BLAS thread: OpenBLAS splits a product among its threads
+differently for another thread count, which changes the actions in their last bits, and in closed loop
+at 30 vehicles that is a different episode within 100 steps (docs/decisions.md §3.5). So an episode
+depends on its seed, the policy and the envs batched with it, not on the thread count of the process
+(``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``, a Ray worker's one CPU, the machine's cores).
+
 The seed sets (training, validation, test) are defined in :mod:`coin_app.sim.seeds`.
 """
 
@@ -20,6 +26,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import cloudpickle
+from threadpoolctl import threadpool_limits
 
 from coin_app.backends import metadrive as metadrive_env
 from coin_app.evaluation.metrics import EpisodeRecorder
@@ -37,8 +44,9 @@ def evaluate_policy(policy: Policy, config: ScenarioConfig, seeds: Sequence[int]
         return _evaluate_metadrive(policy, config, seeds, max_steps)
     limit = max_steps if max_steps is not None else config.force_stop_factor * config.horizon
     recorders = [EpisodeRecorder(config.max_agent_steps) for _ in seeds]
-    for step in rollout(BatchedEnvs(DrivingSimulator(config, num_envs=len(seeds))), policy, seeds, limit):
-        record(step, recorders)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for step in rollout(BatchedEnvs(DrivingSimulator(config, num_envs=len(seeds))), policy, seeds, limit):
+            record(step, recorders)
     return [rec.metrics() for rec in recorders]
 
 
@@ -49,10 +57,11 @@ def run_episode(env: Any, policy: Policy, seed: int, max_steps: int, trace: Any 
     steps' horizon is the env config's ``max_agent_steps``.
     """
     recorder = EpisodeRecorder(env.config.max_agent_steps)
-    for step in rollout(DictEnvs([env]), policy, [seed], max_steps):
-        record(step, [recorder])
-        if trace is not None:
-            trace.record(env, step.results[0].infos)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for step in rollout(DictEnvs([env]), policy, [seed], max_steps):
+            record(step, [recorder])
+            if trace is not None:
+                trace.record(env, step.results[0].infos)
     return recorder.metrics()
 
 

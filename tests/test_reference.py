@@ -1,0 +1,205 @@
+"""The COIN authors' actors as a reference: the torch-free reader, the finder, the protocol's plan, the table, resuming."""
+
+import math
+import pickle
+import zipfile
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from coin_app.cli import main
+from coin_app.evaluation import reference
+from coin_app.inference.coin_actors import ACTORS_ENV, find_coin_actors, load_coin_actor, read_state_dict
+
+
+def _official_actor(obs_dim: int, seed: int = 0):
+    """A torch module shaped as the official ``models/coin.py`` Actor (attribute ``l1``: Linear/ReLU x3, Linear), and its forward."""
+    import torch
+
+    torch.manual_seed(seed)
+
+    class Actor(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.l1 = torch.nn.Sequential(
+                torch.nn.Linear(obs_dim, 16),
+                torch.nn.ReLU(),
+                torch.nn.Linear(16, 16),
+                torch.nn.ReLU(),
+                torch.nn.Linear(16, 16),
+                torch.nn.ReLU(),
+                torch.nn.Linear(16, 2),
+            )
+
+        def forward(self, x):
+            return torch.tanh(self.l1(x))  # max_action 1
+
+    return Actor()
+
+
+def _save(actor, path):
+    import torch
+
+    torch.save(actor.state_dict(), path)
+    return path
+
+
+def test_reader_gives_torch_tensors_bit_for_bit_and_the_actor_its_forward(tmp_path):
+    import torch
+
+    actor = _official_actor(96)
+    path = _save(actor, tmp_path / "TD3_bottleneck_3000_best_model_325_1.00_actor")
+    state = read_state_dict(path)
+    assert list(state) == list(actor.state_dict())
+    for key, tensor in actor.state_dict().items():
+        assert state[key].dtype == np.float32 and np.array_equal(state[key], tensor.numpy()), key
+    policy = load_coin_actor(path)
+    x = np.random.default_rng(0).normal(size=(5, 96)).astype(np.float32)
+    with torch.no_grad():
+        expected = actor(torch.from_numpy(x)).numpy()
+    np.testing.assert_allclose(policy(x), expected, atol=1e-6)
+    assert policy.obs_dim == 96
+    assert policy.meta | {"source": None} == {
+        "source": None,
+        "file": path.name,
+        "scene": "bottleneck",
+        "seed": 3000,
+        "episode": 325,
+        "train_success": "1.00",
+    }
+
+
+def test_reader_reads_a_transposed_view_by_its_strides(tmp_path):
+    import torch
+
+    w = torch.arange(12, dtype=torch.float32).reshape(3, 4)
+    torch.save({"w": w.t(), "b": w[1]}, tmp_path / "sd")  # a non-contiguous view and an offset into the same storage
+    state = read_state_dict(tmp_path / "sd")
+    assert np.array_equal(state["w"], np.arange(12, dtype=np.float32).reshape(3, 4).T)
+    assert np.array_equal(state["b"], np.array([4, 5, 6, 7], np.float32))
+
+
+def test_reader_refuses_anything_but_a_state_dict_of_tensors(tmp_path):
+    import torch
+
+    torch.save(torch.nn.Linear(3, 2), tmp_path / "module")  # a whole module: its pickle names torch.nn classes
+    with pytest.raises(pickle.UnpicklingError, match="allowed: a state_dict of float tensors"):
+        read_state_dict(tmp_path / "module")
+    (tmp_path / "plain").write_text("not a zip")
+    with pytest.raises(ValueError, match="not a torch state_dict file"):
+        read_state_dict(tmp_path / "plain")
+    with zipfile.ZipFile(tmp_path / "empty.zip", "w") as z:
+        z.writestr("x/other", b"")
+    with pytest.raises(ValueError, match="no data.pkl"):
+        read_state_dict(tmp_path / "empty.zip")
+    torch.save({"l1.0.weight": torch.zeros(2, 2)}, tmp_path / "partial")
+    with pytest.raises(ValueError, match="lacks l1.0.bias"):
+        load_coin_actor(tmp_path / "partial")
+
+
+def test_finder_takes_both_layouts_and_the_best_file_per_seed(tmp_path):
+    flat = tmp_path / "copy" / "roundabout"
+    flat.mkdir(parents=True)
+    for name in ("TD3_roundabout_1000_best_model_165_0.90_actor", "TD3_roundabout_2000_best_model_255_0.95_actor", "notes.txt"):
+        (flat / name).write_bytes(b"")
+    clone = tmp_path / "clone" / "runs" / "roundabout" / "1000" / "model"
+    clone.mkdir(parents=True)
+    for name in (
+        "TD3_roundabout_1000_best_model_120_0.86_actor",
+        "TD3_roundabout_1000_best_model_165_0.90_actor",
+        "TD3_roundabout_1000_best_model_140_0.90_actor",  # same success, earlier episode
+        "TD3_roundabout_1000_best_model_165_0.90_local_critic",
+    ):
+        (clone / name).write_bytes(b"")
+    assert find_coin_actors(tmp_path / "copy", "roundabout") == {
+        1000: flat / "TD3_roundabout_1000_best_model_165_0.90_actor",
+        2000: flat / "TD3_roundabout_2000_best_model_255_0.95_actor",
+    }
+    assert find_coin_actors(tmp_path / "clone", "roundabout") == {1000: clone / "TD3_roundabout_1000_best_model_165_0.90_actor"}
+    assert find_coin_actors(tmp_path / "copy", "bottleneck") == {}
+
+
+def test_protocol_seeds_config_and_plan(tmp_path):
+    assert reference.episode_seeds(5) == [1000, 1100, 1200, 1300, 1400]
+    config = reference.reference_config("bottleneck", "native")
+    assert (config.num_agents, config.obs_dim, config.crash_penalty, config.lidar_range) == (20, 96, 10.0, 40.0)
+    assert config.solid_center_line
+    config = reference.reference_config("roundabout", "native")
+    assert (config.num_agents, config.obs_dim) == (40, 91)
+    scene = tmp_path / "intersection"
+    scene.mkdir()
+    for seed in (1000, 2000):
+        (scene / f"TD3_intersection_{seed}_best_model_150_0.90_actor").write_bytes(b"")
+    tasks = reference.plan(tmp_path, ["intersection"], ["native"], None, 3)
+    assert [(t.train_seed, t.episode_seeds) for t in tasks] == [(1000, (1000, 1100, 1200)), (2000, (1000, 1100, 1200))]
+    with pytest.raises(ValueError, match=r"training seed\(s\) \[3000\].*allowed: 1000, 2000"):
+        reference.plan(tmp_path, ["intersection"], ["native"], [3000], 3)
+    with pytest.raises(ValueError, match="no roundabout actors"):
+        reference.plan(tmp_path, ["roundabout"], ["native"], None, 3)
+    with pytest.raises(ValueError, match="bad --episodes 0"):
+        reference.plan(tmp_path, ["intersection"], ["native"], None, 0)
+
+
+def _rows(scene, backend, per_seed):
+    """Result rows: ``per_seed`` maps a training seed to its episodes' (arrived, crashed, off-road, timed-out) counts."""
+    rows = []
+    for seed, episodes in per_seed.items():
+        for k, (a, c, o, t) in enumerate(episodes):
+            n = a + c + o + t
+            rows.append(
+                {"scene": scene, "backend": backend, "train_seed": seed, "episode_seed": 1000 + 100 * k, "success_rate": a / n}
+                | {"collision_rate": c / n, "out_of_road_rate": o / n, "timeout_rate": t / n, "num_timeout": t, "wall_s": 30.0}
+            )
+    return pd.DataFrame(rows)
+
+
+def test_summary_is_the_mean_over_seeds_of_episode_means_with_their_spread():
+    # seed 1000: episodes at 80 % and 60 % success (mean 70); seed 2000: 90 % and 100 % (mean 95)
+    results = _rows("intersection", "native", {1000: [(8, 2, 0, 0), (6, 2, 1, 1)], 2000: [(9, 0, 1, 0), (10, 0, 0, 0)]})
+    table = reference.summary_table(results)
+    row = table.iloc[0]
+    assert (row.scene, row.backend, row.seeds, row.episodes, row.vehicles) == ("intersection", "native", 2, 4, 30)
+    assert row.success_rate_mean == pytest.approx(82.5)
+    assert row.success_rate_sd == pytest.approx(math.sqrt(2 * 12.5**2))  # sample sd of 70 and 95
+    assert (row.success_rate_min, row.success_rate_max) == pytest.approx((70.0, 95.0))
+    assert row.collision_rate_mean == pytest.approx((20 + 20 + 0 + 0) / 4)
+    assert row.timeout_rate_mean == pytest.approx(2.5) and row.timeouts_per_episode == pytest.approx(0.25)
+    text = reference.to_markdown(table)
+    assert "| intersection (30) | native | 82.5 ± 17.7 (70.0–95.0) | 10.0 | 5.0 | 2.5 | 2 × 2 | 2 | 88.78 |" in text
+
+
+def test_run_resumes_and_keeps_every_finished_episode(tmp_path, monkeypatch):
+    ran = []
+
+    def fake(task):
+        ran.append((task.backend, task.train_seed, task.episode_seeds))
+        return [
+            {"scene": task.scene, "backend": task.backend, "train_seed": task.train_seed, "episode_seed": s, "success_rate": 1.0}
+            | {"collision_rate": 0.0, "out_of_road_rate": 0.0, "timeout_rate": 0.0, "num_timeout": 0, "actor": task.actor.name}
+            for s in task.episode_seeds
+        ]
+
+    monkeypatch.setattr(reference, "run_task", fake)
+    actor = tmp_path / "TD3_intersection_1000_best_model_150_0.90_actor"
+    tasks = [reference.Task("intersection", "native", 1000, actor, (1000, 1100))]
+    tasks += [reference.Task("intersection", "metadrive", 1000, actor, (s,)) for s in (1000, 1100)]
+    out = tmp_path / "out"
+    reference.run_reference(tasks[:2], out)
+    assert len(ran) == 2 and len(reference.load_results(out)) == 3
+    reference.run_reference(tasks, out)  # only the missing MetaDrive episode runs
+    assert ran[2:] == [("metadrive", 1000, (1100,))]
+    results = reference.load_results(out)
+    assert len(results) == 4 and not results.duplicated(reference.KEY).any()
+
+
+def test_command_refuses_a_missing_actors_directory_in_one_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv(ACTORS_ENV, raising=False)
+    assert main(["evaluate-reference", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"pass --actors DIR or set {ACTORS_ENV}" in err
+    assert main(["evaluate-reference", "--actors", str(tmp_path / "nope"), "--out", str(tmp_path / "out")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["evaluate-reference", "--actors", str(tmp_path), "--backends", "native", "--out", str(tmp_path / "out")]) == 2
+    assert "no intersection actors" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
