@@ -83,7 +83,7 @@ class CentralCriticConfig:
     (``docs/decisions.md`` §2; ``gat_heads=1, gat_init="default"`` is the single-head GAT used before
     issue #27); both are validated for every ``global_module`` and used by "gat" only;
     ``feature_norm`` divides each branch's features ``[h_ego, obs MLP]`` by their L2 norm before its
-    output layer (:func:`~coin_app.algorithms.cig_td3.individual.q_head`; not in COIN).
+    output layer (:func:`~coin_app.algorithms.td3.networks.q_head`; not in COIN).
     """
 
     obs_dim: int
