@@ -20,6 +20,7 @@ back at once; ``job status|logs|stop ID`` follow it; ``--wait`` follows the logs
 
 from __future__ import annotations
 
+import re
 import shlex
 import time
 from collections.abc import Callable
@@ -117,12 +118,15 @@ def submit(
 
 
 def server_reason(exc: BaseException) -> str:
-    """The job server's reason in one line: the last line of a server-side traceback it sent back, else its first line."""
-    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+    """The job server's reason in one line. Its answer may carry its own (nested) tracebacks: then their first line's
+    prefix and the last exception line (``ValueError: Job with submission_id X already exists. ...``), else its first line."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip().strip(".")]
     if not lines:
         return type(exc).__name__
-    if "Traceback" in lines[0] and len(lines) > 1:
-        return f"{lines[0].split('Traceback')[0].strip()} {lines[-1]}".strip()
+    if "Traceback" in lines[0]:
+        raised = [line for line in lines[1:] if re.match(r"^[\w.]+(Error|Exception): ", line)]
+        if raised:
+            return f"{lines[0].split('Traceback')[0].strip()} {raised[-1]}".strip()
     return lines[0]
 
 

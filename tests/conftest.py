@@ -111,7 +111,7 @@ TEST_CLASS: dict[str, str] = {
             "test_arena.py::test_test_sets_are_fixed_and_disjoint_from_training",
             "test_arena_report.py::test_evaluate_arena_puts_policies_side_by_side_and_report_rebuilds_the_page",
             "test_bad_inputs.py::test_every_algorithm_key_refuses_inf_nan_and_wrong_types_through_train",
-            "test_bad_inputs.py::test_a_report_is_replaced_whole_and_an_interrupted_one_leaves_the_old_as_it_was",
+            "test_bad_inputs.py::test_a_report_is_replaced_as_one_set_and_an_interrupted_one_leaves_the_old_as_it_was",
             "test_batched_runner.py::test_arena_transitions_equal_rllib_runner",
             "test_batched_runner.py::test_driving_batch_of_envs_equals_single_env_runners",
             "test_batched_runner.py::test_driving_transitions_equal_rllib_runner",

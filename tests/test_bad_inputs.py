@@ -72,7 +72,6 @@ CASES = [
     (["submit", "--wait", "--timeout", "-1", "--", "scenarios"], "bad --timeout -1.0; allowed: a finite number of seconds > 0"),
     (["sweep", "seeds", "--smoke", "--connect-timeout", "0"], "bad --connect-timeout 0.0"),
     (["sweep", "seeds", "--smoke", "--accept-changes"], "--accept-changes without --resume"),
-    (["report", "{good_npz}", "--out", "{tmp}"], "it holds files that are not a report"),  # --out is replaced whole
 ]
 
 
@@ -320,15 +319,20 @@ def test_a_locked_output_is_refused_naming_its_writer_and_a_dead_writers_lock_is
     assert not lock_path(out).exists()  # the last release removes it
 
 
-def test_a_report_is_replaced_whole_and_an_interrupted_one_leaves_the_old_as_it_was(tmp_path, monkeypatch, capsys):
+def test_a_report_is_replaced_as_one_set_and_an_interrupted_one_leaves_the_old_as_it_was(tmp_path, monkeypatch, capsys):
     from coin_app.evaluation import report
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX
 
     table = _results_table(tmp_path / "results.csv")
     out = tmp_path / "report"
+    out.mkdir()
+    (out / "notes.md").write_text("the user's own file")  # not the report's: it stays through every report
     argv = ["report", str(table), "--out", str(out), "--tsne-samples", "40", "--tsne-episodes", "1"]
     assert main(argv) in (0, 1)  # 1: the made-up checkpoints have no learning curves (listed as unreadable)
-    assert (out / "report.html").is_file() and (out / "results.csv").is_file()
-    (out / "stale_figure.png").write_bytes(b"from an older report")
+    written = json.loads((out / OUTPUTS_INDEX).read_text())
+    assert "report.html" in written and "results.csv" in written and "notes.md" not in written
+    (out / "old_figure.png").write_bytes(b"a figure the previous report drew")  # as if that report had written it:
+    (out / OUTPUTS_INDEX).write_text(json.dumps([*written, "old_figure.png"]))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
 
     def killed(*args, **kwargs):
@@ -341,7 +345,32 @@ def test_a_report_is_replaced_whole_and_an_interrupted_one_leaves_the_old_as_it_
     monkeypatch.undo()
     capsys.readouterr()
     assert main(argv) in (0, 1)
-    assert not (out / "stale_figure.png").exists() and (out / "report.html").is_file()  # replaced whole: no file of the old one
+    assert not (out / "old_figure.png").exists() and (out / "report.html").is_file()  # none of the old report's files left
+    assert (out / "notes.md").read_text() == "the user's own file"
+
+
+def test_a_swap_killed_half_way_is_rolled_back_to_the_old_outputs_whole(tmp_path):
+    """A kill between the renames of a swap (``staged_outputs``), crafted as it leaves the disk: the next build's recovery
+    puts every old entry back and takes every new one out, whatever the point of the kill."""
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX, SWAP_RECORD, recover_swaps
+
+    old, new = {"a.csv": b"old a", "b.png": b"old b"}, {"a.csv": b"new a", "c.md": b"new c"}
+    dead = 2**22 + 12345  # a PID no process has (above the kernel's default pid_max)
+    for moved_in in range(len(new) + 1):  # how many new entries had moved in when it was killed
+        root = tmp_path / str(moved_in)
+        out, stage, aside = root / "report", root / f".report.staged-{dead}", root / f".report.old-{dead}"
+        for d in (out, stage, aside):
+            d.mkdir(parents=True)
+        (out / "notes.md").write_text("the user's")
+        (out / OUTPUTS_INDEX).write_text(json.dumps(sorted(old)))
+        (aside / SWAP_RECORD).write_text(json.dumps({"old": sorted(old), "new": sorted(new)}))
+        for name, data in old.items():  # all old entries are aside before any new one moves in
+            (aside / name).write_bytes(data)
+        for k, (name, data) in enumerate(sorted(new.items())):
+            (out if k < moved_in else stage).joinpath(name).write_bytes(data)
+        assert recover_swaps(out) == [aside.name]
+        assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != OUTPUTS_INDEX} == {**old, "notes.md": b"the user's"}
+        assert sorted(p.name for p in root.iterdir()) == ["report"]  # staging and the aside directory gone
 
 
 def _results_table(path):

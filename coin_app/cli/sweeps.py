@@ -8,7 +8,7 @@ from pathlib import Path
 from coin_app.cli.flags import overrides_of
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
 from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, write_arena_html
-from coin_app.evaluation.outputs import OutputLock, check_dir_output, check_replaceable, staged_dir
+from coin_app.evaluation.outputs import OutputLock, check_dir_output, staged_outputs
 from coin_app.evaluation.report import ReportOptions, build_report
 from tuning.sweep import run_sweep, write_generalization
 
@@ -90,9 +90,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     out = Path(args.out)
     options.check()
     check_dir_output(out, [p for p in map(Path, args.sources) if p.is_dir()], what="a sweep it reads")
-    check_replaceable(out, ("report.html", ARENA_PAGE, "results.csv"), "a report")
-    # one writer; the old report stays whole until the new one is complete
-    with OutputLock(out, options.command, "the report directory") as lock, staged_dir(out) as stage:
+    # one writer; the old report's files stay whole until the new ones are complete (other files in --out stay)
+    with OutputLock(out, options.command, "the report directory") as lock, staged_outputs(out) as stage:
         if lock.stale_note():
             print(lock.stale_note())
         if arena:

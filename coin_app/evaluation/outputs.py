@@ -6,7 +6,7 @@
   stale by construction: the next writer takes it (and says whose it was). A second live writer
   is refused in one line naming the holder's PID and command.
 * :func:`write_text_atomic`: a file written to a hidden sibling, flushed to disk, renamed over the
-  target; :func:`staged_dir`: a directory built in a hidden sibling and swapped in whole.
+  target; :func:`staged_outputs`: an output's files built in a hidden sibling and swapped in as one set.
 * :func:`check_file_output` / :func:`check_dir_output`: an ``--out`` that can be written and is not
   (inside) an input, checked before any work.
 """
@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 LOCK_SUFFIX = ".lock"  # <parent>/.<name>.lock beside the directory it guards
-STAGE_MARK = ".staged-"  # <parent>/.<name>.staged-<pid>: a directory being built; .<name>.old-<pid>: one being replaced
+STAGE_MARK = ".staged-"  # <parent>/.<name>.staged-<pid>: outputs being built; .<name>.old-<pid>: the ones they replace
 OLD_MARK = ".old-"
 
 
@@ -182,21 +182,23 @@ def write_text_atomic(path: Path, text: str) -> Path:
     return path
 
 
-@contextlib.contextmanager
-def staged_dir(directory: Path) -> Iterator[Path]:
-    """Build a directory's new content in a hidden sibling, then swap it in whole; on an error the old one stays as it was.
+OUTPUTS_INDEX = ".coin_app_outputs.json"  # in an output directory: the entries its last staged build wrote
+SWAP_RECORD = "swap.json"  # in .<name>.old-<pid>: what a swap moves (its entries moved aside, the new ones moved in)
 
-    Yields the staging directory. Leftovers of writers that died (killed) are removed first.
-    The swap: the old directory renamed aside, the new one renamed into place, the old one
-    deleted; a kill between the two renames leaves the old one beside, under ``.<name>.old-<pid>``.
+
+@contextlib.contextmanager
+def staged_outputs(directory: Path) -> Iterator[Path]:
+    """Build an output's entries in a hidden sibling, then swap them into ``directory`` as one set: the entries the last
+    build wrote (``OUTPUTS_INDEX``) and any of the same names move aside, the new ones move in. Other files in
+    ``directory`` stay. Yields the staging directory.
+
+    On an error in the build nothing in ``directory`` changes. A kill during the swap (renames only) leaves a record
+    beside it; the next build first rolls such a swap back, so ``directory`` always holds one build's entries whole.
     """
     directory = Path(directory).absolute()
     parent, name = directory.parent, directory.name
-    parent.mkdir(parents=True, exist_ok=True)
-    for leftover in [*parent.glob(f".{name}{STAGE_MARK}*"), *parent.glob(f".{name}{OLD_MARK}*")]:
-        pid = leftover.name.rsplit("-", 1)[-1]
-        if not (pid.isdigit() and _alive(int(pid)) and int(pid) != os.getpid()):
-            shutil.rmtree(leftover, ignore_errors=True)
+    directory.mkdir(parents=True, exist_ok=True)
+    recover_swaps(directory)
     stage = parent / f".{name}{STAGE_MARK}{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
@@ -205,12 +207,58 @@ def staged_dir(directory: Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
-    old = parent / f".{name}{OLD_MARK}{os.getpid()}"
-    if directory.exists():
-        os.replace(directory, old)
-    os.replace(stage, directory)
-    fsync_dir(parent)
-    shutil.rmtree(old, ignore_errors=True)
+    new = sorted(p.name for p in stage.iterdir())
+    index = directory / OUTPUTS_INDEX
+    try:
+        previous = [str(n) for n in json.loads(index.read_text())] if index.is_file() else []
+    except ValueError:
+        previous = []
+    old = sorted(n for n in {*previous, *new} if (directory / n).exists() or (directory / n).is_symlink())
+    aside = parent / f".{name}{OLD_MARK}{os.getpid()}"
+    shutil.rmtree(aside, ignore_errors=True)
+    aside.mkdir()
+    write_text_atomic(aside / SWAP_RECORD, json.dumps({"old": old, "new": new}))
+    for n in old:  # every old entry aside before any new one moves in (recover_swaps relies on this order)
+        os.replace(directory / n, aside / n)
+    for n in new:
+        os.replace(stage / n, directory / n)
+    write_text_atomic(index, json.dumps(new))
+    shutil.rmtree(aside)
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+def recover_swaps(directory: Path) -> list[str]:
+    """Roll back the swaps of killed builds of ``directory`` (their old entries back, their new ones out) and remove their
+    staging directories; the names of the swaps rolled back."""
+    directory = Path(directory).absolute()
+    parent, name = directory.parent, directory.name
+    rolled = []
+    for aside in sorted(parent.glob(f".{name}{OLD_MARK}*")):
+        pid = aside.name.rsplit("-", 1)[-1]
+        if pid.isdigit() and int(pid) != os.getpid() and _alive(int(pid)):
+            continue  # a build still running (its lock is the guard; this is belt and braces)
+        try:
+            record = json.loads((aside / SWAP_RECORD).read_text())
+        except (OSError, ValueError):
+            record = None  # killed before its record was complete: nothing was moved yet
+        if record is not None:
+            stage = parent / f".{name}{STAGE_MARK}{pid}"
+            for n in record["new"]:  # moved in already: out again (all old entries were aside by then)
+                if not (stage / n).exists() and ((directory / n).exists() or (directory / n).is_symlink()):
+                    if (directory / n).is_dir() and not (directory / n).is_symlink():
+                        shutil.rmtree(directory / n)
+                    else:
+                        (directory / n).unlink()
+            for n in record["old"]:
+                if (aside / n).exists() or (aside / n).is_symlink():
+                    os.replace(aside / n, directory / n)
+            rolled.append(aside.name)
+        shutil.rmtree(aside, ignore_errors=True)
+    for stage in parent.glob(f".{name}{STAGE_MARK}*"):
+        pid = stage.name.rsplit("-", 1)[-1]
+        if not (pid.isdigit() and int(pid) != os.getpid() and _alive(int(pid))):
+            shutil.rmtree(stage, ignore_errors=True)
+    return rolled
 
 
 def within(path: Path, source: Path) -> bool:
@@ -256,16 +304,3 @@ def check_dir_output(out: Path, inputs: Sequence[Path] = (), flag: str = "--out"
         probe.unlink()
     except OSError as exc:
         raise ValueError(f"cannot write {flag} {out}: {exc.strerror or exc}; allowed: a writable directory") from exc
-
-
-def check_replaceable(out: Path, markers: Sequence[str], what: str, flag: str = "--out") -> None:
-    """Refuse to replace a directory that holds files but none of ``markers`` (so is not an earlier output of this kind)."""
-    out = Path(out)
-    if not out.is_dir():
-        return
-    entries = sorted(p.name for p in out.iterdir())
-    if entries and not any((out / m).exists() for m in markers):
-        raise ValueError(
-            f"bad {flag} {out}: it holds files that are not {what} ({', '.join(entries[:3])}{' ...' if len(entries) > 3 else ''}), "
-            f"and {flag} is replaced whole; allowed: a new or empty directory, or an earlier {what}"
-        )

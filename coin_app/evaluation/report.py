@@ -295,7 +295,7 @@ def build_report(
     """Evaluate the sources and write every table, figure, the marl-eval JSON and report.html into ``out``.
 
     ``shown_as``: where ``out`` will be once complete (the CLI builds a report in a staging directory,
-    :func:`~coin_app.evaluation.outputs.staged_dir`): the paths logged and returned name it. A report
+    :func:`~coin_app.evaluation.outputs.staged_outputs`): the paths logged and returned name it. A report
     redrawn from one results table (no sweep) keeps that table's evaluation record beside it
     (``evaluation.json``, ``selection.csv``).
     """
