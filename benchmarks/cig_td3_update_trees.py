@@ -131,7 +131,7 @@ def main() -> None:
                 print(f"  first delay cycle's losses, {name} tree ({trees[name]}): " + ", ".join(f"{k} {v:.6g}" for k, v in losses.items()))
             spent = {(n, c): 0.0 for n in workers for c in CLOCKS}
             for cycle in range(args.cycles):
-                for name, w in workers.items():
+                for name, w in list(workers.items())[:: 1 if cycle % 2 == 0 else -1]:  # each tree first in every other cycle
                     took = w.call(op="time", precision=p, updates=shape["delay"])
                     for c in CLOCKS:
                         spent[name, c] += took[c]
