@@ -28,7 +28,8 @@ import torch
 
 import coin_app.evaluation.arena_suite as suite
 from coin_app.algorithms.checkpoints import actor_policy
-from coin_app.algorithms.nav_ppo.config import HYPERPARAMETERS, STAGES, progress
+from coin_app.algorithms.nav_ppo.config import progress
+from coin_app.algorithms.nav_ppo.settings import DEFAULT, STAGES
 from coin_app.algorithms.nav_ppo.warm_start import heuristic_demonstrations, warm_start
 from coin_app.sim.arena.config import make_arena_config
 from coin_app.sim.arena.heuristic import DRIVERS
@@ -42,8 +43,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--driver", choices=tuple(DRIVERS), default="heuristic")
     ap.add_argument("--stage", choices=tuple(STAGES), default="short")
-    ap.add_argument("--episodes", type=int, default=HYPERPARAMETERS["warm_start_episodes"][0])
-    ap.add_argument("--epochs", type=int, default=HYPERPARAMETERS["warm_start_epochs"][0])
+    ap.add_argument("--episodes", type=int, default=DEFAULT.warm_start_episodes)
+    ap.add_argument("--epochs", type=int, default=DEFAULT.warm_start_epochs)
     ap.add_argument("--cases", default="1x0,4x4", help="suite cases to score, e.g. 1x0,4x4,8x8")
     ap.add_argument("--scenarios-per-case", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
@@ -68,7 +69,7 @@ def main() -> None:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     module = fresh_module("nav_ppo", "arena", {"stage": args.stage, "log_std_init": LOG_STD, **arena}, seed=args.seed)
-    noise = HYPERPARAMETERS["warm_start_noise"][0]
+    noise = DEFAULT.warm_start_noise
     losses, rounds = warm_start(
         module, cfg, args.driver, args.episodes, noise, args.epochs, LOG_STD, args.seed, 0.99, args.rounds, log=progress, weight=args.weight
     )

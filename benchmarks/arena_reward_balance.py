@@ -27,7 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from coin_app.algorithms.nav_ppo.config import STAGES
+from coin_app.algorithms.nav_ppo.settings import STAGES
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.env import ArenaEnv
 from coin_app.sim.arena.heuristic import avoiding_actions, heuristic_actions

@@ -29,6 +29,8 @@ from urllib.parse import urlparse
 
 from ray.job_submission import JobSubmissionClient
 
+from coin_app.evaluation.limits import check_timeout
+
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_ADDRESS = "http://127.0.0.1:8265"
 EXCLUDES = [".git", ".venv", "venv", "runs", "**/__pycache__", "*.png", "*.gif", ".ruff_cache", ".pytest_cache"]
@@ -110,8 +112,18 @@ def submit(
             return c.submit_job(entrypoint=entrypoint, runtime_env=env, submission_id=submission_id)
         except RuntimeError as exc:
             if "No available agent" not in str(exc) or time.perf_counter() > deadline:
-                raise ValueError(f"the job server at {address or DEFAULT_ADDRESS} refused the job: {exc}") from exc
+                raise ValueError(f"the job server at {address or DEFAULT_ADDRESS} refused the job: {server_reason(exc)}") from exc
             time.sleep(2.0)
+
+
+def server_reason(exc: BaseException) -> str:
+    """The job server's reason in one line: the last line of a server-side traceback it sent back, else its first line."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+    if not lines:
+        return type(exc).__name__
+    if "Traceback" in lines[0] and len(lines) > 1:
+        return f"{lines[0].split('Traceback')[0].strip()} {lines[-1]}".strip()
+    return lines[0]
 
 
 def status(job_id: str, address: str | None = None) -> str:
@@ -130,7 +142,8 @@ def stop(job_id: str, address: str | None = None) -> bool:
 
 
 def wait(job_id: str, address: str | None = None, timeout_s: float = 3600.0, echo: Callable[[str], None] = print) -> str:
-    """Follow the job's new log lines until it ends (or ``timeout_s``); returns its final status."""
+    """Follow the job's new log lines until it ends (or ``timeout_s``, a positive number of seconds); returns its final status."""
+    check_timeout(timeout_s, "--timeout")
     c = client(address)
     seen = 0
     t0 = time.perf_counter()

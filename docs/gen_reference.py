@@ -5,8 +5,9 @@
 
 ``config-keys.md``: every ``--set`` key with its default and meaning, from the same sources as
 ``python -m coin_app scenarios`` (``coin_app/cli/catalog.py`` ``cmd_scenarios``): the scenario configs'
-dataclass fields (their meaning is the field's comment in the source), every algorithm spec's
-``hyperparameters`` and the registry's ``COMMON_KEYS``. ``cli.md``: every command's ``--help``
+dataclass fields (their meaning is the field's comment in the source), every algorithm's settings
+declarations (``coin_app.algorithms.settings``: default, rule, meaning, reader, official value) and the
+registry's ``COMMON_KEYS``. ``cli.md``: every command's ``--help``
 from ``coin_app.cli.build_parser``. ``tests/test_docs_site.py`` fails while a committed page is
 out of date with the code.
 """
@@ -98,11 +99,23 @@ def _spec_table(keys: dict[str, tuple[Any, str]]) -> list[str]:
     return rows
 
 
+def _settings_table(spec: Any) -> list[str]:
+    """An algorithm's keys: default, allowed values, meaning; with a settings class also the reader and the official value."""
+    decl = spec.settings.declarations()
+    rows = ["| key | default | allowed | meaning | read by | official code |", "|---|---|---|---|---|---|"]
+    for key, (default, meaning) in spec.hyperparameters.items():
+        rule, d = spec.rule(key), decl[key]
+        official = _code(d.official) if d.differs_from_official() else "same"
+        rows.append(f"| `{key}` | {_code(default)} | {_cell(rule.allowed())} | {_cell(meaning)} | {_cell(d.reads)} | {official} |")
+    return rows
+
+
 def config_keys_page() -> str:
     """docs/reference/config-keys.md: every --set key with its default and meaning."""
     from coin_app.algorithms import registry
     from coin_app.sim.arena.config import ArenaConfig, RewardConfig
-    from coin_app.sim.config import DEFAULT_NUM_AGENTS, PRESETS, DynamicsConfig, ScenarioConfig, make_config
+    from coin_app.sim.config import PRESETS, DynamicsConfig, ScenarioConfig, make_config
+    from coin_app.sim.scenes import ARENA, SCENES, env_id
 
     out = [
         "# Every `--set` key",
@@ -117,8 +130,8 @@ def config_keys_page() -> str:
         "| scenario | agents | observation | RLlib env |",
         "|---|---:|---:|---|",
     ]
-    for name, n in DEFAULT_NUM_AGENTS.items():
-        out.append(f"| `{name}` | {n} | {make_config(name).obs_dim} | `coin-{name}-v0` |")
+    for name, s in SCENES.items():
+        out.append(f"| `{name}` | {s.default_vehicles} | {make_config(name).obs_dim} | `{s.env_id}` |")
     out += ["", "Presets (`--preset`, `make_config(scenario, preset)`): the keys each one sets.", "", "| preset | keys |", "|---|---|"]
     for name, values in PRESETS.items():
         shown = ", ".join(f"`{k}={v!r}`" for k, v in values.items()) if name != "kinematic" else "`dynamics=DynamicsConfig.kinematic()`"
@@ -133,7 +146,7 @@ def config_keys_page() -> str:
         "## The arena",
         "",
         f"`arena`: {arena.num_vehicles} vehicles, {arena.num_obstacles} obstacles by default, observation {arena.obs_dim}, "
-        "RLlib env `coin-arena-v0` (`nav_ppo`). No presets.",
+        f"RLlib env `{env_id(ARENA)}` (`nav_ppo`). No presets.",
         "",
         "### Arena keys (`ArenaConfig`)",
         "",
@@ -144,7 +157,8 @@ def config_keys_page() -> str:
     out += ["", "## Algorithms", ""]
     for name, spec in registry.ALGORITHMS.items():
         out += [f"### `{name}`", "", f"{_cell(spec.description)}. Scenarios: {', '.join(spec.scenarios)}.", ""]
-        out += _spec_table(dict(spec.hyperparameters))
+        out += [f"Declared in `{spec.settings.__module__}.{spec.settings.__name__}`; presets: {', '.join(spec.presets)}.", ""]
+        out += _settings_table(spec)
         out.append("")
     out += ["## Keys of every algorithm (how it samples, where its learner runs)", ""]
     out += _spec_table(dict(registry.COMMON_KEYS))

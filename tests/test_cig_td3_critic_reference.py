@@ -16,11 +16,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig, CriticOutputs
-from coin_app.algorithms.cig_td3.individual import Actor, TwinQ, full_precision, q_head
-from coin_app.algorithms.cig_td3.losses import LossConfig, actor_loss, central_critic_loss, td_targets
+from coin_app.algorithms.cig_td3.losses import CigTd3LossConfig, actor_loss, central_critic_loss, td_targets
 from coin_app.algorithms.cig_td3.pairwise import PairAttention, PairCVAE
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.networks import Actor, TwinQ, full_precision, q_head
 
 torch.set_num_threads(1)
 
@@ -240,7 +240,7 @@ def test_critic_outputs_equal_the_dense_reference_in_fp32(case):
 # ---------------------------------------------------------------- losses and gradients
 def losses_and_grads(nets, central, central_target, batch, precision):
     """(loss, flat gradient of its network) for the centralized-critic and actor losses, the global TD target, as the learner takes them."""
-    cfg = LossConfig()
+    cfg = CigTd3LossConfig()
     ctx = torch.autocast("cpu", dtype=torch.bfloat16) if precision == "bf16" else torch.autocast("cpu", enabled=False)
     torch.manual_seed(5)  # the same target-smoothing noise and CVAE samples on both sides
     with ctx:

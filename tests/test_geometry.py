@@ -105,8 +105,8 @@ def test_box_overlap_agrees_with_dense_point_sampling():
     assert checked == 400
 
 
-def place_one(scenario, x, y, heading, speed=0.0, route=0):
-    sim = DrivingSimulator(make_config(scenario, num_agents=1, allow_respawn=False))
+def place_one(scenario, x, y, heading, speed=0.0, route=0, **overrides):
+    sim = DrivingSimulator(make_config(scenario, num_agents=1, allow_respawn=False, **overrides))
     sim.reset(0)
     sim.place(0, (x, y), heading, speed, route)
     return sim
@@ -134,10 +134,19 @@ def test_side_line_and_sidewalk_thresholds():
     assert not flags(place_one("intersection", 30.0, -30.0, 0.0))[0]
 
 
-def test_bottleneck_neck_centre_line_is_broken():
-    # the neck (x 60..120) has a broken yellow centre line at y = 12.25: crossing it is legal
-    on, line, _ = flags(place_one("bottleneck", 90.0, 12.25, 0.0))
-    assert on and not line
+@pytest.mark.parametrize("solid", [True, False])
+def test_bottleneck_neck_centre_line_is_solid_as_coin_ran_it_or_broken_as_metadrive_builds_it(solid):
+    # the neck (x 60..120, one lane each way at y = 10.5 and 14) has its centre line at y = 12.25
+    on, line, _ = flags(place_one("bottleneck", 90.0, 12.25, 0.0, solid_center_line=solid))
+    assert on and line is solid  # touching it is off-road only when it is solid
+    # from the eastbound lane's centre (y = 10.5) the car touches it between 0.78 and 0.80 m to the left, as any solid line
+    assert flags(place_one("bottleneck", 90.0, 10.5 + 0.80, 0.0, solid_center_line=solid))[1] is solid
+    assert not flags(place_one("bottleneck", 90.0, 10.5 + 0.78, 0.0, solid_center_line=solid))[1]
+    # the side detector's left beam from the eastbound lane sees the solid centre line 1.75 m away, else the far road edge
+    sim = place_one("bottleneck", 90.0, 10.5, 0.0, obs_layout="bottleneck96", solid_center_line=solid)
+    left = sim.observe(np.array([0]))[0][0, 0] * 50
+    assert left == pytest.approx((12.25 if solid else 15.75) - 10.5 - 0.0375, abs=1e-4)
+    assert make_config("bottleneck").solid_center_line and not make_config("bottleneck", "metadrive_compat").solid_center_line
 
 
 @pytest.mark.parametrize("scenario", DRIVING_SCENARIOS)

@@ -12,12 +12,12 @@ from fixtures import tiny
 from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
 
 from coin_app.algorithms.checkpoints import actor_module, load_module
-from coin_app.algorithms.copo.copo import COPO
-from coin_app.algorithms.nav_ppo.config import NAV_PPO
+from coin_app.algorithms.copo.settings import COPO
+from coin_app.algorithms.nav_ppo.settings import NAV_PPO
 from coin_app.algorithms.ppo_family.centralized import CRITIC_OBS
-from coin_app.algorithms.ppo_family.config import CENTRAL_KEYS, CPPO, HYPERPARAMETERS, IPPO, MFPO
 from coin_app.algorithms.ppo_family.learner import OLD_VALUES, OldValuePredictions
 from coin_app.algorithms.ppo_family.losses import clipped_value_loss, surrogate_loss
+from coin_app.algorithms.ppo_family.settings import CPPO, IPPO, MFPO, CppoSettings, PpoSettings
 from coin_app.algorithms.spec import DRIVING_SCENARIOS, ActorModule
 from coin_app.cli import main
 from coin_app.training import build_config, fresh_module
@@ -26,8 +26,11 @@ from coin_app.training import build_config, fresh_module
 def test_specs_declare_keys_capabilities_and_scenarios():
     specs = (IPPO, CPPO, MFPO, COPO, NAV_PPO)
     assert [s.name for s in specs] == ["ippo", "cppo", "mfpo", "copo", "nav_ppo"]
-    assert IPPO.keys() == tuple(HYPERPARAMETERS) and CPPO.keys() == MFPO.keys() == (*HYPERPARAMETERS, *CENTRAL_KEYS)
-    assert COPO.keys()[: len(HYPERPARAMETERS)] == tuple(HYPERPARAMETERS) and "initial_lcf_mean" in COPO.keys()
+    ippo_keys = PpoSettings.keys()
+    assert IPPO.keys() == ippo_keys and CPPO.keys() == MFPO.keys() == (*ippo_keys, "neighbour_radius", "num_neighbours")
+    assert COPO.keys()[: len(ippo_keys)] == ippo_keys and "initial_lcf_mean" in COPO.keys()
+    assert CPPO.hyperparameters["neighbour_radius"][0] == 40.0 and MFPO.hyperparameters["neighbour_radius"][0] == 10.0
+    assert CppoSettings.lift(PpoSettings(hidden=7)) == CppoSettings(hidden=7)  # a family preset lifts into a child's class
     assert all(s.capabilities.on_policy and not s.capabilities.joint_replay for s in specs)
     assert [s.capabilities.centralized_critic for s in specs] == [False, True, True, True, False]
     assert all(s.scenarios == DRIVING_SCENARIOS for s in specs[:4]) and NAV_PPO.scenarios == ("arena",)

@@ -16,9 +16,9 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 from coin_app.adapters.lcf import SampledLCFPolicy, encode, vehicle_lcf
 from coin_app.algorithms.checkpoints import actor_policy, export_actor
 from coin_app.algorithms.common import SHARED_MODULE_ID, coin_envs
-from coin_app.algorithms.ppo_family.config import HYPERPARAMETERS
 from coin_app.algorithms.ppo_family.learner import EPOCH_KL_KEY, OLD_VALUES
 from coin_app.algorithms.ppo_family.losses import last_epoch_mean
+from coin_app.algorithms.ppo_family.settings import DEFAULT
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.policies import with_lcf
 from coin_app.inference import export_policy, load_policy
@@ -157,7 +157,7 @@ def timeout_batches(ray_session):
 
 def test_a_per_agent_time_out_bootstraps_with_zero_by_default_and_with_v_as_the_option(timeout_batches):
     out, module, episodes = timeout_batches
-    gamma = HYPERPARAMETERS["gamma"][0]
+    gamma = DEFAULT.gamma
     agents = ConnectorV2.single_agent_episode_iterator(episodes, agents_that_stepped_only=False)  # the batch's order
     timed_out = cut = 0
     start = 0

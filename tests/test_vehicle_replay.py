@@ -4,6 +4,7 @@ import numpy as np
 
 from coin_app.sim.config import DynamicsConfig
 from coin_app.sim.dynamics import bicycle_step
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 from coin_app.sim.vehicle import RaycastVehicles
 from coin_app.sim.vehicle_replay import Traces, error_table, load_traces, window_errors, window_starts
 
@@ -93,7 +94,7 @@ def test_shipped_recording_holds_every_manoeuvre():
         for lock in ("full", "half"):
             assert f"{lock}_lock_left_{speed}kmh_coast" in names and f"{lock}_lock_right_{speed}kmh_throttle0.3" in names
         assert f"brake_in_turn_{speed}kmh" in names and f"lane_change_{speed}kmh" in names
-    assert {f"heuristic_{s}_seed0" for s in ("intersection", "roundabout", "bottleneck")} <= names
+    assert {f"heuristic_{s}_seed0" for s in DRIVING_SCENARIOS} <= names
     for k, n in enumerate(traces.lengths):
         assert np.isfinite(traces.actions[k, :n]).all() and np.isfinite(traces.states[k, : n + 1]).all()
         assert np.isnan(traces.states[k, n + 1 :]).all()

@@ -1,5 +1,5 @@
 """Zero-shot generalization (Fig. 4/6): train at the scenario's default agent count, then evaluate every final
-checkpoint at each initial agent count of the grid (intersection 6-36, roundabout 8-48) on 20 test seeds."""
+checkpoint at each initial agent count of its scene's grid (``Scene.generalization_counts``) on 20 test seeds."""
 
 from coin_app.sim.scenes import DRIVING_SCENARIOS, SCENES
 from tuning.experiment import Experiment, Scale

@@ -1,10 +1,11 @@
-"""The named choices of algorithm keys, in one dependency-free module (networks, configs and ``checks`` import it)."""
+"""The named choices of algorithm keys, in one module that imports only the scene names (networks, configs and ``checks`` import it)."""
 
 from __future__ import annotations
 
+from coin_app.sim.scenes import ARENA  # noqa: F401  (the second paper's scenario, nav_ppo's; re-exported for the name tables)
+
 # the trainable algorithms, in the registry's order (coin_app.algorithms.registry checks its table against this)
 ALGORITHM_NAMES = ("cig_td3", "itd3", "traco", "ippo", "cppo", "mfpo", "copo", "nav_ppo")
-ARENA = "arena"  # the second paper's scenario (nav_ppo); the driving scenarios are coin_app.sim.config.DEFAULT_NUM_AGENTS's
 
 LOCAL_MODULES = ("cvae", "attention", "none")  # CIG-TD3's pairwise (local) module of the global critic
 GLOBAL_MODULES = ("gat", "gcn", "graphsage", "none")  # CIG-TD3's graph (global) module
@@ -14,7 +15,6 @@ PRECISIONS = ("fp32", "bf16")  # the learner's update precision
 KL_SIGNALS = ("epoch_mean", "last_minibatch")  # PPO: which KL drives the adaptive KL coefficient
 WEIGHT_INITS = ("normc", "torch")  # PPO family: RLlib's normc initialization or torch's default
 LCF_MODES = ("sampled", "mean")  # how evaluation gives each vehicle its LCF (CoordinatedActorModule.evaluation_lcf)
-NAV_STAGES = ("long", "short")  # nav_ppo's training stages
 # nav_ppo's warm start: from scratch (the paper) or a scripted driver's clone
 NAV_WARM_STARTS = ("none", "heuristic", "avoiding", "planning")
 DOMAIN_REWARDS = ("mean", "neighbours", "own")  # TraCo's domain reward: mean over ego + domain, over the domain only, own

@@ -11,24 +11,28 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
-from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.choices import ALGORITHM_NAMES
-from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3, ITD3
-from coin_app.algorithms.copo.copo import COPO
-from coin_app.algorithms.nav_ppo.config import NAV_PPO
-from coin_app.algorithms.ppo_family.config import CPPO, IPPO, MFPO
+from coin_app.algorithms.cig_td3.settings import CIG_TD3
+from coin_app.algorithms.copo.settings import COPO
+from coin_app.algorithms.nav_ppo.settings import NAV_PPO
+from coin_app.algorithms.ppo_family.settings import CPPO, IPPO, MFPO
 from coin_app.algorithms.spec import AlgorithmSpec
-from coin_app.algorithms.traco.traco import TRACO
+from coin_app.algorithms.td3.settings import ITD3
+from coin_app.algorithms.traco.settings import TRACO
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import PRESETS, ScenarioConfig
+from coin_app.sim.road_map import load_map
 from coin_app.sim.scenarios import config_from_dict
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 
 ALGORITHMS: dict[str, AlgorithmSpec] = {spec.name: spec for spec in (CIG_TD3, ITD3, TRACO, IPPO, CPPO, MFPO, COPO, NAV_PPO)}
 if tuple(ALGORITHMS) != ALGORITHM_NAMES:  # the CLI parses --algo from the Ray-free name list
     raise ImportError(f"choices.ALGORITHM_NAMES {ALGORITHM_NAMES} does not match the registry {tuple(ALGORITHMS)}")
 
-# A small bottleneck setting that learns within minutes on a laptop CPU (CI learning test,
-# benchmarks/learning_curves.py); each spec's ``quick`` adds its small-network settings.
+# A small setting that learns within minutes on a laptop CPU (--quick, the CI learning test, benchmarks/learning_curves.py,
+# the smoke and reduced scales): 4 vehicles and episodes of 300 env steps on the intersection (its longest route, 150.5 m,
+# at 5 m/s); every other scene's horizon fits its own longest route in the same way (quick_scenario). Each spec's ``quick``
+# adds its small-network settings.
 QUICK_SCENARIO: dict[str, Any] = {"num_agents": 4, "horizon": 300, "max_agent_steps": 300}
 QUICK_SETTINGS: dict[str, Any] = {**QUICK_SCENARIO, **CIG_TD3.quick}  # CIG-TD3 / ITD3 on the quick scenario
 
@@ -106,9 +110,25 @@ def split_run_settings(algo_cfg: dict[str, Any]) -> RunSettings:
     return run
 
 
-def quick_settings(name: str) -> dict[str, Any]:
-    """Settings of algorithm ``name`` on the small quick scenario (learning test, learning curves)."""
-    return {**QUICK_SCENARIO, **get(name).quick}
+def longest_route(scenario: str) -> float:
+    """Metres of the longest spawn-to-destination route of driving scenario ``scenario``'s map."""
+    road_map = load_map(scenario)
+    lane_of = [next(int(lane) for lane in lanes if lane >= 0) for lanes in road_map.road_lanes]
+    return max(sum(float(road_map.length[lane_of[road]]) for road in route.roads) for route in road_map.routes)
+
+
+def quick_scenario(scenario: str = "intersection") -> dict[str, Any]:
+    """The quick scenario on ``scenario``: ``QUICK_SCENARIO`` with a horizon scaled by the scene's longest route against the
+    intersection's (to the nearest 10 steps; intersection 300, roundabout 690, bottleneck 340)."""
+    if scenario == "intersection" or scenario not in DRIVING_SCENARIOS:
+        return dict(QUICK_SCENARIO)
+    horizon = int(round(QUICK_SCENARIO["horizon"] * longest_route(scenario) / longest_route("intersection"), -1))
+    return QUICK_SCENARIO | {"horizon": horizon, "max_agent_steps": horizon}
+
+
+def quick_settings(name: str, scenario: str = "intersection") -> dict[str, Any]:
+    """Settings of algorithm ``name`` on the small quick scenario of ``scenario`` (learning test, learning curves)."""
+    return {**quick_scenario(scenario), **get(name).quick}
 
 
 def tiny_settings(name: str, scenario: str | None = None) -> dict[str, Any]:
@@ -136,7 +156,9 @@ def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "inter
         raise ValueError(
             f"unknown --set key(s) {unknown}; scenario keys: {', '.join(sorted(env_keys))}; {name} keys: {', '.join(sorted(algo_keys))}"
         )
-    check_values(algo_cfg)  # type, finiteness and range of every value (coin_app.algorithms.checks)
+    errors = get(name).value_errors(algo_cfg)  # type, finiteness and range of every value (its declaration's rule)
+    if errors:
+        raise ValueError(errors[0])
     return env_cfg, algo_cfg
 
 

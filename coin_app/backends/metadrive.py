@@ -11,7 +11,8 @@ How the native config maps onto MetaDrive (``metadrive_config``): ``num_agents``
 ``horizon`` (MetaDrive's horizon is also each vehicle's step limit, so ``max_agent_steps``
 must equal it), ``delay_done``, ``allow_respawn``, the rewards, ``crash_penalty`` (vehicle and
 object crashes), ``out_of_road_penalty``, the lidar (``lidar_beams``, ``lidar_range``, no
-other-vehicle features) and, on the bottleneck, the side / lane-line detector ranges. Keys
+other-vehicle features), on the bottleneck the side / lane-line detector ranges and the neck's
+centre line (``solid_center_line``: COIN's patched block parameter, set for the process). Keys
 with no MetaDrive setting (the vehicle model, spawn jitter, ``navi_point_dist``...) are
 refused by :func:`~coin_app.sim.config.make_config` unless left at their default.
 
@@ -54,7 +55,7 @@ import numpy as np
 
 from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig, make_config
-from coin_app.sim.driving_env import checked_actions
+from coin_app.sim.inputs import checked_actions
 from coin_app.sim.rendering import render_frame
 from coin_app.sim.road_map import RoadMap, load_map
 from coin_app.sim.scenes import SCENES
@@ -89,7 +90,7 @@ def metadrive_assets_present() -> bool:
 def metadrive_config(config: ScenarioConfig) -> dict[str, Any]:
     """MetaDrive env config equivalent to the native scenario ``config``."""
     vehicle: dict[str, Any] = {"lidar": {"num_lasers": config.lidar_beams, "distance": config.lidar_range, "num_others": 0}}
-    if config.scenario == "bottleneck":
+    if config.obs_layout == "bottleneck96":  # the layout's side and lane-line detectors
         vehicle["side_detector"] = {"num_lasers": 4, "distance": config.side_detector_range}
         vehicle["lane_line_detector"] = {"num_lasers": 4, "distance": config.lane_line_detector_range}
     return {
@@ -159,6 +160,18 @@ def _env_class(scenario: str, assets: str) -> type:
     return CoinMetaDriveEnv
 
 
+def bottleneck_center_line(solid: bool) -> None:
+    """Build MetaDrive's bottleneck blocks with a solid neck centre line (COIN's patched ``pg_space``) or a broken one (0.4.3).
+
+    Sets the blocks' parameter space for this process (MetaDrive runs one engine per process), not the installed package.
+    """
+    from metadrive.component.pg_space import BlockParameterSpace, ConstantSpace, ParameterSpace  # optional: the MetaDrive extra
+    from metadrive.component.pgblock.bottleneck import Bottleneck  # optional: the MetaDrive extra
+
+    space = {**BlockParameterSpace.BOTTLENECK_PARAMETER, "solid_center_line": ConstantSpace(int(solid))}
+    Bottleneck.PARAMETER_SPACE = ParameterSpace(space)
+
+
 @dataclass
 class VehicleView:
     """A snapshot of the vehicles of a MetaDrive env in the native simulator's array layout (for rendering)."""
@@ -188,7 +201,8 @@ class MetaDriveDrivingEnv:
                 "(RLlib env runners with one env each; evaluation runs in a worker process)"
             )
         cls = _env_class(config.scenario, config.metadrive_assets)
-        self.map = load_map(config.scenario)
+        bottleneck_center_line(config.solid_center_line)
+        self.map = load_map(config.scenario, config.solid_center_line)
         self.md = cls(metadrive_config(config))
         self.md.coin_state_fn = self._vehicle_state
         _OPEN.append(self)

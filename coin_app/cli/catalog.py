@@ -8,7 +8,7 @@ from dataclasses import fields
 from coin_app.algorithms import registry
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import PRESETS, ScenarioConfig, make_config
-from coin_app.sim.scenes import SCENES
+from coin_app.sim.scenes import ARENA, SCENES, env_id
 
 
 def cmd_scenarios(args: argparse.Namespace) -> int:
@@ -25,7 +25,8 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     print("  dynamics             a dict of DynamicsConfig fields, e.g. --set \"dynamics={'max_speed_kmh': 60}\"")
 
     arena = ArenaConfig()
-    print(f"arena          {arena.num_vehicles:>3} vehicles, {arena.num_obstacles} obstacles  obs {arena.obs_dim}  coin-arena-v0 (nav_ppo)")
+    arena_id = env_id(ARENA)
+    print(f"arena          {arena.num_vehicles:>3} vehicles, {arena.num_obstacles} obstacles  obs {arena.obs_dim}  {arena_id} (nav_ppo)")
     print("arena keys (--set key=value):")
     for f in fields(ArenaConfig):
         if f.name != "reward":

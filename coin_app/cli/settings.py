@@ -16,12 +16,12 @@ def run_layers(args: argparse.Namespace) -> tuple[str, list[tuple[str, dict]]]:
     if args.num_agents is not None:
         overrides["num_agents"] = args.num_agents
     if args.scale is None:
-        layers = [("--quick", quick_settings(args.algo))] if args.quick else []
+        layers = [("--quick", quick_settings(args.algo, args.scenario))] if args.quick else []
         return f"train --algo {args.algo} --scenario {args.scenario}", [*layers, ("--set", overrides)]
     if args.quick:
         raise ValueError("--quick with --scale; allowed: one of them (a scale sets its own small settings)")
     experiment = get_experiment(args.experiment)
-    scale = experiment.scale(args.scale)
+    scale = experiment.scale(args.scale, args.scenario)
     experiment.check(args.scenario, (args.algo,), None)
     if args.variant not in experiment.variants:
         raise ValueError(f"unknown variant {args.variant!r} of {args.experiment}; allowed: {', '.join(experiment.variants)}")

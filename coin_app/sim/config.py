@@ -77,6 +77,9 @@ class ScenarioConfig:
     delay_done: int = 25  # steps a crashed / off-road vehicle stays as a static obstacle
     allow_respawn: bool = True  # respawn at free entry places while the episode step is below the horizon
     own_arm_destinations: bool = True  # MetaDrive also draws the spawn arm's exit (U-turn / full loop)
+    # the bottleneck's neck has a solid yellow centre line: touching it is off-road and the side detectors see it (COIN's
+    # patched MetaDrive); MetaDrive 0.4.3 builds it broken (metadrive_compat). The other scenes' centre lines are solid
+    solid_center_line: bool = True
     force_stop_factor: int = 5  # every agent is truncated at env step factor * horizon
     spawn_jitter_long: float = 1.0  # initial spawns: longitude += U(-a, a) (m)
     spawn_jitter_lat: float = 0.25  # initial spawns: lateral += U(-a, a) (m)
@@ -123,7 +126,7 @@ class ScenarioConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
-    "metadrive_compat": {"crash_penalty": 10.0, "out_of_road_penalty": 10.0, "lidar_range": 40.0},
+    "metadrive_compat": {"crash_penalty": 10.0, "out_of_road_penalty": 10.0, "lidar_range": 40.0, "solid_center_line": False},
     "kinematic": {"dynamics": DynamicsConfig.kinematic()},
 }
 
@@ -139,6 +142,7 @@ _NON_NEGATIVE = (
     "out_of_road_penalty",
 )
 _POSITIVE = ("lidar_range", "navi_point_dist", "vehicle_length", "vehicle_width", "side_detector_range", "lane_line_detector_range")
+_BOOL = tuple(f.name for f in fields(ScenarioConfig) if f.type in ("bool", bool))  # switches: True or False
 OBS_LAYOUTS = ("standard", "bottleneck96")
 BACKENDS = ("native", "metadrive")
 METADRIVE_ASSETS = ("skip", "download")
@@ -211,8 +215,9 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
     _check("num_agents", n, n <= SPAWN_CAPACITY, f"an integer from 1 to {SPAWN_CAPACITY} (the map's spawn slots)")
     layout = values.get("obs_layout", "standard")
     _check("obs_layout", layout, layout in OBS_LAYOUTS, " | ".join(OBS_LAYOUTS))
-    for key in ("allow_respawn", "own_arm_destinations"):
-        _check(key, values.get(key, True), isinstance(values.get(key, True), bool), "True or False")
+    for key in _BOOL:
+        v = values.get(key, getattr(ScenarioConfig, key))
+        _check(key, v, isinstance(v, bool), "True or False")
     backend = values.get("backend", "native")
     _check("backend", backend, backend in BACKENDS, " | ".join(BACKENDS))
     assets = values.get("metadrive_assets", "skip")
@@ -223,7 +228,7 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
 
 
 def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:
-    """Refuse keys MetaDrive cannot honour; give the bottleneck MetaDrive's 96-dim observation."""
+    """Refuse keys MetaDrive cannot honour; give each scene MetaDrive's own observation layout (``Scene.metadrive_obs_layout``)."""
     default = ScenarioConfig()
     for key in METADRIVE_FIXED:
         if key in values and values[key] != getattr(default, key):
@@ -235,6 +240,6 @@ def _metadrive_rules(scenario: str, values: dict[str, Any]) -> None:
     steps = values.get("max_agent_steps", horizon)
     _check("max_agent_steps", steps, steps == horizon, f"equal to horizon ({horizon}) with backend 'metadrive' (one MetaDrive setting)")
     values["max_agent_steps"] = horizon
-    layout = "bottleneck96" if scenario == "bottleneck" else "standard"
+    layout = SCENES[scenario].metadrive_obs_layout
     got = values.setdefault("obs_layout", layout)
     _check("obs_layout", got, got == layout, f"{layout!r} on the MetaDrive {scenario} (MetaDrive's own observation)")

@@ -3,14 +3,14 @@
 State lives in flat per-slot numpy arrays; env ``e`` owns slots ``e*S .. e*S+S-1``. A slot
 is EMPTY, ACTIVE (an agent that acts) or DYING (a crashed / off-road / timed-out vehicle
 left as a static obstacle for ``delay_done`` steps). Every per-vehicle computation in
-:meth:`DrivingSimulator.step` is one numpy call over all slots of all envs; pairwise
-tests only pair vehicles of the same env. The only Python loops run over the four
-separating axes and over respawn *events*. Each env has its own random generator, so env
+:meth:`DrivingSimulator.step` is one numpy call or one compiled kernel (``docs/decisions.md`` §3.6)
+over all slots of all envs; pairwise tests only pair vehicles of the same env. The only
+Python loops run over respawn *events*. Each env has its own random generator, so env
 ``e`` of a batch reproduces a single env seeded the same way.
 
 Step order (as MetaDrive): clip actions -> dynamics -> lane localisation and reference
-road update -> arrival / out-of-road / crash tests -> rewards -> retire done vehicles ->
-respawn -> observations of every agent that acted or spawned.
+road update -> arrival / out-of-road / crash tests -> rewards (the rules: ``rules.py``) ->
+retire done vehicles -> respawn -> observations of every agent that acted or spawned.
 """
 
 from __future__ import annotations
@@ -19,18 +19,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coin_app.sim import schema
-from coin_app.sim.collision import boxes_overlap, footprint_samples
+from coin_app.sim import rules, schema
+from coin_app.sim.collision import footprint_in_polygons, places_blocked, same_env_overlaps, touches_boxes
 from coin_app.sim.config import PHYSICS_DT, ScenarioConfig
 from coin_app.sim.dynamics import bicycle_step, wrap_angle
-from coin_app.sim.road_map import GridIndex, load_map
-from coin_app.sim.sensors import ego_features, lidar_scan, line_detector, local_state
+from coin_app.sim.road_map import GridIndex, load_map, localize
+from coin_app.sim.scenes import scene
+from coin_app.sim.sensors import ego_features, lidar_same_env, line_detector, local_state
 from coin_app.sim.vehicle import RaycastVehicles
 
 EMPTY, ACTIVE, DYING = 0, 1, 2
 CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
-ARRIVE_LONG_TOLERANCE = 5.0  # m around the end of the final lane
 MAX_RESPAWN_PER_STEP = 8  # one per respawn place
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    """``a`` as a contiguous float64 array (what the kernels take)."""
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 def agent_name(num: int) -> str:
@@ -72,7 +77,7 @@ class DrivingSimulator:
                 "use coin_app.sim.driving_env.make_driving_env(config) (or backend='native')"
             )
         self.cfg = config
-        self.map = load_map(config.scenario)
+        self.map = load_map(config.scenario, config.solid_center_line)
         m = self.map
         self.num_envs = num_envs
         # spare slots so that a slot vacated in a step is never refilled in the same step
@@ -81,7 +86,7 @@ class DrivingSimulator:
         self.env_of = np.repeat(np.arange(num_envs), self.slots_per_env)
         self.half = np.array([config.vehicle_length / 2, config.vehicle_width / 2])
         self.half_diag = float(np.hypot(*self.half))
-        self.no_sign_quirk = config.scenario == "bottleneck"  # MetaDrive's bottleneck reward
+        self.scene = scene(config.scenario)
         seg = m.solid_p2 - m.solid_p1
         self.seg_center = 0.5 * (m.solid_p1 + m.solid_p2)
         self.seg_heading = np.arctan2(seg[:, 1], seg[:, 0])
@@ -103,6 +108,13 @@ class DrivingSimulator:
         self.max_agent_ids = config.num_agents + min(MAX_RESPAWN_PER_STEP, config.num_agents) * config.horizon
         # until an env is reset with a seed it draws from a fixed stream (env e: seed e)
         self.rngs = [np.random.default_rng(e) for e in range(num_envs)]
+        g = m.hull_grid
+        self._map_arrays = (  # what road_map.localize reads of the map
+            (g.table, g.origin, float(g.cell), g.shape),
+            (m.hull_normals, m.hull_offsets, m.hull_bbox),
+            (m.lane_rows, m.is_circ, m.unit, m.start_phase, m.direction, m.radius, m.length, m.lane_road),
+            (m.route_roads, m.route_nroads, m.route_road_pos),
+        )
         self._alloc()
 
     # ------------------------------------------------------------------ state
@@ -260,37 +272,23 @@ class DrivingSimulator:
         on_lane = self._localize(idx)
         ref_road = m.route_roads[self.route[idx], self.ref_idx[idx]]
 
-        # terminations
-        # lane coordinates on the final lane (arrival) and on the reward lane now and before (progress), in one call
+        # the rules (coin_app/sim/rules.py) on this step's geometry: lane coordinates on the final lane (arrival) and on
+        # the reward lane now and before (progress), in one call
         fl = m.route_final_lane[self.route[idx]]
-        lane = self.lane[idx]
-        on_ref = m.lane_road[lane] == ref_road
-        rw_lane = np.where(on_ref, lane, m.road_first_lane[ref_road])
+        rw_lane, on_ref = rules.reward_lane(self.lane[idx], m.lane_road, ref_road, m.road_first_lane)
         s_all, r_all = m.local_coordinates(np.concatenate([fl, rw_lane, rw_lane]), np.concatenate([pos, pos, self.prev_pos[idx]]))
         n_idx = len(idx)
-        s_f, r_f = s_all[:n_idx], r_all[:n_idx]
-        s_now, s_last = s_all[n_idx : 2 * n_idx], s_all[2 * n_idx :]
-        n_ref = m.road_nlanes[ref_road]
-        w = m.width[fl]
-        length = m.length[fl]
-        arrive = (
-            (s_f > length - ARRIVE_LONG_TOLERANCE) & (s_f < length + ARRIVE_LONG_TOLERANCE) & (r_f >= (0.5 - n_ref) * w) & (r_f <= w / 2)
-        )
-        oor = ~on_lane | self._touches_solid_line(pos, hd) | self._on_sidewalk(pos, hd)
+        arrive = rules.arrived(s_all[:n_idx], r_all[:n_idx], m.length[fl], m.width[fl], m.road_nlanes[ref_road])
+        oor = rules.off_road(on_lane, self._touches_solid_line(pos, hd), self._on_sidewalk(pos, hd))
         crash = self._crashes()[idx]
         self.ep_len[idx] += 1
-        max_step = self.ep_len[idx] >= cfg.max_agent_steps
-        force_env = self.env_step >= cfg.force_stop_factor * cfg.horizon
+        max_step = rules.step_limit_reached(self.ep_len[idx], cfg)
+        force_env = rules.force_stopped(self.env_step, cfg)
         force = force_env[self.env_of[idx]]
-
-        # rewards (MetaDrive: progress on the localised lane if it is a reference lane)
-        neg = m.road_negative[ref_road] & (not self.no_sign_quirk)
-        sign = np.where(on_ref | ~neg, 1.0, -1.0)
-        reward = cfg.driving_reward * (s_now - s_last) * sign + cfg.speed_reward * (v * 3.6 / cfg.dynamics.max_speed_kmh) * sign
-        reward = np.where(arrive, cfg.success_reward, np.where(oor, -cfg.out_of_road_penalty, np.where(crash, -cfg.crash_penalty, reward)))
-
-        terminated = arrive | oor | crash
-        truncated = (max_step | force) & ~terminated
+        sign = rules.progress_sign(on_ref, m.road_negative[ref_road], self.scene.progress_sign_flip)
+        r_step = rules.step_reward(cfg, s_all[n_idx : 2 * n_idx], s_all[2 * n_idx :], v, sign)
+        reward = rules.reward(cfg, r_step, arrive, oor, crash)
+        terminated, truncated = rules.done(arrive, oor, crash, max_step, force)
 
         # retire: dying vehicles count down; arrived ones vanish, other done ones linger
         dying = self.status == DYING
@@ -319,9 +317,6 @@ class DrivingSimulator:
             out[idx] = vals
             return out
 
-        env_idx = self.env_of[idx]
-        count = np.bincount(env_idx, minlength=self.num_envs)
-        global_reward = np.bincount(env_idx, weights=reward, minlength=self.num_envs) / np.maximum(count, 1)
         result = self._result(
             acted,
             spawned_mask,
@@ -330,7 +325,7 @@ class DrivingSimulator:
             scatter(oor),
             scatter(max_step),
             scatter(reward),
-            global_reward,
+            rules.global_reward(reward, self.env_of[idx], self.num_envs),
             terminated=scatter(terminated),
             truncated=scatter(truncated),
         )
@@ -341,69 +336,37 @@ class DrivingSimulator:
 
     # ------------------------------------------------------------------ pieces
     def _localize(self, idx: np.ndarray) -> np.ndarray:
-        """Update each vehicle's lane and reference road; return whether it is on a lane."""
-        m = self.map
-        pos, hd = self.pos[idx], self.heading[idx]
-        contains = m.hull_contains(pos)
-        on_lane = contains.any(1)
-        vi, li = np.nonzero(contains)
-        key = np.full(contains.shape, np.inf)
-        if len(vi):
-            s, r = m.local_coordinates(li, pos[vi])
-            same_dir = np.cos(m.heading_at(li, s) - hd[vi]) > 0
-            l1 = np.abs(r) + np.maximum(s - m.length[li], 0) + np.maximum(-s, 0)
-            route = self.route[idx][vi]
-            ref = self.ref_idx[idx][vi]
-            road = m.lane_road[li]
-            cur_road = m.route_roads[route, ref]
-            nxt_road = m.route_roads[route, np.minimum(ref + 1, m.route_nroads[route] - 1)]
-            prio = np.where(road == cur_road, 0.0, np.where(road == nxt_road, 1.0, 2.0))
-            key[vi, li] = np.where(same_dir, prio * 1e6 + l1, np.inf)
-        best = key.argmin(1)
-        found = np.isfinite(key[np.arange(len(idx)), best])
-        lane = np.where(found, best, self.lane[idx])
-        self.lane[idx] = lane
-        # reference road: switch when the localised lane starts a later road of the route
-        s_lane, _ = m.local_coordinates(lane, pos)
-        pos_in_route = m.route_road_pos[self.route[idx], m.lane_road[lane]]
-        switch = (pos_in_route > self.ref_idx[idx]) & (s_lane < CKPT_UPDATE_RANGE)
-        self.ref_idx[idx] = np.where(switch, pos_in_route, self.ref_idx[idx])
-        return on_lane
+        """Update each vehicle's lane and reference road; return whether it is on a lane (``road_map.localize``)."""
+        return localize(
+            self.pos,
+            self.heading,
+            np.asarray(idx, dtype=np.int64),
+            self.route,
+            self.ref_idx,
+            self.lane,
+            *self._map_arrays,
+            CKPT_UPDATE_RANGE,
+        )
 
     def _touches_solid_line(self, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """Whether each footprint overlaps a physical solid line (or road edge) box."""
-        out = np.zeros(len(pos), bool)
         if self.seg_grid is None or len(pos) == 0:
-            return out
-        vi, si = self.seg_grid.candidates(pos)
-        rel = pos[vi] - self.seg_center[si]
-        near = rel[:, 0] ** 2 + rel[:, 1] ** 2 < (self.seg_half[si, 0] + self.half_diag + self.seg_half[si, 1]) ** 2
-        vi, si = vi[near], si[near]
-        if len(vi):
-            hit = boxes_overlap(
-                pos[vi], heading[vi], np.broadcast_to(self.half, (len(vi), 2)), self.seg_center[si], self.seg_heading[si], self.seg_half[si]
-            )
-            np.logical_or.at(out, vi, hit)
-        return out
+            return np.zeros(len(pos), bool)
+        g = self.seg_grid
+        return touches_boxes(
+            _f64(pos), _f64(heading), self.half, g.table, g.origin, g.cell, g.shape, self.seg_center, self.seg_heading, self.seg_half
+        )
 
     def _on_sidewalk(self, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """Whether a footprint sample point lies on a sidewalk (triangulated strips)."""
         m = self.map
-        out = np.zeros(len(pos), bool)
         if self.sidewalk_grid is None or len(pos) == 0:
-            return out
-        vi, ti = self.sidewalk_grid.candidates(pos)
-        near = np.hypot(*(pos[vi] - self.tri_centroid[ti]).T) < self.tri_radius[ti] + self.half_diag
-        vi, ti = vi[near], ti[near]
-        if len(vi):
-            pts = footprint_samples(pos, heading, self.half[0], self.half[1])[vi]  # (C, 9, 2)
-            px, py = pts[..., 0], pts[..., 1]
-            nrm, off = m.sidewalk_normals[ti], m.sidewalk_offsets[ti]
-            inside = np.ones(px.shape, bool)
-            for k in range(nrm.shape[1]):
-                inside &= nrm[:, k, 0:1] * px + nrm[:, k, 1:2] * py <= off[:, k : k + 1]
-            np.logical_or.at(out, vi, inside.any(1))
-        return out
+            return np.zeros(len(pos), bool)
+        g = self.sidewalk_grid
+        return footprint_in_polygons(
+            _f64(pos), _f64(heading), self.half, g.table, g.origin, g.cell, g.shape, self.tri_centroid, self.tri_radius,
+            m.sidewalk_normals, m.sidewalk_offsets,
+        )  # fmt: skip
 
     def _same_env_pairs(self, max_dist: float, observers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Slot pairs of vehicles of one env closer than ``max_dist``.
@@ -426,40 +389,22 @@ class DrivingSimulator:
 
     def _crashes(self) -> np.ndarray:
         """Per slot: whether its box overlaps another active or dying vehicle's box."""
-        out = np.zeros(self.num_slots, bool)
-        i, j = self._same_env_pairs(2 * self.half_diag)
-        if len(i):
-            hb = np.broadcast_to(self.half, (len(i), 2))
-            hit = boxes_overlap(self.pos[i], self.heading[i], hb, self.pos[j], self.heading[j], hb)
-            out[i[hit]] = True
-            out[j[hit]] = True
-        return out
+        return same_env_overlaps(self.pos, self.heading, self.status != EMPTY, self.slots_per_env, self.half, 2 * self.half_diag)
 
     def _respawn(self, vacated: np.ndarray, env_ok: np.ndarray) -> np.ndarray:
         """Spawn new agents on free respawn places while under each env's cap; new slots."""
         cfg, m = self.cfg, self.map
         if not cfg.allow_respawn:
             return np.zeros(0, dtype=np.int64)
-        e_n, s_n, p_n = self.num_envs, self.slots_per_env, len(self.place_pos)
+        e_n, s_n = self.num_envs, self.slots_per_env
         live = (self.status != EMPTY).reshape(e_n, s_n)
         allowed = np.where(env_ok & (self.env_step < cfg.horizon), cfg.num_agents - live.sum(1), 0)
         if not (allowed > 0).any():
             return np.zeros(0, dtype=np.int64)
         # which places are blocked by a vehicle of the same env (8 x 3 m box at the place)
-        ee, jj = np.nonzero(live & (allowed > 0)[:, None])
-        blocked = np.zeros((e_n, p_n), bool)
-        if len(ee):
-            slot = np.repeat(ee * s_n + jj, p_n)
-            pl = np.tile(np.arange(p_n), len(ee))
-            hit = boxes_overlap(
-                self.place_pos[pl],
-                self.place_heading[pl],
-                np.broadcast_to(self.place_half, (len(pl), 2)),
-                self.pos[slot],
-                self.heading[slot],
-                np.broadcast_to(self.half, (len(pl), 2)),
-            )
-            np.logical_or.at(blocked, (np.repeat(ee, p_n), pl), hit)
+        blocked = places_blocked(
+            self.place_pos, self.place_heading, self.place_half, self.pos, self.heading, self.half, live.reshape(-1), allowed > 0, s_n
+        )
         free = (self.status == EMPTY) & ~vacated
         new_slots = []
         for e in np.nonzero(allowed > 0)[0]:
@@ -486,10 +431,10 @@ class DrivingSimulator:
             m, pos, hd, self.heading_prev[slots], self.speed[slots], self.action[slots], self.lane[slots], ref_road, next_road,
             cfg.dynamics.max_speed_kmh, cfg.navi_point_dist, cfg.dynamics.dt,
         )  # fmt: skip
-        row = np.full(self.num_slots, -1)
-        row[slots] = np.arange(len(slots))
-        po, pb = self._same_env_pairs(cfg.lidar_range + self.half_diag, observers=row >= 0)
-        lidar = lidar_scan(pos, hd, row[po], self.pos[pb], self.heading[pb], tuple(self.half), cfg.lidar_beams, cfg.lidar_range)
+        lidar = lidar_same_env(
+            np.asarray(slots, dtype=np.int64), self.pos, self.heading, self.status != EMPTY, self.slots_per_env, self.half,
+            cfg.lidar_beams, cfg.lidar_range,
+        )  # fmt: skip
         if cfg.obs_layout == "bottleneck96":  # MetaDrive's bottleneck observation
             hw = m.solid_half_width
             side = line_detector(pos, hd, m.line_p1[m.line_solid], m.line_p2[m.line_solid], hw, cfg.side_detector_range)

@@ -49,8 +49,8 @@ import torch
 from torch import Tensor, nn
 
 from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, Graph, GraphModule, build_graph, occupied_slots
-from coin_app.algorithms.cig_td3.individual import full_precision, mlp, q_head
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES, PairAttention, PairCVAE
+from coin_app.algorithms.td3.networks import full_precision, mlp, q_head
 from coin_app.sim import schema
 
 __all__ = ["CentralCritic", "CentralCriticConfig", "CriticBranch", "CriticOutputs"]

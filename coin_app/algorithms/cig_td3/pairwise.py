@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coin_app.algorithms.choices import LOCAL_MODULES  # noqa: F401 (re-exported)
-from coin_app.algorithms.cig_td3.individual import mlp
+from coin_app.algorithms.td3.networks import mlp
 
 __all__ = ["LOCAL_MODULES", "PairAttention", "PairCVAE", "PairLinear", "PairPacker"]
 

@@ -1,11 +1,11 @@
-"""CoPO: its spec, its RLlib config and the algorithm that keeps the env runners' LCF distribution in sync.
+"""CoPO: its RLlib config (settings and spec: ``settings.py``) and the algorithm that keeps the LCF distribution in sync.
 
 CoPO (Peng et al., "Learning to Simulate Self-Driven Particles System with Coordinated Policy
 Optimization", NeurIPS 2021; docs/guides/ppo-family.md) is the PPO family's IPPO with local
 coordination factors (LCF): every agent's observation ends with its LCF, the policy learns on
 the coordinated advantage of its ego and neighbour rewards, and a meta-gradient moves the LCF
 distribution towards the global reward (``learner.py``, ``coordination.py``). Its
-hyper-parameters are IPPO's plus ``COPO_KEYS``.
+settings are IPPO's plus ``CopoSettings``' (``settings.py``).
 
 The learner's meta-gradient step moves the distribution after each update; before sampling and
 right after each update the algorithm sets it on every env (local and remote runners, all
@@ -27,9 +27,8 @@ from coin_app.adapters.rllib_env import env_config_of
 from coin_app.algorithms.common import SHARED_MODULE_ID, set_on_envs, shared_policy_config
 from coin_app.algorithms.copo.learner import CoPOLearner
 from coin_app.algorithms.copo.rl_module import CoPOModule
+from coin_app.algorithms.copo.settings import CopoSettings
 from coin_app.algorithms.ppo_family.config import (
-    HYPERPARAMETERS,
-    TINY_PPO,
     checked,
     driving_scenario,
     learner_options,
@@ -37,24 +36,8 @@ from coin_app.algorithms.ppo_family.config import (
     ppo_base_config,
     ppo_settings,
 )
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map
-
-# the --set keys CoPO adds to the PPO family's HYPERPARAMETERS: name -> (default, meaning)
-COPO_KEYS: dict[str, tuple[Any, str]] = {
-    "neighbour_radius": (40.0, "neighbour reward: mean reward of the others strictly within this many metres"),
-    "initial_lcf_mean": (0.0, "initial mean of the LCF distribution, in (-1, 1) (LCF 0 = selfish, 1 = altruistic)"),
-    "initial_lcf_std": (0.1, "initial std of the LCF distribution"),
-    "lcf_lr": (1e-4, "Adam learning rate of the LCF distribution parameters (meta-gradient)"),
-    "lcf_num_iters": (5, "meta-gradient passes over each train batch (0 = fixed LCF distribution)"),
-    "lcf_minibatch_size": (None, "meta-gradient minibatch (agent transitions); None = minibatch_size"),
-    "eval_lcf": (
-        "sampled",
-        "LCF of each vehicle in evaluate / export / the protocol: 'sampled' = one draw per vehicle from the learned distribution "
-        "(CoPO's evaluation), 'mean' = the learned mean for every vehicle",
-    ),
-}
 
 
 class CoPO(PPO):
@@ -83,20 +66,18 @@ class CoPO(PPO):
 
 def build_copo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """CoPO: IPPO's settings plus LCFs in the envs, three value heads, the coordinated advantage and the LCF meta-gradient."""
-    hp, opts = ppo_settings(algo_cfg, COPO_KEYS)
-    radius, mean, std = opts["neighbour_radius"], opts["initial_lcf_mean"], opts["initial_lcf_std"]  # checked by ppo_settings
-    if radius is None:  # the PPO family's rule allows None (CPPO / MFPO: their own radius); CoPO has no default but 40
-        raise ValueError("bad value for 'neighbour_radius': None; allowed: a finite number > 0 (metres)")
+    hp = ppo_settings(CopoSettings, algo_cfg)
+    radius, mean, std = hp.neighbour_radius, hp.initial_lcf_mean, hp.initial_lcf_std
     scenario = driving_scenario("CoPO", scenario)
     learner_config = {
         **learner_options(hp),
-        "lcf_lr": opts["lcf_lr"],
-        "lcf_num_iters": opts["lcf_num_iters"],
-        "lcf_minibatch_size": opts["lcf_minibatch_size"],
+        "lcf_lr": hp.lcf_lr,
+        "lcf_num_iters": hp.lcf_num_iters,
+        "lcf_minibatch_size": hp.lcf_minibatch_size,
         "neighbour_radius": float(radius),
         "position_scale": load_map(scenario.scenario).scale,
     }
-    model = {**policy_model(hp["hidden"], hp["weight_init"]), "initial_lcf": [float(mean), float(std)], "eval_lcf": opts["eval_lcf"]}
+    model = {**policy_model(hp.hidden, hp.weight_init), "initial_lcf": [float(mean), float(std)], "eval_lcf": hp.eval_lcf}
     env_config = env_config_of(scenario, lcf={"mean": float(mean), "std": float(std)})
     config = (
         ppo_base_config(scenario, hp, seed, env_config, algo_class=CoPO)
@@ -108,15 +89,3 @@ def build_copo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: 
     if config.num_learners > 1:
         errors.append(f"num_learners={config.num_learners}; allowed: 0 or 1 (one LCF distribution, one meta-gradient)")
     return checked("COPO", config, errors)
-
-
-COPO = AlgorithmSpec(
-    name="copo",
-    description="CoPO: PPO on LCF-coordinated ego/neighbour advantages, LCF meta-gradient",
-    hyperparameters={**HYPERPARAMETERS, **COPO_KEYS},
-    build=build_copo_config,
-    # the neighbour and global value heads learn from the other agents' rewards
-    capabilities=Capabilities(on_policy=True, centralized_critic=True, joint_replay=False),
-    quick={"hidden": 64},
-    tiny=TINY_PPO,
-)

@@ -11,7 +11,7 @@ part of the task that policy will see.
 
 The paper gives no PPO hyper-parameters beyond the loss (clip + value + entropy, no KL term);
 ours are Stable-Baselines3's PPO defaults with a larger minibatch for speed, all in
-``HYPERPARAMETERS``. Where the paper trains one "primary" vehicle and copies its policy to
+``NavPpoSettings`` (``settings.py``). Where the paper trains one "primary" vehicle and copies its policy to
 the others, every vehicle here trains the one shared policy (parameter sharing): the same
 policy for all, without discarding the other vehicles' experience.
 
@@ -34,102 +34,24 @@ from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from coin_app.adapters.rllib_env import env_config_of, parse_env_config
+from coin_app.adapters.rllib_env import env_config_of, env_id_of, parse_env_config
 from coin_app.algorithms.checkpoint_files import SHARED_MODULE_ID
-from coin_app.algorithms.checks import check_values
 from coin_app.algorithms.common import set_on_envs, shared_policy_config
 from coin_app.algorithms.nav_ppo.learner import NavPPOLearner
+from coin_app.algorithms.nav_ppo.settings import NavPpoSettings, stage_of
 from coin_app.algorithms.nav_ppo.warm_start import bc_weight, warm_start
 from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.config import policy_model
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 from coin_app.sim.arena.config import ArenaConfig
 
-STAGES: dict[str, dict[str, Any]] = {
-    "long": {"num_vehicles": 4, "num_obstacles": 3, "generator": "agnn"},
-    "short": {"num_vehicles": 1, "max_vehicles": 8, "num_obstacles": 0, "max_obstacles": 8, "generator": "short"},
-}
-
-# name -> (default, meaning)
-HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
-    "stage": ("long", "training stage: 'long' (4 vehicles, 3 obstacles) or 'short' (1-8 vehicles, 0-8 obstacles, starts near targets)"),
-    "lr": (3e-4, "Adam learning rate"),
-    "gamma": (0.99, "discount"),
-    "lambda_": (0.95, "GAE lambda"),
-    "clip_param": (0.2, "PPO ratio clip (epsilon)"),
-    "vf_loss_coeff": (0.5, "c1, weight of the value loss"),
-    "entropy_coeff": (0.0, "c2, entropy bonus"),
-    "train_batch_size_per_learner": (2048, "env steps per training batch"),
-    "minibatch_size": (256, "SGD minibatch (agent transitions)"),
-    "num_epochs": (10, "SGD passes over each batch"),
-    "hidden": (256, "width of the two tanh layers of the separate policy and value networks (paper: 256)"),
-    "num_env_runners": (0, "remote env runners (0 = sample in the training process)"),
-    "log_std_init": (0.0, "added to the policy's initial log std outputs: the initial action std is about e^x (0: the default init)"),
-    "log_std_min": (
-        None,
-        "floor on the policy's log std in every forward pass: the action std never falls below e^x (None: no floor, the "
-        "paper; at most log_std_init)",
-    ),
-    "curriculum_steps": (
-        0,
-        "stage=short: env steps over which the start spread (start_difficulty) rises linearly from curriculum_start to 1 "
-        "(0 = no curriculum, the paper)",
-    ),
-    "curriculum_start": (0.2, "stage=short: the start spread (start_difficulty) at env step 0 of a curriculum"),
-    "warm_start": (
-        "none",
-        "'heuristic', 'avoiding' or 'planning' = before the first PPO iteration, clone that scripted arena driver (the plain "
-        "one, the one that swerves from the closest entity, or the plain one behind a rollout safety filter) on the stage's "
-        "scenario mix (warm_start.py; not in the paper); "
-        "'none' = from scratch (the paper)",
-    ),
-    "warm_start_episodes": (200, "warm start: scenarios the scripted driver drives (every second one with action noise)"),
-    "warm_start_noise": (0.3, "warm start: std of the Gaussian noise on the driver's actions in the noisy scenarios"),
-    "warm_start_epochs": (10, "warm start: passes over the demonstrations (minibatches of 512, Adam 1e-3)"),
-    "warm_start_rounds": (
-        1,
-        "warm start: 1 = clone the driver's demonstrations; R > 1 = then R - 1 DAgger rounds, each as many scenarios driven "
-        "by the clone, labelled by the driver, added to the demonstrations and fitted again (warm_start.py)",
-    ),
-    "warm_start_weight": (
-        1.0,
-        "warm start: weight of the rows where the driver's label differs from the plain heuristic's action (the avoiding "
-        "driver's reflex, the planning driver's safety filter) in the clone's action loss (1 = all rows alike; warm_start.py)",
-    ),
-    "bc_coeff": (
-        0.0,
-        "weight of an auxiliary loss pulling the policy mean toward the scripted driver's actions at each minibatch's "
-        "observations (the warm start's driver, else the plain heuristic; warm_start.py; not in the paper; 0 = off)",
-    ),
-    "bc_steps": (0, "env steps over which bc_coeff falls linearly to 0 (0 = constant)"),
-    "precision": (
-        "fp32",
-        "learner update precision: 'fp32', or 'bf16' = each minibatch's forward pass and loss under torch.autocast bfloat16 "
-        "(module outputs, losses, parameters, optimizer state and the value predictions for GAE stay fp32)",
-    ),
-}
-
 # the learner's keys (its learner_config_dict): the warm start's and the teacher loss's, named by their prefixes
-WARM_KEYS = tuple(k for k in HYPERPARAMETERS if k.startswith(("warm_start", "bc_")))
+WARM_KEYS = tuple(k for k in NavPpoSettings.keys() if k.startswith(("warm_start", "bc_")))
 
 
 def progress(line: str) -> None:
     """One progress line of a long phase on standard output (the warm start's rounds)."""
     print(line, flush=True)
-
-
-def stage_of(algo_cfg: Mapping[str, Any]) -> str:
-    """The training stage of nav_ppo's ``--set`` values (default ``"long"``); a ValueError if it is not one of ``STAGES``."""
-    stage = algo_cfg.get("stage", HYPERPARAMETERS["stage"][0])
-    if stage not in STAGES:
-        raise ValueError(f"bad value for 'stage': {stage!r}; allowed: {', '.join(STAGES)}")
-    return stage
-
-
-def stage_scenario(algo_cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """The arena values of the stage's scenario mix (beneath the user's arena ``--set`` values)."""
-    return dict(STAGES[stage_of(algo_cfg)])
 
 
 def curriculum_difficulty(env_steps: int, steps: int, start: float) -> float:
@@ -196,8 +118,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     if not isinstance(scenario, ArenaConfig):
         raise ValueError(f"nav_ppo trains on the arena only, got {type(scenario).__name__}; allowed: an ArenaConfig")
     stage = stage_of(algo_cfg)  # the stage's scenario mix is in ``scenario`` already (the spec's scenario_defaults)
-    hp = {k: v for k, (v, _) in HYPERPARAMETERS.items() if k != "stage"} | {k: v for k, v in algo_cfg.items() if k != "stage"}
-    check_values(hp)
+    hp = {k: v for k, v in NavPpoSettings.of(algo_cfg).values().items() if k != "stage"}
     precision = hp.pop("precision")
     curriculum = {"curriculum_steps": hp.pop("curriculum_steps"), "curriculum_start": hp.pop("curriculum_start")}
     warm = {k: hp.pop(k) for k in WARM_KEYS}
@@ -215,7 +136,7 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
     model = policy_model(hp.pop("hidden"), "torch") | {"log_std_init": hp.pop("log_std_init"), "log_std_min": floor}
     config = (
         PPOConfig(algo_class=NavPPO)
-        .environment("coin-arena-v0", env_config=env_config_of(scenario))
+        .environment(env_id_of(scenario), env_config=env_config_of(scenario))
         .env_runners(num_env_runners=hp.pop("num_env_runners"), env_to_module_connector=acting_order)  # fixed agent order
         .training(**hp, use_kl_loss=False, vf_clip_param=1e6)  # PPO-Clip: no KL term, no value clipping
         .learners(learner_class=NavPPOLearner, learner_config_dict={"precision": precision, **curriculum, **warm})
@@ -224,19 +145,3 @@ def build_nav_ppo_config(scenario: ArenaConfig, algo_cfg: dict[str, Any], seed: 
         .evaluation(evaluation_interval=None)
     )
     return shared_policy_config(config)
-
-
-# the smallest scale (registry.tiny_settings, which adds the arena's short episodes): one epoch of two minibatches
-TINY_NAV_PPO: dict[str, Any] = {"train_batch_size_per_learner": 100, "minibatch_size": 50, "num_epochs": 1, "hidden": 16}
-
-NAV_PPO = AlgorithmSpec(
-    name="nav_ppo",
-    description="seed-2 paper: PPO-Clip navigation (--set stage=long) and parking (stage=short) policies on the arena",
-    hyperparameters=HYPERPARAMETERS,
-    build=build_nav_ppo_config,
-    capabilities=Capabilities(on_policy=True, centralized_critic=False, joint_replay=False),
-    scenarios=("arena",),
-    quick={"hidden": 64},
-    tiny=TINY_NAV_PPO,
-    scenario_defaults=stage_scenario,
-)

@@ -1,4 +1,4 @@
-"""IPPO, CPPO and MFPO: their specs and RLlib configs, with every PPO hyper-parameter documented in one table.
+"""IPPO, CPPO and MFPO: their RLlib configs (their settings, presets and specs: ``settings.py``).
 
 Values are those of the PPO baselines of the COIN paper, which ran CoPO's code (Peng et al.,
 "Learning to Simulate Self-Driven Particles System with Coordinated Policy Optimization",
@@ -26,83 +26,35 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, TypeVar
 
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from coin_app.adapters.rllib_env import env_config_of
-from coin_app.algorithms.checks import check_values
+from coin_app.adapters.rllib_env import env_config_of, env_id_of
 from coin_app.algorithms.common import backend_errors, shared_policy_config
 from coin_app.algorithms.ppo_family.agent_order import acting_order
 from coin_app.algorithms.ppo_family.centralized import CentralizedCriticPPOLearner, CentralizedCriticPPOModule, critic_input_dim
 from coin_app.algorithms.ppo_family.learner import ClippedValuePPOLearner
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+from coin_app.algorithms.ppo_family.settings import CppoSettings, MfpoSettings, PpoSettings
+from coin_app.algorithms.settings import Settings
 from coin_app.sim.config import ScenarioConfig
 from coin_app.sim.road_map import load_map
-from coin_app.sim.scenarios import scenario_name
 
-# name -> (default, meaning)
-HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
-    "lr": (3e-4, "Adam learning rate of policy and value networks"),
-    "gamma": (0.99, "discount"),
-    "lambda_": (0.95, "GAE lambda"),
-    "clip_param": (0.3, "PPO ratio clip"),
-    "vf_clip_param": (10.0, "PPO2-style value clip around the collection-time value (Ray 1.x)"),
-    "vf_loss_coeff": (1.0, "weight of the value loss"),
-    "kl_coeff": (0.2, "initial adaptive KL penalty"),
-    "kl_target": (0.01, "target KL of the adaptive penalty"),
-    "kl_signal": (
-        "epoch_mean",
-        "KL the penalty adapts to (x1.5 above 2 target, x0.5 below target / 2): 'epoch_mean' = mean over the last "
-        "SGD epoch's minibatches (Ray 1.x), 'last_minibatch' = the last minibatch's (RLlib 2.60)",
-    ),
-    "entropy_coeff": (0.0, "entropy bonus (none in the paper runs)"),
-    "train_batch_size_per_learner": (1600, "env steps per training batch (paper runs: 2 rounds of 4 workers x 200 steps)"),
-    "minibatch_size": (512, "SGD minibatch (agent transitions)"),
-    "num_epochs": (5, "SGD passes over each batch"),
-    "rollout_fragment_length": (200, "env steps per sampling chunk (paper: 200); 'auto' = batch / runners"),
-    "num_env_runners": (0, "remote env runners (0 = sample in the training process, one env; paper: 4, the sweeps' paper scale)"),
-    "timeout_bootstrap": (
-        False,
-        "False: a vehicle's own step limit and the force stop end its GAE like any done, zero bootstrap (Ray 1.x); "
-        "True: they bootstrap with V(o_T) (RLlib's truncation)",
-    ),
-    "hidden": (256, "width of the two tanh layers of the separate policy and value networks"),
-    "weight_init": (
-        "normc",
-        "'normc' = Ray 1.x's initialization (each unit's weights of norm 1, output layers 0.01, biases 0); 'torch' = PyTorch's default",
-    ),
-    "precision": (
-        "fp32",
-        "learner update precision: 'fp32', or 'bf16' = each minibatch's forward pass and losses under torch.autocast bfloat16 "
-        "(module outputs, losses, parameters, optimizer state and the value predictions for GAE stay fp32)",
-    ),
-}
-# the HYPERPARAMETERS that are not PPOConfig.training arguments (sampling, learner and model options)
+S = TypeVar("S", bound=Settings)
+
+# the settings that are not PPOConfig.training arguments (sampling, learner and model options)
 OWN_KEYS = ("hidden", "num_env_runners", "rollout_fragment_length", "kl_signal", "timeout_bootstrap", "weight_init", "precision")
-# the HYPERPARAMETERS that go to PPOConfig.training as they are
-TRAINING_KEYS = tuple(k for k in HYPERPARAMETERS if k not in OWN_KEYS)
-
-# the extra --set keys of CPPO and MFPO (neighbour_radius None = the algorithm's own radius)
-CENTRAL_KEYS: dict[str, tuple[Any, str]] = {
-    "neighbour_radius": (None, "neighbours are the others strictly within this many metres (CPPO 40, MFPO 10)"),
-    "num_neighbours": (4, "CPPO: the k nearest neighbours concatenated (zero-padded); MFPO averages all"),
-}
-CPPO_RADIUS, MFPO_RADIUS = 40.0, 10.0  # metres
+# the settings that go to PPOConfig.training as they are
+TRAINING_KEYS = tuple(k for k in PpoSettings.keys() if k not in OWN_KEYS)
 
 
-def ppo_settings(algo_cfg: Mapping[str, Any], extra: Mapping[str, tuple[Any, str]]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(``HYPERPARAMETERS`` values, the algorithm's ``extra`` values) of ``algo_cfg`` over their defaults; checks the shared ones."""
-    values = dict(algo_cfg)
-    opts = {k: values.pop(k, default) for k, (default, _) in extra.items()}
-    hp = {k: default for k, (default, _) in HYPERPARAMETERS.items()} | values
-    check_values(hp)
-    check_values(opts)
-    return hp, opts
+def ppo_settings(cls: type[S], algo_cfg: Mapping[str, Any]) -> S:
+    """The settings of class ``cls`` (``PpoSettings`` or a child) with ``algo_cfg`` over its defaults; bad keys or values refused."""
+    return cls.of(algo_cfg)
 
 
 def policy_model(hidden: int, weight_init: str) -> dict[str, Any]:
@@ -111,24 +63,24 @@ def policy_model(hidden: int, weight_init: str) -> dict[str, Any]:
     return {**dataclasses.asdict(model), "weight_init": weight_init}
 
 
-def learner_options(hp: Mapping[str, Any]) -> dict[str, Any]:
+def learner_options(hp: PpoSettings) -> dict[str, Any]:
     """The learner options of the PPO family's ``learner_config_dict`` (``learner.py``): KL signal, time-out bootstrap, precision."""
-    return {"kl_signal": hp["kl_signal"], "timeout_bootstrap": hp["timeout_bootstrap"], "precision": hp["precision"]}
+    return {"kl_signal": hp.kl_signal, "timeout_bootstrap": hp.timeout_bootstrap, "precision": hp.precision}
 
 
 def ppo_base_config(
-    scenario: ScenarioConfig, hp: Mapping[str, Any], seed: int, env_config: dict[str, Any], algo_class: type[Algorithm] | None = None
+    scenario: ScenarioConfig, hp: PpoSettings, seed: int, env_config: dict[str, Any], algo_class: type[Algorithm] | None = None
 ) -> PPOConfig:
     """The PPO family's env, sampling, training values and seed; no learner, module or policy mapping yet."""
     return (
         PPOConfig(algo_class=algo_class)
-        .environment(f"coin-{scenario_name(scenario)}-v0", env_config=env_config)
+        .environment(env_id_of(scenario), env_config=env_config)
         .env_runners(
-            num_env_runners=hp["num_env_runners"],
-            rollout_fragment_length=hp["rollout_fragment_length"],
+            num_env_runners=hp.num_env_runners,
+            rollout_fragment_length=hp.rollout_fragment_length,
             env_to_module_connector=acting_order,  # RLlib's runner acts on the agents in a fixed order (agent_order.py)
         )
-        .training(**{k: hp[k] for k in TRAINING_KEYS})
+        .training(**{k: getattr(hp, k) for k in TRAINING_KEYS})
         .debugging(seed=seed)
         .evaluation(evaluation_interval=None)
     )
@@ -151,29 +103,30 @@ def driving_scenario(name: str, scenario: Any) -> ScenarioConfig:
 
 def build_ippo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """IPPO: one shared Gaussian policy and a value function on the agent's own observation."""
-    hp, _ = ppo_settings(algo_cfg, {})
+    hp = ppo_settings(PpoSettings, algo_cfg)
     config = (
         ppo_base_config(driving_scenario("IPPO", scenario), hp, seed, env_config_of(scenario))
         .learners(learner_class=ClippedValuePPOLearner, learner_config_dict=learner_options(hp))
-        .rl_module(model_config=policy_model(hp["hidden"], hp["weight_init"]), rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
+        .rl_module(model_config=policy_model(hp.hidden, hp.weight_init), rl_module_spec=RLModuleSpec(module_class=PPOActorModule))
     )
     return checked("IPPO", shared_policy_config(config))
 
 
-def centralized_config(name: str, mode: str, radius: float, scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
+def centralized_config(
+    name: str, mode: str, cls: type[CppoSettings], scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int
+) -> PPOConfig:
     """CPPO / MFPO: IPPO's policy with the value function on the ``mode`` critic input of the neighbours within the radius."""
-    hp, opts = ppo_settings(algo_cfg, CENTRAL_KEYS)
-    radius = radius if opts["neighbour_radius"] is None else opts["neighbour_radius"]
-    k = opts["num_neighbours"]
+    hp = ppo_settings(cls, algo_cfg)
+    k = hp.num_neighbours
     scenario = driving_scenario(name, scenario)
     learner_config = {
         **learner_options(hp),
         "critic_mode": mode,
-        "neighbour_radius": float(radius),
+        "neighbour_radius": float(hp.neighbour_radius),
         "num_neighbours": k,
         "position_scale": load_map(scenario.scenario).scale,
     }
-    model = {**policy_model(hp["hidden"], hp["weight_init"]), "critic_input_dim": critic_input_dim(mode, scenario.obs_dim, 2, k)}
+    model = {**policy_model(hp.hidden, hp.weight_init), "critic_input_dim": critic_input_dim(mode, scenario.obs_dim, 2, k)}
     config = (
         ppo_base_config(scenario, hp, seed, env_config_of(scenario))
         .learners(learner_class=CentralizedCriticPPOLearner, learner_config_dict=learner_config)
@@ -184,50 +137,9 @@ def centralized_config(name: str, mode: str, radius: float, scenario: ScenarioCo
 
 def build_cppo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """CPPO: the critic reads the own observation and the (observation, action) of the 4 nearest others within 40 m."""
-    return centralized_config("CPPO", "concat", CPPO_RADIUS, scenario, algo_cfg, seed)
+    return centralized_config("CPPO", "concat", CppoSettings, scenario, algo_cfg, seed)
 
 
 def build_mfpo_config(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> PPOConfig:
     """MFPO: the critic reads the own observation and the mean (observation, action) of the others within 10 m."""
-    return centralized_config("MFPO", "mean_field", MFPO_RADIUS, scenario, algo_cfg, seed)
-
-
-PPO_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=False, joint_replay=False)
-CENTRAL_CAPABILITIES = Capabilities(on_policy=True, centralized_critic=True, joint_replay=False)
-
-# the smallest scale (registry.tiny_settings): two sampling chunks of 50 env steps, two epochs of two minibatches
-TINY_PPO: dict[str, Any] = {
-    "train_batch_size_per_learner": 100,
-    "rollout_fragment_length": 50,
-    "minibatch_size": 50,
-    "num_epochs": 2,
-    "hidden": 16,
-}
-
-IPPO = AlgorithmSpec(
-    name="ippo",
-    description="IPPO: PPO with one shared policy, value on the own observation",
-    hyperparameters=HYPERPARAMETERS,
-    build=build_ippo_config,
-    capabilities=PPO_CAPABILITIES,
-    quick={"hidden": 64},
-    tiny=TINY_PPO,
-)
-CPPO = AlgorithmSpec(
-    name="cppo",
-    description="CPPO: PPO, value on own + 4 nearest neighbours' (obs, action)",
-    hyperparameters={**HYPERPARAMETERS, **CENTRAL_KEYS},
-    build=build_cppo_config,
-    capabilities=CENTRAL_CAPABILITIES,
-    quick={"hidden": 64},
-    tiny=TINY_PPO,
-)
-MFPO = AlgorithmSpec(
-    name="mfpo",
-    description="MFPO: PPO, value on own obs + mean neighbour obs and action",
-    hyperparameters={**HYPERPARAMETERS, **CENTRAL_KEYS},
-    build=build_mfpo_config,
-    capabilities=CENTRAL_CAPABILITIES,
-    quick={"hidden": 64},
-    tiny=TINY_PPO,
-)
+    return centralized_config("MFPO", "mean_field", MfpoSettings, scenario, algo_cfg, seed)
