@@ -1,6 +1,6 @@
 """Agent-steps per second of the native simulator (and of MetaDrive side by side), per scenario, on one core.
 
-Usage: python benchmarks/env_throughput.py [--steps 300] [--num-envs 1 16] [--scaling]
+Usage: python benchmarks/env_throughput.py [--steps 300] [--num-envs 1 16] [--scaling] [--no-compile-cost]
        python benchmarks/env_throughput.py --backend metadrive|both [--steps 300] [--scenarios ...]
        python benchmarks/env_throughput.py --against REF [--repeats 5] [--steps 300] [--scenarios ...]
 
@@ -19,6 +19,16 @@ and respawns), and prints the ratio native (MetaDrive's car) / MetaDrive. ``--mo
 times the vectorized core with the fitted bicycle instead of MetaDrive's car.
 The native vectorized core (``--num-envs``) is faster still; its table is printed first
 unless the backend is metadrive.
+
+The arena (the shipped pair's observation: six entities and the candidate features, 20 vehicles among
+8 obstacles, the planning driver or random actions) is timed in the same table: its env time per step
+and, apart, the candidate features' share of it (``ArenaSimulator.feature_time``).
+
+The simulator's kernels are compiled by Numba and cached on disk (``cache=True``); the first lines printed
+are the compile cost: a fresh process importing the simulator and taking one driving step and one arena
+step, with an empty cache (the first run after a checkout or a change: everything compiles) and again with
+that cache filled (every later run), run in child processes with their own ``NUMBA_CACHE_DIR`` so that the
+measurement leaves the real cache alone. ``--no-compile-cost`` skips it.
 
 ``--against REF`` compares this checkout's native dict env with the same env at a git commit
 (old against new): ``REF`` is checked out into a temporary git worktree, and each measurement runs
@@ -53,11 +63,12 @@ from coin_app.sim.simulator import DrivingSimulator  # noqa: E402
 
 def measure(
     scenario: str, num_agents: int, num_envs: int, policy: str, steps: int, seed: int = 0, model: str = "raycast"
-) -> tuple[float, float, float]:
-    """(env agent-steps/s, env ms per batched step, policy ms per step) over ``steps`` steps.
+) -> tuple[float, float, float, float]:
+    """(env agent-steps/s, env ms per batched step, policy ms per step, env agent-steps per CPU second) over ``steps`` steps.
 
     Only ``sim.step`` (and the auto-resets) count as env time; computing the actions is
     timed apart, so the heuristic rows measure the simulator under the heuristic's traffic.
+    The CPU-time rate (this process's ``time.process_time``) is what other work on the machine inflates least.
     """
     sim = DrivingSimulator(make_config(scenario, num_agents=num_agents, dynamics={"model": model}), num_envs=num_envs)
     sim.reset(seed)
@@ -65,14 +76,16 @@ def measure(
     driver = HeuristicDriver(sim) if policy == "heuristic" else None
     agent_steps = 0
     resets = seed + num_envs
-    env_time = policy_time = 0.0
+    env_time = policy_time = cpu_time = 0.0
     for _ in range(steps):
         t0 = time.perf_counter()
-        if driver is None:
-            actions = rng.uniform(-1.0, 1.0, (sim.num_slots, 2))
-        else:
+        if driver is not None:
             actions = driver.act_all()
-        t1 = time.perf_counter()
+        elif policy == "forward":
+            actions = np.stack([rng.uniform(-0.3, 0.3, sim.num_slots), rng.uniform(0.2, 1.0, sim.num_slots)], 1)
+        else:
+            actions = rng.uniform(-1.0, 1.0, (sim.num_slots, 2))
+        t1, c1 = time.perf_counter(), time.process_time()
         res = sim.step(actions)
         agent_steps += int(res.acted.sum())
         over = np.nonzero(res.episode_over)[0]
@@ -80,15 +93,17 @@ def measure(
             sim.reset_envs(over, list(range(resets, resets + len(over))))
             resets += len(over)
         t2 = time.perf_counter()
+        cpu_time += time.process_time() - c1
         env_time += t2 - t1
         policy_time += t1 - t0
-    return agent_steps / env_time, 1000 * env_time / steps, 1000 * policy_time / steps
+    return agent_steps / env_time, 1000 * env_time / steps, 1000 * policy_time / steps, agent_steps / cpu_time
 
 
 def measure_dict_env(
     scenario: str, backend: str, policy: str, steps: int, seed: int = 0, digest: hashlib._Hash | None = None
-) -> tuple[float, float]:
-    """(agent-steps/s, mean acting agents) of one env of ``backend`` through the dict API, auto-resetting.
+) -> tuple[float, float, float]:
+    """(agent-steps/s, mean acting agents, agent-steps per CPU second of this process) of one env of ``backend`` through
+    the dict API, auto-resetting.
 
     ``backend``: ``metadrive``, ``native`` (its default vehicle, MetaDrive's car) or ``native-bicycle``.
     With ``digest``, every step's observations, rewards and terminations are fed to it (outside the timed time).
@@ -99,10 +114,10 @@ def measure_dict_env(
     env = make_driving_env(make_config(scenario, **extra))
     rng = np.random.default_rng(seed)
     agent_steps = 0
-    hashing = 0.0
+    hashing = cpu_hashing = 0.0
     try:
         env.reset(seed)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for k in range(steps):
             n = len(env.agents)
             if policy == "random":
@@ -112,15 +127,17 @@ def measure_dict_env(
             out = env.step(dict(zip(env.agents, acts)))
             agent_steps += n
             if digest is not None:
-                t_hash = time.perf_counter()
+                t_hash, c_hash = time.perf_counter(), time.process_time()
                 _feed(digest, out)
                 hashing += time.perf_counter() - t_hash
+                cpu_hashing += time.process_time() - c_hash
             if env.episode_over:
                 env.reset(seed + k + 1)
         elapsed = time.perf_counter() - t0 - hashing
+        cpu = time.process_time() - c0 - cpu_hashing
     finally:
         env.close()
-    return agent_steps / elapsed, agent_steps / steps
+    return agent_steps / elapsed, agent_steps / steps, agent_steps / cpu
 
 
 def _feed(digest: hashlib._Hash, step_out: tuple) -> None:
@@ -138,7 +155,7 @@ def _feed(digest: hashlib._Hash, step_out: tuple) -> None:
 def _child(scenario: str, policy: str, steps: int) -> None:
     """Print one native measurement of the ``coin_app`` on ``sys.path`` as a JSON line (``--against``'s child)."""
     digest = hashlib.sha256()
-    rate, live = measure_dict_env(scenario, "native", policy, steps, digest=digest)
+    rate, live, _ = measure_dict_env(scenario, "native", policy, steps, digest=digest)
     print(json.dumps({"rate": rate, "live": live, "digest": digest.hexdigest()}))
 
 
@@ -174,16 +191,17 @@ def against(ref: str, scenarios: list[str], steps: int, repeats: int) -> None:
             subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(old)], check=False)
 
 
-def _metadrive_child(job: tuple[str, str, int]) -> tuple[float, float]:
+def _metadrive_child(job: tuple[str, str, int]) -> tuple[float, float, float]:
     scenario, policy, steps = job
     return measure_dict_env(scenario, "metadrive", policy, steps)
 
 
 def side_by_side(scenarios: list[str], steps: int, backends: tuple[str, ...]) -> None:
-    """Print agent-steps/s of the native and MetaDrive dict envs and their ratio."""
+    """Print agent-steps/s of the native and MetaDrive dict envs and their ratio (of wall time, and of CPU time)."""
     import multiprocessing as mp
 
-    print(f"\n{'scenario':<13}{'agents':>7}{'policy':>9}" + "".join(f"{b + ' steps/s':>20}{'live':>6}" for b in backends) + "   ratio")
+    head = "".join(f"{b + ' steps/s':>20}{'live':>6}" for b in backends)
+    print(f"\n{'scenario':<13}{'agents':>7}{'policy':>9}{head}   ratio (of CPU time)")
     for sc in scenarios:
         for pol in ("random", "forward"):
             row = {}
@@ -194,8 +212,111 @@ def side_by_side(scenarios: list[str], steps: int, backends: tuple[str, ...]) ->
                 else:
                     row[b] = measure_dict_env(sc, b, pol, steps)
             cells = "".join(f"{row[b][0]:>20,.0f}{row[b][1]:>6.1f}" for b in backends)
-            ratio = f"{row['native'][0] / row['metadrive'][0]:7.1f}x" if {"native", "metadrive"} <= set(row) else ""
+            ratio = ""
+            if {"native", "metadrive"} <= set(row):
+                ratio = f"{row['native'][0] / row['metadrive'][0]:7.1f}x ({row['native'][2] / row['metadrive'][2]:.1f}x)"
             print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{pol:>9}{cells}   {ratio}", flush=True)
+
+
+ARENA_VEHICLES, ARENA_OBSTACLES = 20, 8
+
+
+def measure_arena(policy: str, steps: int, seed: int = 0) -> tuple[float, float, float, float, float]:
+    """(agent-steps/s, env ms per step, candidate-feature ms per step, agent-steps per CPU second, candidate-feature CPU ms per
+    step) of one arena env with the shipped pair's observation.
+
+    20 vehicles among 8 obstacles (new scenario when every vehicle is done); ``policy``: ``planning`` (the planning
+    driver, timed apart) or ``random``. The feature time is part of the env time.
+    """
+    import coin_app.sim.arena.simulator as arena_sim
+    from coin_app.sim.arena.config import make_arena_config
+    from coin_app.sim.arena.env import ArenaEnv
+    from coin_app.sim.arena.generator import generate, training_rng
+    from coin_app.sim.arena.heuristic import planning_actions
+
+    cfg = make_arena_config(observed_entities=6, candidate_features=True)
+    env = ArenaEnv(cfg)
+    rng = np.random.default_rng(seed)
+    episode = 0
+
+    def new_layout() -> dict:
+        nonlocal episode
+        episode += 1
+        return {"layout": generate(training_rng(seed + episode), cfg, ARENA_VEHICLES, ARENA_OBSTACLES)}
+
+    obs, _ = env.reset(options=new_layout())
+    agent_steps, env_time, feature_time, cpu_time = 0, 0.0, 0.0, 0.0
+    feature_cpu = [0.0]
+    features = arena_sim.candidate_features
+
+    def timed_features(*args: object, **kwargs: object) -> np.ndarray:
+        c0 = time.process_time()
+        try:
+            return features(*args, **kwargs)
+        finally:
+            feature_cpu[0] += time.process_time() - c0
+
+    arena_sim.candidate_features = timed_features  # the simulator's call, timed in CPU time too
+    for _ in range(steps):
+        rows = np.stack([obs[a] for a in env.agents])
+        acts = planning_actions(rows) if policy == "planning" else rng.uniform(-1.0, 1.0, (len(rows), 2))
+        t0, c0 = time.perf_counter(), time.process_time()
+        obs = env.step(dict(zip(env.agents, acts)))[0]
+        if env.episode_over:
+            obs, _ = env.reset(options=new_layout())
+        env_time += time.perf_counter() - t0
+        cpu_time += time.process_time() - c0
+        feature_time += env.sim.feature_time
+        agent_steps += len(rows)
+    arena_sim.candidate_features = features
+    rates = agent_steps / env_time, agent_steps / cpu_time
+    return rates[0], 1000 * env_time / steps, 1000 * feature_time / steps, rates[1], 1000 * feature_cpu[0] / steps
+
+
+_COLD_START = """
+import json, time
+t0, c0 = time.perf_counter(), time.process_time()
+import numpy as np
+from coin_app.sim.arena.config import make_arena_config
+from coin_app.sim.arena.env import ArenaEnv
+from coin_app.sim.config import make_config
+from coin_app.sim.simulator import DrivingSimulator
+t1, c1 = time.perf_counter(), time.process_time()
+sim = DrivingSimulator(make_config("intersection"))
+sim.reset(0)
+sim.step(np.zeros((sim.num_slots, 2)))
+env = ArenaEnv(make_arena_config(observed_entities=6, candidate_features=True, num_vehicles=20, num_obstacles=8))
+obs, _ = env.reset(seed=0)
+env.step({a: np.zeros(2) for a in env.agents})
+t2, c2 = time.perf_counter(), time.process_time()
+print(json.dumps({"import": t1 - t0, "first_steps": t2 - t1, "import_cpu": c1 - c0, "first_steps_cpu": c2 - c1}))
+"""
+
+
+def warm_up() -> None:
+    """Load (or compile) every kernel in this process before anything is timed: a few steps of each simulator."""
+    for model in ("raycast", "bicycle"):
+        measure("intersection", 10, 2, "random", 5, model=model)
+        measure_dict_env("intersection", "native" if model == "raycast" else "native-bicycle", "random", 5)
+    measure_arena("planning", 3)
+
+
+def compile_cost() -> None:
+    """Print the cold (empty Numba cache: compile) and warm (cache filled) start of a fresh process (see module doc)."""
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as cache:
+        env = os.environ | {"NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(root)}
+        runs = []
+        for _ in range(2):
+            out = subprocess.run([sys.executable, "-c", _COLD_START], env=env, capture_output=True, text=True)
+            if out.returncode != 0:
+                raise SystemExit(f"the compile-cost child failed:\n{out.stderr}")
+            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    (cold, warm) = runs
+    print("compile cost (a fresh process: import the simulator, one driving step and one arena step with the features):")
+    for name, run in (("empty Numba cache (first run, compiles)", cold), ("cache filled (every later run)", warm)):
+        wall = f"import {run['import']:.2f} s + first steps {run['first_steps']:.2f} s"
+        print(f"  {name:<40} {wall} (CPU time {run['import_cpu']:.2f} s + {run['first_steps_cpu']:.2f} s)")
 
 
 def main() -> None:
@@ -210,6 +331,7 @@ def main() -> None:
     ap.add_argument("--against", metavar="REF", help="compare this checkout's native dict env with git commit REF's (old vs new)")
     ap.add_argument("--repeats", type=int, default=5, help="--against: runs per tree and (scenario, policy), alternating")
     ap.add_argument("--child", nargs=3, metavar=("SCENARIO", "POLICY", "STEPS"), help=argparse.SUPPRESS)
+    ap.add_argument("--no-compile-cost", action="store_true", help="skip the compile-cost lines (two child processes)")
     args = ap.parse_args()
     for name in ("steps", "repeats"):
         if getattr(args, name) < 1:
@@ -223,6 +345,10 @@ def main() -> None:
     if args.against:
         against(args.against, args.scenarios, args.steps, args.repeats)
         return
+    if not args.no_compile_cost:
+        compile_cost()
+    if args.backend != "metadrive":
+        warm_up()
     if args.backend != "native":
         backends = ("native", "native-bicycle", "metadrive") if args.backend == "both" else ("metadrive",)
         print(f"dict-API env, one env per backend, {args.steps} steps per row ('live' = mean acting agents):")
@@ -231,17 +357,23 @@ def main() -> None:
             return
         print("\nnative vectorized core:")
     print(f"vehicle model: {args.model}")
-    print(f"{'scenario':<13}{'agents':>7}{'envs':>6}{'policy':>11}{'agent-steps/s':>15}{'env ms/step':>13}{'policy ms':>11}")
+    head = f"{'agent-steps/s':>15}{'env ms/step':>13}{'policy ms':>11}{'per CPU s':>11}"
+    print(f"{'scenario':<13}{'agents':>7}{'envs':>6}{'policy':>11}{head}")
     for sc in args.scenarios:
         for ne in args.num_envs:
-            for pol in ("random", "heuristic"):
-                rate, ms, pms = measure(sc, DEFAULT_NUM_AGENTS[sc], ne, pol, args.steps, model=args.model)
-                print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{ne:>6}{pol:>11}{rate:>15,.0f}{ms:>13.2f}{pms:>11.2f}", flush=True)
+            for pol in ("random", "forward", "heuristic"):
+                rate, ms, pms, cpu = measure(sc, DEFAULT_NUM_AGENTS[sc], ne, pol, args.steps, model=args.model)
+                cells = f"{rate:>15,.0f}{ms:>13.2f}{pms:>11.2f}{cpu:>11,.0f}"
+                print(f"{sc:<13}{DEFAULT_NUM_AGENTS[sc]:>7}{ne:>6}{pol:>11}{cells}", flush=True)
+    for pol in ("random", "planning"):
+        rate, ms, fms, cpu, fcpu = measure_arena(pol, args.steps)
+        cells = f"{rate:>15,.0f}{ms:>13.2f}{'':>11}{cpu:>11,.0f}   (candidate features {fms:.2f} ms/step, CPU {fcpu:.2f} ms)"
+        print(f"{'arena':<13}{ARENA_VEHICLES:>7}{1:>6}{pol:>11}{cells}", flush=True)
     if args.scaling:
         print("\nenv step time vs agent count (heuristic traffic, intersection, one env and a batch of 32):")
         for n in (10, 20, 30, 40, 48):
-            rate1, ms1, _ = measure("intersection", n, 1, "heuristic", args.steps)
-            rate32, ms32, _ = measure("intersection", n, 32, "heuristic", args.steps)
+            rate1, ms1, _, _ = measure("intersection", n, 1, "heuristic", args.steps)
+            rate32, ms32, _, _ = measure("intersection", n, 32, "heuristic", args.steps)
             print(
                 f"  {n:>3} agents: 1 env {ms1:6.2f} ms/step ({rate1:>7,.0f} agent-steps/s)   32 envs {ms32:6.2f} ms/step ({rate32:>7,.0f})",
                 flush=True,

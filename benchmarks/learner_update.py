@@ -33,11 +33,15 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
-from coin_app.algorithms.cig_td3 import columns as col
+from coin_app.algorithms.choices import PRECISIONS
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
-from coin_app.algorithms.cig_td3.learner import PRECISIONS, autocast, loss_config
-from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, local_critic_loss, td_targets
+from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, td_targets
 from coin_app.algorithms.registry import quick_settings
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.learner import autocast
+from coin_app.algorithms.td3.losses import local_critic_loss
+from coin_app.algorithms.td3.settings import RLLIB_KEYS, Td3Settings
+from coin_app.algorithms.td3.td3 import Td3Config
 from coin_app.sim import schema
 from coin_app.sim.scenes import env_id
 from coin_app.training import build_config
@@ -73,7 +77,7 @@ def synthetic_batch(b: int, n: int, obs_dim: int, present: int, rng: np.random.G
 RLLIB_STEP = "fp32, RLlib's gradient step"  # the label of the --rllib-step comparison
 
 
-def time_updates(cfgs: dict[str, CigTd3Config], updates: int, present: int) -> dict[str, tuple[float, dict[str, float]]]:
+def time_updates(cfgs: dict[str, Td3Config], updates: int, present: int) -> dict[str, tuple[float, dict[str, float]]]:
     """Per precision: (mean seconds per learner update over whole delay cycles, breakdown in seconds).
 
     The learners of ``cfgs`` (same seed, so the same initial weights) run one delay cycle each in
@@ -101,11 +105,12 @@ def time_updates(cfgs: dict[str, CigTd3Config], updates: int, present: int) -> d
     return {name: (spent[name] / n_updates, breakdown(learners[name], cfg, batch_np)) for name, cfg in cfgs.items()}
 
 
-def breakdown(learner: object, cfg: CigTd3Config, batch_np: dict[str, np.ndarray]) -> dict[str, float]:
+def breakdown(learner: object, cfg: Td3Config, batch_np: dict[str, np.ndarray]) -> dict[str, float]:
     """Seconds of each loss's forward (under the learner's autocast) + backward on ``batch_np``."""
     m = learner.module["shared"].unwrapped()
+    central, central_target = getattr(m, "central", None), getattr(m, "central_target", None)  # None: ITD3
     tb = {k: torch.as_tensor(v) for k, v in batch_np.items()}
-    lc = loss_config(cfg)
+    lc = learner.loss_config(m, cfg)
     parts: dict[str, float] = {}
 
     def clock(name: str, fn: object) -> None:
@@ -118,16 +123,16 @@ def breakdown(learner: object, cfg: CigTd3Config, batch_np: dict[str, np.ndarray
         with autocast(m, cfg.precision):
             return fn()
 
-    clock("targets (no grad)", lambda: fwd(lambda: td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc)))
-    y_l, y_g = fwd(lambda: td_targets(tb, m.actor_target, m.local_q_target, m.central_target, lc))
+    clock("targets (no grad)", lambda: fwd(lambda: td_targets(tb, m.actor_target, m.local_q_target, central_target, lc)))
+    y_l, y_g = fwd(lambda: td_targets(tb, m.actor_target, m.local_q_target, central_target, lc))
     clock("local critic fwd+bwd", lambda: fwd(lambda: local_critic_loss(m.local_q, tb, y_l)[0]).backward())
-    if m.central is not None:
-        clock("central critic fwd+bwd", lambda: fwd(lambda: central_critic_loss(m.central, tb, y_g, lc)[0]).backward())
-    clock("actor fwd+bwd (1 in policy_delay)", lambda: fwd(lambda: actor_loss(m.actor, m.local_q, m.central, tb, lc)[0]).backward())
+    if central is not None:
+        clock("central critic fwd+bwd", lambda: fwd(lambda: central_critic_loss(central, tb, y_g, lc)[0]).backward())
+    clock("actor fwd+bwd (1 in policy_delay)", lambda: fwd(lambda: actor_loss(m.actor, m.local_q, central, tb, lc)[0]).backward())
     return parts
 
 
-def time_loop(cfg: CigTd3Config, steps: int) -> float:
+def time_loop(cfg: Td3Config, steps: int) -> float:
     """Env steps per second of ``algo.train()`` after the warm-up (updates every env step)."""
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     cfg = cfg.copy(copy_frozen=False).training(warmup_steps=steps, learner_threads=torch.get_num_threads())
@@ -155,6 +160,13 @@ def base_config(size: str, threads: int) -> tuple[CigTd3Config, int]:
     return cfg, cfg.scenario_config().num_agents - 1
 
 
+def itd3_config(cig: CigTd3Config) -> Td3Config:
+    """ITD3 (the TD3 base) with ``cig``'s scenario, seed and TD3 settings."""
+    own = {k: getattr(cig, k) for k in Td3Settings.keys() if k not in ("precision", *RLLIB_KEYS)}  # ITD3 keeps its own precision
+    cfg = Td3Config().environment(cig.env, env_config=cig.env_config).debugging(seed=cig.seed)
+    return cfg.training(**own, train_batch_size_per_learner=cig.train_batch_size_per_learner)
+
+
 def main() -> None:
     """Print the update times per precision, their ratio, the breakdown and the loop throughput."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -173,7 +185,7 @@ def main() -> None:
         f"{args.size} size: B={base.train_batch_size_per_learner}, intersection ({base.scenario_config().num_agents} agents, "
         f"{base.max_others} other slots, {present} present), torch threads {args.threads}"
     )
-    for name, algo_cfg in (("CIG-TD3 (all modules)", base), ("ITD3", base.copy(copy_frozen=False).itd3())):
+    for name, algo_cfg in (("CIG-TD3 (all modules)", base), ("ITD3", itd3_config(base))):
         cfgs = {p: algo_cfg.copy(copy_frozen=False).training(precision=p) for p in precisions}
         if args.rllib_step:
             cfgs[RLLIB_STEP] = algo_cfg.copy(copy_frozen=False).training(precision="fp32")

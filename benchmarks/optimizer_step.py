@@ -5,7 +5,7 @@ Usage: python benchmarks/optimizer_step.py [--algos cig_td3 itd3 traco] [--steps
 The learners of CIG-TD3, ITD3 and TraCo step one Adam optimizer per network (actor, local
 critics, centralized or domain critic). PyTorch's CPU default is the per-tensor loop, whose
 cost is mostly per-tensor overhead for these small networks; the learners use the fused kernel
-(``coin_app.algorithms.cig_td3.learner.CigTd3TorchLearner.register_adam``). For each algorithm
+(``coin_app.algorithms.td3.learner.Td3TorchLearner.register_adam``). For each algorithm
 at its quick size (the learning curves, the reduced scale) and at the paper size, this prints the
 milliseconds of one step of all its optimizers with each implementation, the ratios to the
 per-tensor loop, and the largest parameter difference after ``--steps`` steps from the same

@@ -10,7 +10,7 @@ observations per step); episodes last ``--horizon`` steps; chunks of ``--fragmen
 added at a time (as ``MultiAgentEnvRunner.sample()`` would return them). Then prints the median
 time of ``sample(B)`` with every global column, per ``max_others``, and the time per ``add`` of
 one-step chunks. The buffer's capacity is ``--capacity`` (default: the stream's length, so it is
-full); its arrays grow with what is stored (module doc of ``coin_app/algorithms/cig_td3/buffer.py``),
+full); its arrays grow with what is stored (module doc of ``coin_app/algorithms/td3/buffer.py``),
 so each line also prints the bytes allocated, the bytes at full capacity and the size of the arrays
 in a checkpoint (``get_state``); e.g. ``--capacity 10000000`` shows what the official capacity
 costs a run that holds ``--transitions``. Pin one core with ``taskset -c 0``.
@@ -27,9 +27,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from coin_app.algorithms.cig_td3 import columns as col  # noqa: E402
-from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer  # noqa: E402
-from coin_app.algorithms.cig_td3.transitions import TransitionBatch  # noqa: E402
+from coin_app.algorithms.td3 import columns as col  # noqa: E402
+from coin_app.algorithms.td3.buffer import JointStepReplayBuffer  # noqa: E402
+from coin_app.algorithms.td3.transitions import TransitionBatch  # noqa: E402
 from coin_app.sim import schema  # noqa: E402
 
 

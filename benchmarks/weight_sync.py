@@ -47,7 +47,7 @@ def main() -> None:
     cfg = build_trial_config(trial).reporting(min_sample_timesteps_per_iteration=1)
     algo = cfg.build_algo()
     print(f"{args.algo}, the reduced protocol's trial (seed 0): warm-up of {cfg.warmup_steps} env steps ...", flush=True)
-    while algo._num_updates == 0:
+    while algo.learner_updates() == 0:
         algo.training_step()
     ways = {"in-place": algo._sync_actor, "rllib": algo.sync_actor_through_rllib}
     step_times: dict[str, list[float]] = {w: [] for w in ways}

@@ -20,6 +20,7 @@ back at once; ``job status|logs|stop ID`` follow it; ``--wait`` follows the logs
 
 from __future__ import annotations
 
+import re
 import shlex
 import time
 from collections.abc import Callable
@@ -28,6 +29,8 @@ from typing import Any
 from urllib.parse import urlparse
 
 from ray.job_submission import JobSubmissionClient
+
+from coin_app.evaluation.limits import check_timeout
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_ADDRESS = "http://127.0.0.1:8265"
@@ -110,8 +113,21 @@ def submit(
             return c.submit_job(entrypoint=entrypoint, runtime_env=env, submission_id=submission_id)
         except RuntimeError as exc:
             if "No available agent" not in str(exc) or time.perf_counter() > deadline:
-                raise ValueError(f"the job server at {address or DEFAULT_ADDRESS} refused the job: {exc}") from exc
+                raise ValueError(f"the job server at {address or DEFAULT_ADDRESS} refused the job: {server_reason(exc)}") from exc
             time.sleep(2.0)
+
+
+def server_reason(exc: BaseException) -> str:
+    """The job server's reason in one line. Its answer may carry its own (nested) tracebacks: then their first line's
+    prefix and the last exception line (``ValueError: Job with submission_id X already exists. ...``), else its first line."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip().strip(".")]
+    if not lines:
+        return type(exc).__name__
+    if "Traceback" in lines[0]:
+        raised = [line for line in lines[1:] if re.match(r"^[\w.]+(Error|Exception): ", line)]
+        if raised:
+            return f"{lines[0].split('Traceback')[0].strip()} {raised[-1]}".strip()
+    return lines[0]
 
 
 def status(job_id: str, address: str | None = None) -> str:
@@ -130,7 +146,8 @@ def stop(job_id: str, address: str | None = None) -> bool:
 
 
 def wait(job_id: str, address: str | None = None, timeout_s: float = 3600.0, echo: Callable[[str], None] = print) -> str:
-    """Follow the job's new log lines until it ends (or ``timeout_s``); returns its final status."""
+    """Follow the job's new log lines until it ends (or ``timeout_s``, a positive number of seconds); returns its final status."""
+    check_timeout(timeout_s, "--timeout")
     c = client(address)
     seen = 0
     t0 = time.perf_counter()

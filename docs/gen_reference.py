@@ -6,8 +6,8 @@
 ``config-keys.md``: every ``--set`` key with its default and meaning, from the same sources as
 ``python -m coin_app scenarios`` (``coin_app/cli/catalog.py`` ``cmd_scenarios``): the scenario configs'
 dataclass fields (their meaning is the field's comment in the source), every algorithm's settings
-declarations (``coin_app.algorithms.settings``: default, rule, meaning, reader, official value; the TD3
-family: its spec's ``hyperparameters`` and ``checks.RULES``) and the registry's ``COMMON_KEYS``. ``cli.md``: every command's ``--help``
+declarations (``coin_app.algorithms.settings``: default, rule, meaning, reader, official value) and the
+registry's ``COMMON_KEYS``. ``cli.md``: every command's ``--help``
 from ``coin_app.cli.build_parser``. ``tests/test_docs_site.py`` fails while a committed page is
 out of date with the code.
 """
@@ -101,14 +101,12 @@ def _spec_table(keys: dict[str, tuple[Any, str]]) -> list[str]:
 
 def _settings_table(spec: Any) -> list[str]:
     """An algorithm's keys: default, allowed values, meaning; with a settings class also the reader and the official value."""
-    decl = spec.settings.declarations() if spec.settings is not None else {}
+    decl = spec.settings.declarations()
     rows = ["| key | default | allowed | meaning | read by | official code |", "|---|---|---|---|---|---|"]
     for key, (default, meaning) in spec.hyperparameters.items():
-        rule = spec.rule(key)
-        d = decl.get(key)
-        official = _code(d.official) if d is not None and d.differs_from_official() else "same" if d is not None else "—"
-        reads = _cell(d.reads) if d is not None else "—"
-        rows.append(f"| `{key}` | {_code(default)} | {_cell(rule.allowed()) if rule else '—'} | {_cell(meaning)} | {reads} | {official} |")
+        rule, d = spec.rule(key), decl[key]
+        official = _code(d.official) if d.differs_from_official() else "same"
+        rows.append(f"| `{key}` | {_code(default)} | {_cell(rule.allowed())} | {_cell(meaning)} | {_cell(d.reads)} | {official} |")
     return rows
 
 
@@ -159,8 +157,7 @@ def config_keys_page() -> str:
     out += ["", "## Algorithms", ""]
     for name, spec in registry.ALGORITHMS.items():
         out += [f"### `{name}`", "", f"{_cell(spec.description)}. Scenarios: {', '.join(spec.scenarios)}.", ""]
-        if spec.settings is not None:
-            out += [f"Declared in `{spec.settings.__module__}.{spec.settings.__name__}`; presets: {', '.join(spec.presets)}.", ""]
+        out += [f"Declared in `{spec.settings.__module__}.{spec.settings.__name__}`; presets: {', '.join(spec.presets)}.", ""]
         out += _settings_table(spec)
         out.append("")
     out += ["## Keys of every algorithm (how it samples, where its learner runs)", ""]

@@ -1,6 +1,8 @@
 """The house rules of docs/architecture.md, checked on the source itself (an AST reading independent of import-linter).
 
 * the layers of ``pyproject.toml``'s import-linter contract: a module imports only its own layer and the layers below;
+* its forbidden contracts between internal packages (the TD3 family: ``td3`` knows no child, ``cig_td3`` and ``traco``
+  import only ``td3`` among algorithm packages), directly or through other modules;
 * no import cycle among the modules of coin_app, tuning and cluster (imports inside functions included);
 * an import inside a function body names its reason (``# optional: ...``);
 * the simulator and inference import without Ray, and inference without torch;
@@ -141,6 +143,37 @@ def test_layers_import_only_downward():
                 continue
             if there[0] < here[0] or (there[0] == here[0] and there[1] != here[1]):  # higher, or an independent sibling
                 bad.append(f"{mod} -> {target}")
+    assert bad == []
+
+
+def _forbidden_internal() -> list[tuple[str, list[str], list[str]]]:
+    """(name, sources, forbidden) of every forbidden contract in pyproject.toml whose forbidden modules are internal."""
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["importlinter"]
+    out = []
+    for c in config["contracts"]:
+        if c["type"] == "forbidden" and all(m.split(".")[0] in ROOTS for m in c["forbidden_modules"]):
+            out.append((c["name"], c["source_modules"], c["forbidden_modules"]))
+    return out
+
+
+def _under(module: str, packages: list[str]) -> bool:
+    """Whether ``module`` is one of ``packages`` or inside one."""
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
+def test_forbidden_internal_imports_are_absent_directly_and_through_other_modules():
+    contracts = _forbidden_internal()
+    assert any("coin_app.algorithms.td3" in sources for _, sources, _ in contracts)  # the TD3 family's contracts are read
+    graph = _graph()
+    bad = []
+    for name, sources, forbidden in contracts:
+        for start in (m for m in graph if _under(m, sources)):
+            seen, todo = {start}, [start]
+            while todo:  # every module reachable from start
+                for target in graph[todo.pop()] - seen:
+                    seen.add(target)
+                    todo.append(target)
+            bad += [f"{name}: {start} -> {m}" for m in sorted(seen) if _under(m, forbidden)]
     assert bad == []
 
 

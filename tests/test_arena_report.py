@@ -90,7 +90,7 @@ def test_evaluate_arena_refuses_a_bad_policy_before_evaluating_any(tmp_path, cap
     assert main(args) != 0
     assert "missing.npz" in capsys.readouterr().err and not out.exists()
     assert main(["evaluate-arena", "heuristic", "--cases", "1x0", "--scenarios-per-case", "0", "--out", str(out)]) != 0
-    assert "bad --scenarios-per-case 0; allowed: an integer >= 1" in capsys.readouterr().err and not out.exists()
+    assert "bad --scenarios-per-case 0; allowed: an integer from 1 to 10000" in capsys.readouterr().err and not out.exists()
 
 
 def test_evaluate_arena_tables_say_how_many_entities_a_policy_observed(tmp_path):

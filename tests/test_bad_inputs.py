@@ -1,5 +1,6 @@
 """Table-driven: every user-facing command given bad input ends in one clear line (exit 2), never a traceback, before any work."""
 
+import json
 import math
 import zipfile
 
@@ -44,6 +45,33 @@ CASES = [
     (["evaluate-arena", "heuristic", "--cases", "4x"], "bad case"),
     (["sweep", "nope"], "nope"),
     (["demo", "--steps", "0"], "--steps"),
+    # issue 60: conflicting values for one key, outputs over inputs, bounds, waits
+    (["train", "--num-agents", "4", "--set", "num_agents=8"], "--num-agents 4 and --set num_agents=8 set one key to two values"),
+    (["train", "--set", "horizon=40", "horizon=50"], "--set gives horizon twice (40 and 50)"),
+    (["train", "--connect-timeout", "-1"], "bad --connect-timeout -1.0; allowed: a finite number of seconds > 0"),
+    (
+        ["train", "--address", "127.0.0.1:1", "--connect-timeout", "2"],
+        "cannot reach a Ray cluster at 127.0.0.1:1 within --connect-timeout 2 s",
+    ),
+    (["evaluate", "{good_npz}", "--out", "{dir}"], "it is a directory; allowed: a file path"),  # refused before evaluating
+    (["evaluate", "{good_npz}", "--episodes", "100000"], "bad --episodes 100000; allowed: an integer from 1 to 1000"),
+    (["evaluate", "{good_npz}", "--num-agents", "4", "--set", "num_agents=3"], "set one key to two values"),
+    (["evaluate", "{bottleneck_npz}", "--backend", "metadrive"], "reads 91 observation numbers (bottleneck, native backend"),
+    (["export", "{missing}", "--out", "{missing}/p.npz"], "is, or is inside, the checkpoint it exports"),
+    (
+        ["pair", "{good_npz}", "{good_npz}", "--out", "{tmp}/pair.json"],
+        "the long-range policy was trained on 'intersection', not the arena",
+    ),
+    (["pair", "{good_npz}", "{good_npz}", "--out", "{good_npz}"], "is, or is inside, a policy it pairs"),
+    (["evaluate-arena", "heuristic", "--cases", "100000x1"], "bad case '100000x1'; allowed: 1 to 64 vehicles and 0 to 64 obstacles"),
+    (
+        ["evaluate-arena", "heuristic", "--scenarios-per-case", "100000"],
+        "bad --scenarios-per-case 100000; allowed: an integer from 1 to 10000",
+    ),
+    (["evaluate-arena", "heuristic", "--out", "{file}"], "it is a file"),
+    (["submit", "--wait", "--timeout", "-1", "--", "scenarios"], "bad --timeout -1.0; allowed: a finite number of seconds > 0"),
+    (["sweep", "seeds", "--smoke", "--connect-timeout", "0"], "bad --connect-timeout 0.0"),
+    (["sweep", "seeds", "--smoke", "--accept-changes"], "--accept-changes without --resume"),
 ]
 
 
@@ -55,7 +83,17 @@ def paths(tmp_path):
     good = export_policy(_tiny_actor(), tmp_path / "good.npz", "numpy", meta={"scenario": "intersection"})
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    return {"missing": str(tmp_path / "missing"), "file": str(file), "truncated_npz": str(truncated), "good_npz": str(good)}
+    bottleneck = export_policy(_tiny_actor(), tmp_path / "bottleneck.npz", "numpy", meta={"scenario": "bottleneck", "env_config": {}})
+    (tmp_path / "adir").mkdir()
+    return {
+        "missing": str(tmp_path / "missing"),
+        "file": str(file),
+        "truncated_npz": str(truncated),
+        "good_npz": str(good),
+        "bottleneck_npz": str(bottleneck),
+        "dir": str(tmp_path / "adir"),
+        "tmp": str(tmp_path),
+    }
 
 
 def _tiny_actor():
@@ -128,3 +166,230 @@ def test_evaluate_never_writes_over_the_policy_it_reads(paths, capsys):
     assert main(["evaluate", paths["good_npz"], "--episodes", "1", "--out", paths["good_npz"]]) == 2
     assert "is, or is inside, the policy it evaluates" in capsys.readouterr().err
     assert open(paths["good_npz"], "rb").read() == before
+
+
+# ----------------------------------------------------------------------------- the Python API, as strict as the CLI (issue 60)
+def _driving(**kw):
+    from coin_app.sim.driving_env import DrivingEnv
+
+    return DrivingEnv(**kw)
+
+
+def _pettingzoo(**kw):
+    from coin_app.adapters.pettingzoo_env import CoinParallelEnv
+
+    return CoinParallelEnv(**kw)
+
+
+def _rllib(**kw):
+    from coin_app.adapters.rllib_env import CoinMultiAgentEnv
+
+    return CoinMultiAgentEnv(kw)
+
+
+ENVS = {"DrivingEnv": _driving, "CoinParallelEnv": _pettingzoo, "CoinMultiAgentEnv": _rllib}
+# (what, the call on a reset env, a phrase of the one line every env gives); the phrases come from one shared check
+ENV_CASES = [
+    ("seed 1.5", lambda env: env.reset(seed=1.5), "bad seed 1.5; allowed: None or an integer >= 0"),
+    ("seed -1", lambda env: env.reset(seed=-1), "bad seed -1; allowed: None or an integer >= 0"),
+    ("seed True", lambda env: env.reset(seed=True), "bad seed True"),
+    ("int key", lambda env: env.step({0: [0.0, 0.0], **{a: [0.0, 0.0] for a in env.agents[1:]}}), "action keys must be agent ids (str)"),
+    ("dict action", lambda env: env.step({a: {"steer": 0.0} for a in env.agents}), "must be 2 numbers, got dict"),
+    ("nan action", lambda env: env.step({a: [np.nan, 0.0] for a in env.agents}), "holds a non-finite number"),
+    ("3 numbers", lambda env: env.step({a: [0.0, 0.0, 0.0] for a in env.agents}), "must have 2 numbers, got shape (3,)"),
+    ("unknown agent", lambda env: env.step({"agent99": [0.0, 0.0], **{a: [0.0, 0.0] for a in env.agents}}), "cannot act now"),
+    ("a list", lambda env: env.step([[0.0, 0.0]]), "actions must be a dict of agent id -> action, got list"),
+]
+
+
+@pytest.mark.parametrize("make", list(ENVS.values()), ids=list(ENVS))
+@pytest.mark.parametrize(("what", "call", "phrase"), ENV_CASES, ids=[c[0] for c in ENV_CASES])
+def test_every_env_api_refuses_the_same_bad_input_with_the_same_line(make, what, call, phrase):
+    env = make(num_agents=2, horizon=20)
+    env.reset(seed=0)
+    with pytest.raises(ValueError) as info:
+        call(env)
+    text = str(info.value)
+    assert phrase in text and "\n" not in text, (what, text)
+
+
+def test_a_config_with_overrides_or_a_string_config_is_refused_never_dropped():
+    from coin_app.adapters.pettingzoo_env import CoinParallelEnv
+    from coin_app.adapters.rllib_env import CoinMultiAgentEnv
+    from coin_app.sim.config import make_config
+    from coin_app.sim.driving_env import DrivingEnv
+
+    config = make_config("intersection")
+    both = "pass either a config or scenario/preset/overrides, not both"
+    for call, given in (
+        (lambda: DrivingEnv(config, num_agents=4), "num_agents"),
+        (lambda: DrivingEnv(config, scenario="roundabout"), "scenario"),
+        (lambda: DrivingEnv(config, preset="kinematic"), "preset"),
+        (lambda: CoinParallelEnv(config, num_agents=4), "num_agents"),
+        (lambda: CoinMultiAgentEnv({"scenario_config": config, "num_agents": 4}), "num_agents"),
+    ):
+        with pytest.raises(ValueError, match=f"{both} \\(got a config and {given}\\)"):
+            call()
+    with pytest.raises(ValueError, match=r"got the string 'roundabout' as its config; allowed: DrivingEnv\(scenario='roundabout'\)"):
+        DrivingEnv("roundabout")
+    assert DrivingEnv(scenario="roundabout", num_agents=4).config == make_config("roundabout", num_agents=4)  # nothing dropped
+
+
+@pytest.mark.parametrize("make", list(ENVS.values()), ids=list(ENVS))
+def test_numpy_integers_are_the_numbers_they_hold(make):
+    env = make(num_agents=np.int64(3), horizon=np.int32(20))
+    cfg = getattr(env, "config", None) or env.driving_env.config
+    assert cfg.num_agents == 3 and type(cfg.num_agents) is int and cfg.horizon == 20 and type(cfg.horizon) is int
+    first, _ = env.reset(seed=np.int64(7))
+    again, _ = make(num_agents=3, horizon=20).reset(seed=7)
+    assert first.keys() == again.keys() and all(np.array_equal(first[a], again[a]) for a in first)
+
+
+def test_the_pettingzoo_env_refuses_step_and_reset_after_close():
+    env = _pettingzoo(num_agents=2, horizon=20)
+    env.reset(seed=0)
+    actions = {a: [0.0, 0.5] for a in env.agents}
+    env.close()
+    for call in (lambda: env.step(actions), lambda: env.reset(seed=0)):
+        with pytest.raises(RuntimeError, match=r"the env is closed \(close\(\) was called\); allowed: a new CoinParallelEnv"):
+            call()
+
+
+@pytest.mark.parametrize(("fmt", "suffix"), [("numpy", "npz"), ("torchscript", "pt"), ("onnx", "onnx")])
+def test_every_export_format_refuses_a_non_finite_observation(fmt, suffix, tmp_path):
+    from coin_app.inference import load_policy
+
+    if fmt == "onnx":
+        pytest.importorskip("onnx")
+        pytest.importorskip("onnxruntime")
+    policy = load_policy(export_policy(_tiny_actor(), tmp_path / f"p.{suffix}", fmt))
+    obs = np.full((3, 91), 0.5, np.float32)
+    assert np.isfinite(policy(obs)).all()
+    for bad, shown in ((np.nan, "nan"), (np.inf, "inf"), (-np.inf, "-inf")):
+        broken = obs.copy()
+        broken[1, 7] = bad
+        with pytest.raises(ValueError, match=rf"observation row 1 holds {shown} at index 7 \(1 row\(s\) non-finite\); allowed: finite"):
+            policy(broken)
+
+
+# ----------------------------------------------------------------------------- one writer per output directory (issue 60)
+HOLDER = (
+    "import sys, time; from coin_app.evaluation.outputs import OutputLock; "
+    "OutputLock(sys.argv[1], 'the holder command').acquire(); print('held', flush=True); time.sleep(600)"
+)
+
+
+def _hold(directory):
+    """A process holding ``directory``'s lock (its PID; it prints once it holds it)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(directory)], stdout=subprocess.PIPE, text=True, env=env)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_locked_output_is_refused_naming_its_writer_and_a_dead_writers_lock_is_taken_over(tmp_path, capsys):
+    from fixtures import tiny_cli
+
+    from coin_app.evaluation.outputs import OutputLock, lock_path
+
+    out = tmp_path / "run"
+    holder = _hold(out)
+    try:
+        with pytest.raises(ValueError, match=rf"{out} is being written by PID {holder.pid} on .* \(the holder command, since "):
+            OutputLock(out).acquire()
+        argv = ["train", "--algo", "itd3", *tiny_cli("itd3", "bottleneck"), "--steps", "100", "--out", str(out)]
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"is being written by PID {holder.pid}" in err and "allowed: wait until it ends, or another --out" in err
+        assert err.count("\n") == 1 and not out.exists()  # refused before anything was written
+    finally:
+        holder.kill()  # SIGKILL: no release, its record stays in the lock file
+        holder.wait()
+    assert json.loads(lock_path(out).read_text())["pid"] == holder.pid
+    with OutputLock(out, "the next command") as lock:  # the kernel dropped the dead writer's lock: taken over, and said
+        assert f"lock of PID {holder.pid} (the holder command) was stale (that writer is gone); taken over" in lock.stale_note()
+        with OutputLock(out) as again:  # reentrant within one process
+            assert again.stale_note() is None or again.path == lock.path
+        assert json.loads(lock_path(out).read_text())["command"] == "the next command"
+    assert not lock_path(out).exists()  # the last release removes it
+
+
+def test_a_report_is_replaced_as_one_set_and_an_interrupted_one_leaves_the_old_as_it_was(tmp_path, monkeypatch, capsys):
+    from coin_app.evaluation import report
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX
+
+    table = _results_table(tmp_path / "results.csv")
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "notes.md").write_text("the user's own file")  # not the report's: it stays through every report
+    argv = ["report", str(table), "--out", str(out), "--tsne-samples", "40", "--tsne-episodes", "1"]
+    assert main(argv) in (0, 1)  # 1: the made-up checkpoints have no learning curves (listed as unreadable)
+    written = json.loads((out / OUTPUTS_INDEX).read_text())
+    assert "report.html" in written and "results.csv" in written and "notes.md" not in written
+    (out / "old_figure.png").write_bytes(b"a figure the previous report drew")  # as if that report had written it:
+    (out / OUTPUTS_INDEX).write_text(json.dumps([*written, "old_figure.png"]))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt("killed while writing the page")
+
+    monkeypatch.setattr(report, "write_html", killed)
+    assert main(argv) == 130
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # the old report, byte for byte
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".report.")]  # no staging left behind
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert main(argv) in (0, 1)
+    assert not (out / "old_figure.png").exists() and (out / "report.html").is_file()  # none of the old report's files left
+    assert (out / "notes.md").read_text() == "the user's own file"
+
+
+def test_a_swap_killed_half_way_is_rolled_back_to_the_old_outputs_whole(tmp_path):
+    """A kill between the renames of a swap (``staged_outputs``), crafted as it leaves the disk: the next build's recovery
+    puts every old entry back and takes every new one out, whatever the point of the kill."""
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX, SWAP_RECORD, recover_swaps
+
+    old, new = {"a.csv": b"old a", "b.png": b"old b"}, {"a.csv": b"new a", "c.md": b"new c"}
+    dead = 2**22 + 12345  # a PID no process has (above the kernel's default pid_max)
+    for moved_in in range(len(new) + 1):  # how many new entries had moved in when it was killed
+        root = tmp_path / str(moved_in)
+        out, stage, aside = root / "report", root / f".report.staged-{dead}", root / f".report.old-{dead}"
+        for d in (out, stage, aside):
+            d.mkdir(parents=True)
+        (out / "notes.md").write_text("the user's")
+        (out / OUTPUTS_INDEX).write_text(json.dumps(sorted(old)))
+        (aside / SWAP_RECORD).write_text(json.dumps({"old": sorted(old), "new": sorted(new)}))
+        for name, data in old.items():  # all old entries are aside before any new one moves in
+            (aside / name).write_bytes(data)
+        for k, (name, data) in enumerate(sorted(new.items())):
+            (out if k < moved_in else stage).joinpath(name).write_bytes(data)
+        assert recover_swaps(out) == [aside.name]
+        assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != OUTPUTS_INDEX} == {**old, "notes.md": b"the user's"}
+        assert sorted(p.name for p in root.iterdir()) == ["report"]  # staging and the aside directory gone
+
+
+def _results_table(path):
+    """A made-up results table of two methods (what ``report`` redraws without evaluating)."""
+    import pandas as pd
+
+    from coin_app.evaluation.metrics import METRIC_KEYS
+    from coin_app.evaluation.protocol import RESULT_COLUMNS
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for method in ("cig_td3", "itd3"):
+        for seed in (0, 1):
+            for test_seed in range(200000, 200004):
+                row = dict.fromkeys(RESULT_COLUMNS, 0.0)
+                row |= {"method": method, "variant": "default", "trained_seed": seed, "test_seed": test_seed}
+                row |= {"scenario": "intersection", "agent_count": 4, "trained_agent_count": 4, "backend": "native"}
+                row |= {k: float(rng.uniform(0, 1)) for k in METRIC_KEYS}
+                row |= {"checkpoint": str(path.parent / f"{method}_{seed}" / "checkpoint"), "trained_env_steps": 1000}
+                rows.append(row)
+    pd.DataFrame(rows).to_csv(path, index=False)
+    return path

@@ -2,6 +2,7 @@
 
 import json
 import os
+import pickle
 import random
 import shutil
 import signal
@@ -30,8 +31,9 @@ from coin_app.cli import main
 # generation it belongs to, so a checkpoint that mixes two saves is visible in its content.
 SAVER = textwrap.dedent(
     """
-    import sys, time
+    import pickle, sys, time
     from pathlib import Path
+    import numpy as np
     from coin_app.algorithms.checkpoint_files import MODULE_PATH, save_checkpoint
 
     class SlowAlgo:
@@ -45,7 +47,8 @@ SAVER = textwrap.dedent(
                         f.write(bytes([self.gen % 256]) * 32768)
                         f.flush()
                         time.sleep(0.002)
-            (path.joinpath(*MODULE_PATH) / "module_state.pkl").write_bytes(bytes([self.gen % 256]) * 1000)
+            state = {"w": np.full((1000,), self.gen % 256, np.uint8)}  # a module state (save_checkpoint records its shapes)
+            (path.joinpath(*MODULE_PATH) / "module_state.pkl").write_bytes(pickle.dumps(state))
 
     algo, ckpt = SlowAlgo(), Path(sys.argv[1])
     algo.gen = int(sys.argv[2])  # generations keep counting across the killed processes
@@ -60,10 +63,11 @@ SAVER = textwrap.dedent(
 def generation_of(checkpoint: Path) -> int:
     """The one generation all data files of a checkpoint belong to (assert: they all agree with its metadata)."""
     gen = json.loads((checkpoint / META_FILE).read_text())["gen"]
-    files = [checkpoint / f"part{k}.bin" for k in range(4)] + [checkpoint.joinpath(*MODULE_PATH) / "module_state.pkl"]
-    for f in files:
+    for f in [checkpoint / f"part{k}.bin" for k in range(4)]:
         data = f.read_bytes()
         assert set(data) == {gen % 256}, f"{f} mixes generations"
+    state = pickle.loads((checkpoint.joinpath(*MODULE_PATH) / "module_state.pkl").read_bytes())
+    assert set(state["w"].tolist()) == {gen % 256}, "the module state mixes generations"
     return gen
 
 
@@ -287,3 +291,153 @@ def test_probe_runs_on_a_trained_checkpoint_and_counts_its_vehicle_steps(trained
     assert f"{probe.stopped_steps} of {probe.vehicle_steps} vehicle-steps" in out and "summary:" in out
     assert main(["probe", str(trained / "checkpoint"), "--episodes", "0"]) == 2
     assert "bad --episodes 0; allowed: an integer >= 1" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- issue 60: one writer, outputs never over inputs
+def _snapshot(directory: Path) -> dict[str, bytes]:
+    """Every file of a directory tree with its bytes."""
+    return {p.relative_to(directory).as_posix(): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def test_resume_into_another_run_is_refused_and_overwrite_replaces_the_old_run_whole(trained, tmp_path, capsys):
+    import ray
+
+    from coin_app.training.loop import usable_cores
+
+    other = tmp_path / "other"
+    shutil.copytree(trained, other)
+    before = _snapshot(other)
+    argv = ["train", "--algo", "itd3", *TINY]
+    assert main([*argv, "--steps", "600", "--resume", str(trained / "checkpoint"), "--out", str(other)]) == 2
+    err = capsys.readouterr().err
+    assert f"{other} holds an earlier run (checkpoint); --resume {trained / 'checkpoint'} would write over it" in err
+    assert err.count("\n") == 1 and _snapshot(other) == before  # nothing of the other run touched
+    assert main([*argv, "--steps", "600", "--resume", str(other / "checkpoint"), "--out", str(other), "--overwrite"]) == 2
+    assert "--overwrite would delete" in capsys.readouterr().err and _snapshot(other) == before
+    old_events = {p.name for p in (other / "tensorboard").iterdir()}
+    threads = usable_cores() + 1
+    try:
+        assert main([*argv, "--steps", "100", "--out", str(other), "--overwrite", "--threads", str(threads)]) == 0
+    finally:
+        ray.shutdown()
+    out = capsys.readouterr().out
+    assert "--overwrite: the earlier run's checkpoint, summary.json, config.json, tensorboard, ray.log deleted" in out
+    assert f"warning: --threads {threads} > the {usable_cores()} CPU cores this process may use" in out
+    events = {p.name for p in (other / "tensorboard").iterdir()}
+    assert len(events) == 1 and not events & old_events  # the old run's TensorBoard events went with it
+    summary = json.loads((other / "summary.json").read_text())
+    per_iteration = summary["env_steps"]  # one iteration: the budget of 100 is below one batch
+    assert summary["iterations"] == 1 and per_iteration > 100
+    note = f"trained {per_iteration} env steps, more than the 100 asked for: an iteration samples {per_iteration} env steps at once"
+    assert summary["note"].startswith(note) and f"note: {note}" in out
+
+
+def test_a_checkpoint_is_checked_against_its_manifest_version_and_its_recorded_shapes(trained, tmp_path, capsys):
+    from coin_app.algorithms.checkpoint_files import SHAPES_KEY, module_shapes, write_manifest
+
+    good = trained / "checkpoint"
+    meta = verify(good)
+    assert {k: tuple(v) for k, v in meta[SHAPES_KEY].items()} == module_shapes(good) and "actor.net.0.weight" in meta[SHAPES_KEY]
+    # a manifest of a format this code does not read
+    future = tmp_path / "future"
+    shutil.copytree(good, future)
+    manifest = json.loads((future / MANIFEST_FILE).read_text())
+    (future / MANIFEST_FILE).write_text(json.dumps(manifest | {"version": 99}))
+    with pytest.raises(ValueError, match=r"its manifest has format version 99, this code reads version\(s\) 1"):
+        verify(future)
+    assert main(["evaluate", str(future), "--episodes", "1"]) == 2
+    assert "format version 99" in capsys.readouterr().err
+    # metadata (re-manifested, so only the shapes disagree) recording another network than its tensors
+    shapes = {**meta[SHAPES_KEY], "actor.net.0.weight": [17, 91]}
+    other = tmp_path / "other"
+    shutil.copytree(good, other)
+    (other / META_FILE).write_text(json.dumps(meta | {SHAPES_KEY: shapes}))
+    write_manifest(other, meta | {SHAPES_KEY: shapes})
+    with pytest.raises(ValueError, match=r"its tensors are not the network its metadata records \(actor.net.0.weight: \(17, 91\)"):
+        verify(other)
+
+
+def test_resume_compares_the_recorded_shapes_with_what_this_code_builds(trained, monkeypatch, capsys, tmp_path):
+    from coin_app.algorithms.checkpoint_files import SHAPES_KEY
+    from coin_app.training import check_resume
+
+    meta = verify(trained / "checkpoint")
+    overrides = dict(meta["overrides"])
+    check_resume(trained / "checkpoint", meta, "itd3", "bottleneck", overrides)  # the same code: accepted
+    grown = meta | {SHAPES_KEY: {**meta[SHAPES_KEY], "actor.net.0.weight": [32, 91]}}  # as if a default had changed since
+    with pytest.raises(ValueError, match=r"another network shape \(actor.net.0.weight: \(32, 91\) there, \(16, 91\) here"):
+        check_resume(trained / "checkpoint", grown, "itd3", "bottleneck", overrides)
+
+
+def test_export_into_its_own_checkpoint_is_refused_and_the_checkpoint_stays_loadable(trained, capsys):
+    ckpt = trained / "checkpoint"
+    before = _snapshot(ckpt)
+    assert main(["export", str(ckpt), "--out", str(ckpt / "policy.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "is, or is inside, the checkpoint it exports" in err and err.count("\n") == 1
+    assert _snapshot(ckpt) == before and verify(ckpt)["algo"] == "itd3"
+
+
+def test_two_trains_on_one_out_started_together_exactly_one_runs(tmp_path):
+    """Two real ``train`` processes on one --out at once: one trains, the other is refused naming the first's PID."""
+    run = tmp_path / "run"
+    repo = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1"}
+    argv = [sys.executable, "-m", "coin_app", "train", "--algo", "itd3", "--out", str(run), *TINY, "--steps", "1500"]
+    procs = [subprocess.Popen(argv, cwd=repo, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    codes = sorted(p.returncode for p in procs)
+    assert codes == [0, 2], outs
+    winner, loser = (0, 1) if procs[0].returncode == 0 else (1, 0)
+    err = outs[loser][1].strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {run} is being written by PID {procs[winner].pid} on "), err
+    assert "python -m coin_app train --algo itd3" in err[0]
+    assert verify(run / "checkpoint")["algo"] == "itd3" and json.loads((run / "summary.json").read_text())["env_steps"] >= 1500
+    assert not list(tmp_path.glob(".run.lock"))  # released (and removed) at the end
+
+
+def _train_until(tmp_path: Path, marker: str, name: str) -> tuple[subprocess.Popen, Path, Path]:
+    """A real ``train`` in its own process group, once its log shows ``marker``: (process, run directory, log)."""
+    run, log_path = tmp_path / name, tmp_path / f"{name}.log"
+    repo = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1"}
+    argv = [sys.executable, "-m", "coin_app", "train", "--algo", "itd3", "--out", str(run), *TINY, "--steps", "1000000"]
+    argv += ["--checkpoint-every", "100000"]  # the last word wins: no periodic checkpoint
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(argv, cwd=repo, env=env, stdout=log, stderr=log, start_new_session=True)
+    t0 = time.time()
+    while marker not in log_path.read_text():
+        assert proc.poll() is None and time.time() - t0 < 240, log_path.read_text()[-2000:]
+        time.sleep(0.05)
+    return proc, run, log_path
+
+
+@pytest.mark.parametrize(
+    ("sig", "marker", "group"),
+    [(signal.SIGINT, "sampling:", False), (signal.SIGTERM, "sampling:", True), (signal.SIGTERM, "train:", True)],
+    ids=["SIGINT while the algorithm is built", "SIGTERM to the group then", "SIGTERM to the group in Ray's start-up"],
+)
+def test_a_signal_during_start_up_stops_train_at_once_with_its_code(tmp_path, sig, marker, group):
+    """Ctrl-C or a scheduler's SIGTERM (to the process or its whole group) before the first iteration: exit 128 + signal
+    (130, 143) in one line, no checkpoint (nothing trained). It used to be ignored, or to end in exit 1 after a minute."""
+    proc, run, log_path = _train_until(tmp_path, marker, "run")
+    (os.killpg if group else os.kill)(proc.pid, sig)
+    t0 = time.time()
+    code = proc.wait(timeout=120)
+    text = log_path.read_text()
+    assert code == 128 + sig, text[-2000:]
+    assert f"interrupted: {sig.name} during start-up: stopped before any training (no checkpoint was due)" in text
+    assert "Traceback" not in text and not (run / "checkpoint").exists() and time.time() - t0 < 90
+
+
+def test_sigterm_to_the_process_group_stops_train_after_its_iteration_with_a_checkpoint(tmp_path):
+    """SIGTERM to the whole group (the local Ray's GCS and raylet included): the iteration ends, a checkpoint, exit 0.
+    Before, the group's SIGTERM killed the GCS and the run hung 60 s on it, then exited 1."""
+    proc, run, log_path = _train_until(tmp_path, "iter    2", "run")
+    os.killpg(proc.pid, signal.SIGTERM)
+    code = proc.wait(timeout=240)
+    text = log_path.read_text()
+    assert code == 0, text[-2000:]
+    assert "SIGTERM: stopped after this iteration; saving a checkpoint" in text and "stopped early (SIGTERM)" in text
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["stopped"] == "SIGTERM" and summary["env_steps"] == verify(run / "checkpoint")["env_steps"] > 0

@@ -42,7 +42,7 @@ def test_trains_evaluates_and_keeps_critics_off_the_env_runner():
         assert np.isfinite(float(learner[key])), key
     assert "coin_eval" in results[1] and 0.0 <= results[1]["coin_eval"]["success_rate"] <= 1.0
     runner_module = algo.env_runner.module["shared"]
-    assert runner_module.inference_only and not hasattr(runner_module, "local_q")
+    assert runner_module.inference_only and runner_module.local_q is None and runner_module.central is None
     # the env runner's actor equals the learner's actor after the sync
     lm = algo.learner_group._learner.module["shared"].unwrapped()
     for a, b in zip(runner_module.actor.parameters(), lm.actor.parameters()):
@@ -83,7 +83,7 @@ def test_checkpoint_keeps_the_buffer_and_resumes_the_same_updates(tmp_path, algo
     restored = type(algo).from_checkpoint(str(tmp_path / "ckpt"))
     assert type(restored) is type(algo)
     assert len(restored.replay) == len(algo.replay) > 16
-    assert restored._num_updates == algo._num_updates > 0
+    assert restored.learner_updates() == algo.learner_updates() > 0
 
     def next_losses(a, n=3):
         out = []

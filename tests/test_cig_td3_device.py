@@ -11,6 +11,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 import coin_app.algorithms.cig_td3 as cig_td3_package
+import coin_app.algorithms.td3 as td3_package
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3, CigTd3Config
 from coin_app.algorithms.registry import quick_settings
@@ -20,7 +21,8 @@ torch.set_num_threads(1)
 register_envs()
 ENV_CFG = {"num_agents": 4, "horizon": 50, "max_agent_steps": 50}
 B = 16
-AUDITED = (Path(cig_td3_package.__file__).parent, Path(__file__).parent)  # the CIG-TD3 code, and this file for the self-check
+# the TD3 family's base and CIG-TD3's code, and this file for the self-check
+AUDITED = (Path(td3_package.__file__).parent, Path(cig_td3_package.__file__).parent, Path(__file__).parent)
 
 
 def random_batch(cfg, seed=0):
@@ -151,7 +153,7 @@ def test_one_remote_learner_trains_syncs_evaluates_and_checkpoints(ray_session, 
     assert algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime")) >= 50
     results += [algo.train() for _ in range(2)]  # 2 iterations of updates
     _, updates, actor = _facts(algo)
-    assert updates == algo._num_updates >= 20
+    assert updates == algo.learner_updates() >= 20
     assert np.isfinite(float(results[-1]["learners"]["shared"]["actor_loss"]))
     assert not all(torch.equal(actor0[k], actor[k]) for k in actor)  # the remote learner's actor learned ...
     runner = algo.env_runner.module["shared"].actor.state_dict()

@@ -13,7 +13,12 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.cig_td3.learner import loss_config
-from coin_app.algorithms.cig_td3.losses import actor_loss, actor_objective_loss, preact_penalty
+from coin_app.algorithms.cig_td3.losses import actor_loss
+from coin_app.algorithms.td3.learner import loss_config as td3_loss_config
+from coin_app.algorithms.td3.learner import soft_update
+from coin_app.algorithms.td3.losses import actor_loss as td3_actor_loss
+from coin_app.algorithms.td3.losses import actor_objective_loss, preact_penalty
+from coin_app.algorithms.td3.td3 import Td3Config
 
 torch.set_num_threads(1)
 register_envs()
@@ -24,6 +29,12 @@ B, O, S, A = 16, 91, 10, 2
 def make_config(**training):
     base = {"train_batch_size_per_learner": B, "hidden": 32, "latent_dim": 4, "node_width": 16, "policy_delay": 3, "warmup_steps": 0}
     return CigTd3Config().environment("coin-bottleneck-v0", env_config=ENV_CFG).debugging(seed=0).training(**{**base, **training})
+
+
+def make_itd3_config(**training):
+    """ITD3 (the TD3 base) with ``make_config``'s TD3 settings."""
+    base = {"train_batch_size_per_learner": B, "hidden": 32, "policy_delay": 3, "warmup_steps": 0}
+    return Td3Config().environment("coin-bottleneck-v0", env_config=ENV_CFG).debugging(seed=0).training(**{**base, **training})
 
 
 def build_learner(**training):
@@ -183,11 +194,11 @@ def test_each_ablation_switch_changes_only_what_it_names(switch, check):
 
 
 def test_itd3_has_no_central_critic_and_trains():
-    cfg = make_config().itd3()
+    cfg = make_itd3_config()
     cfg.validate()
     learner = cfg.build_learner(env=CoinMultiAgentEnv({"scenario": "bottleneck", **ENV_CFG}))
     m = module_of(learner)
-    assert m.central is None and m.central_target is None
+    assert {name for name, _ in m.named_children()} == {"actor", "local_q", "actor_target", "local_q_target"}
     assert set(learner._module_optimizers["shared"]) == {"shared_actor", "shared_local_critic"}
     update(learner, cfg, 0)
 
@@ -228,15 +239,15 @@ def test_actor_has_three_hidden_layers_of_hidden_units():
 
 
 def _actor_loss_of(module, batch_np, cfg):
-    """The actor loss of Eq. 12 on a batch with the module's current networks, re-evaluated independently."""
+    """ITD3's actor loss (Eq. 12's individual term) on a batch with the module's current networks, re-evaluated independently."""
     batch = {k: torch.as_tensor(v) for k, v in batch_np.items()}
-    return float(actor_loss(module.actor, module.local_q, module.central, batch, loss_config(cfg))[0])
+    return float(td3_actor_loss(module.actor, module.local_q, batch, td3_loss_config(cfg))[0])
 
 
 @pytest.mark.parametrize("order", ["critic_first", "joint"])
 def test_actor_loss_is_taken_on_the_updated_critics(order):
     # ITD3 (no centralized critic, so the actor loss draws no CVAE latent): exactly reproducible
-    cfg = make_config(policy_delay=1, update_order=order).itd3()
+    cfg = make_itd3_config(policy_delay=1, update_order=order)
     cfg.validate()
     torch.manual_seed(0)
     learner = cfg.build_learner(env=CoinMultiAgentEnv({"scenario": "bottleneck", **ENV_CFG}))
@@ -244,8 +255,14 @@ def test_actor_loss_is_taken_on_the_updated_critics(order):
     batch = random_batch(5, cfg.max_others)
     before = copy.deepcopy(m)
     logged = []
-    log_actor = learner._log_actor
-    learner._log_actor = lambda module_id, loss, stats: (logged.append(float(loss.detach())), log_actor(module_id, loss, stats))
+    learner_actor_loss = learner.actor_loss
+
+    def recorded(module, config, batch):
+        loss, stats = learner_actor_loss(module, config, batch)
+        logged.append(float(loss.detach()))
+        return loss, stats
+
+    learner.actor_loss = recorded
     learner.update(batch=MultiAgentBatch({"shared": SampleBatch(batch)}, env_steps=B), timesteps={"num_env_steps_sampled_lifetime": 0})
     updated_critics = copy.deepcopy(m)
     updated_critics.actor.load_state_dict(before.actor.state_dict())  # the actor loss is taken before the actor's own step
@@ -371,8 +388,6 @@ def test_gradient_step_matches_rllibs_with_finite_and_non_finite_gradients(poiso
 
 
 def test_soft_update_is_taus_blend_of_every_state_tensor():
-    from coin_app.algorithms.cig_td3.learner import soft_update
-
     main, target = torch.nn.BatchNorm1d(3), torch.nn.BatchNorm1d(3)  # parameters, float and integer buffers
     with torch.no_grad():
         for t in (*main.parameters(), main.running_mean, main.running_var):
@@ -383,3 +398,27 @@ def test_soft_update_is_taus_blend_of_every_state_tensor():
     for k, v in target.state_dict().items():
         expected = main.state_dict()[k] if k == "num_batches_tracked" else 0.25 * main.state_dict()[k] + 0.75 * old[k]
         assert torch.allclose(v.float(), expected.float(), atol=1e-7), k
+
+
+@pytest.mark.parametrize("clip", [None, 0.01])
+def test_grad_clip_bounds_every_optimizers_gradient_norm(clip):
+    # one declaration in td3/settings.py: --set takes it, and RLlib's own gradient post-processing reads it for each optimizer
+    from coin_app.algorithms import registry
+    from coin_app.training import build_config
+
+    overrides = registry.tiny_settings("itd3", "bottleneck") | ({} if clip is None else {"grad_clip": clip})
+    cfg = build_config("itd3", "bottleneck", overrides, 0)
+    assert cfg.grad_clip == clip
+    learner = cfg.build_learner(env=CoinMultiAgentEnv({"scenario": "bottleneck", **ENV_CFG}))
+    grads = {ref: torch.full_like(p, 3.0) for ref, p in learner._params.items()}
+    out = learner.postprocess_gradients(grads)
+    optimizers = learner.get_optimizers_for_module("shared")
+    assert len(optimizers) >= 2  # the actor's and the critics'
+    for _, optimizer in optimizers:
+        refs = learner._optimizer_parameters[optimizer]
+        n = sum(learner._params[r].numel() for r in refs)
+        norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(out[r]) for r in refs])).item()
+        expected = 3.0 * math.sqrt(n) if clip is None else clip  # clipping rescales the whole group to the bound
+        assert norm == pytest.approx(expected, rel=1e-4)
+    with pytest.raises(ValueError, match=r"^bad value for 'grad_clip': -1; allowed: None or a finite number > 0$"):
+        build_config("itd3", "bottleneck", {"grad_clip": -1}, 0)

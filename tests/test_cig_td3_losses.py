@@ -5,14 +5,10 @@ from types import SimpleNamespace
 import torch
 from torch import nn
 
-from coin_app.algorithms.cig_td3.losses import (
-    LossConfig,
-    actor_loss,
-    central_critic_loss,
-    local_critic_loss,
-    smoothed_target_action,
-    td_targets,
-)
+from coin_app.algorithms.cig_td3.losses import CigTd3LossConfig as LossConfig
+from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, td_targets
+from coin_app.algorithms.td3 import losses as td3_losses
+from coin_app.algorithms.td3.losses import local_critic_loss, smoothed_target_action
 
 torch.manual_seed(0)
 B, N, O, S, A = 5, 3, 4, 10, 2
@@ -122,8 +118,9 @@ def test_td_targets_match_hand_computation_and_timeouts_bootstrap():
     a_others = actor(batch["next_others_obs"]) * m.unsqueeze(-1)
     g1, g2 = central.q_values(batch["new_obs"], batch["new_state"], a_next, batch["next_others_state"], a_others, m)
     assert torch.allclose(y_g, batch["global_rewards"] + 0.9 * not_done * torch.minimum(g1, g2))
-    # ITD3: no global target
+    # without a centralized critic: no global target, and y^l is TD3's (ITD3's) target
     assert td_targets(batch, actor, local_q, None, NO_NOISE)[1] is None
+    assert torch.equal(td3_losses.td_target(batch, actor, local_q, NO_NOISE), y_l)
 
 
 def test_timeouts_end_the_targets_without_timeout_bootstrap():
@@ -195,6 +192,7 @@ def test_actor_loss_reference_and_baseline_leaves_actor_gradient_unchanged():
     )
     for x, y in zip(g_with, g_without):
         assert torch.allclose(x, y, atol=1e-7)
-    # ITD3 actor loss: the individual term only
+    # without a centralized critic: the individual term only, TD3's (ITD3's) actor loss
     loss_itd3, _ = actor_loss(actor, local_q, None, batch, cfg)
     assert torch.allclose(loss_itd3, -local_q.q1_only(batch["obs"], actor(batch["obs"])).mean())
+    assert torch.equal(td3_losses.actor_loss(actor, local_q, batch, cfg)[0], loss_itd3)

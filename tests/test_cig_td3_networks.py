@@ -9,8 +9,8 @@ import torch.nn.functional as F
 
 from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig
 from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, GATLayer, GraphModule, build_graph
-from coin_app.algorithms.cig_td3.individual import Actor, TwinQ, mlp
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES
+from coin_app.algorithms.td3.networks import Actor, TwinQ, mlp
 
 torch.set_num_threads(1)
 

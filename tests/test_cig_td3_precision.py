@@ -6,8 +6,9 @@ import torch
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
-from coin_app.algorithms.cig_td3 import columns as col
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.learner import autocast
 from coin_app.sim import schema
 
 torch.set_num_threads(1)
@@ -69,14 +70,13 @@ def losses_and_grads(learner, cfg, precision):
     batch = {k: torch.as_tensor(v) for k, v in batch_np(cfg).items()}
     config = cfg.copy(copy_frozen=False).training(precision=precision)
     torch.manual_seed(1)  # the same target-smoothing noise and CVAE samples for both precisions
-    learner.compute_loss_for_module(module_id="shared", config=config, batch=batch, fwd_out={})
-    groups = dict(learner._grads.pop("shared"))
-    loss_pi, _ = learner._actor_losses.pop("shared")()  # critic_first: the actor loss the learner computes after the critic step
-    groups["actor"] = (loss_pi, list(module.actor.parameters()))
+    groups, _ = learner.critic_losses(module, config, batch)
+    with autocast(module, precision):  # as the learner's update takes the actor loss
+        groups["actor"] = (learner.actor_loss(module, config, batch)[0], module.actor)
     out = {}
-    for name, (loss, params) in groups.items():
+    for name, (loss, net) in groups.items():
         assert loss.dtype == torch.float32, name  # losses reach backward in fp32
-        grads = torch.autograd.grad(loss, params)
+        grads = torch.autograd.grad(loss, list(net.parameters()))
         assert all(g.dtype == torch.float32 for g in grads), name
         out[name] = (float(loss.detach()), torch.cat([g.flatten() for g in grads]))
     return out

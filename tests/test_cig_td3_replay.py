@@ -19,10 +19,10 @@ from fixtures import NO_BRAKES
 from ray.rllib.core.columns import Columns
 from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 
-from coin_app.algorithms.cig_td3 import buffer as buffer_module
-from coin_app.algorithms.cig_td3 import columns as col
-from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
-from coin_app.algorithms.cig_td3.transitions import TransitionBatch, agent_key, episode_key, episodes_to_transitions
+from coin_app.algorithms.td3 import buffer as buffer_module
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.buffer import JointStepReplayBuffer
+from coin_app.algorithms.td3.transitions import TransitionBatch, agent_key, episode_key, episodes_to_transitions
 
 OBS_DIM, STATE_DIM, ACT_DIM = 6, 10, 2
 MAX_OTHERS = 12  # >= the most other agents with an observation at one step of the scripted stream (6 acting + 6 spawns)

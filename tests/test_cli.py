@@ -147,8 +147,8 @@ def test_config_prints_a_reduced_trials_merged_settings_with_their_origins(capsy
     for key, value in trial.items():
         assert rows[key][0] == repr(value), key
     assert rows["tau"] == ("0.01", "--set")
-    assert rows["policy_delay"] == ("1", "reduced scale (REDUCED_TD3)")
-    assert rows["num_agents"] == ("4", "quick settings (registry.quick_settings)")
+    assert rows["policy_delay"] == ("1", "preset 'reduced' (coin_app.algorithms.cig_td3.settings)")
+    assert rows["num_agents"] == ("4", "quick scenario (registry.quick_scenario('intersection'))")
     assert rows["lr_decay_start"][0] == "20000" and rows["lr_decay_start"][1].startswith("reduced scale: decay")
     assert rows["target_noise"] == ("0.1", "default") and rows["crash_penalty"] == ("5.0", "ScenarioConfig default")
     assert main(["config", "--algo", "cig_td3", "--set", "preset=metadrive_compat"]) == 0

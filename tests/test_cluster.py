@@ -132,6 +132,25 @@ def test_submit_refuses_bad_input_before_contacting_anything(capsys):
     assert "nothing to submit" in capsys.readouterr().err
 
 
+def test_a_refused_submission_names_the_servers_reason_in_one_line(monkeypatch, capsys):
+    """The job server answers a taken submission id with its own traceback (status 500): the line gives its last line."""
+    from cluster import jobs
+
+    reason = "ValueError: Job with submission_id twice already exists. Please use a different submission_id."
+    answer = f'Request failed with status code 500: Traceback (most recent call last):\n  File "x.py", line 1, in f\n{reason}\n'
+
+    class Server:
+        def submit_job(self, **kwargs):
+            raise RuntimeError(answer)
+
+    monkeypatch.setattr(jobs, "client", lambda address: Server())
+    argv = ["submit", "--install", "none", "--submission-id", "twice", "--", "scenarios"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.strip().endswith(f"refused the job: Request failed with status code 500: {reason}"), err
+    assert jobs.server_reason(RuntimeError("plain reason\nmore")) == "plain reason"
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -2,8 +2,10 @@
 and refuses bad input by name; ``python -m coin_app export`` on a real checkpoint."""
 
 import importlib
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -197,3 +199,33 @@ def test_a_failed_export_leaves_the_earlier_file_intact(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="No space left"):
         export_policy(actor, path, "numpy")
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["actor.npz"]
+
+
+FILE_LIMIT = """
+import resource, signal, sys
+from pathlib import Path
+import torch
+from coin_app.inference import export_policy
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit then fails (EFBIG), as one on a full disk (ENOSPC)
+actor = torch.nn.Sequential(torch.nn.Linear(91, 64), torch.nn.Tanh(), torch.nn.Linear(64, 2), torch.nn.Tanh())
+resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))  # every format's file of this actor is larger
+try:
+    export_policy(actor, Path(sys.argv[1]), sys.argv[2])
+except OSError as exc:
+    print("OSError", exc.errno)
+    sys.exit(3)
+"""
+
+
+@pytest.mark.parametrize(("fmt", "suffix"), [("numpy", ".npz"), ("torchscript", ".pt"), ("onnx", ".onnx")])
+def test_an_export_cut_short_by_the_disk_is_an_oserror_and_leaves_the_earlier_file(fmt, suffix, tmp_path):
+    """A real write failure (the file-size limit) in every format: an OSError (TorchScript's own writer used to abort the
+    process, exit 134), the earlier file byte for byte, nothing partial left."""
+    if fmt == "onnx":
+        pytest.importorskip("onnx")
+    path = tmp_path / f"actor{suffix}"
+    path.write_bytes(b"the earlier policy")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    done = subprocess.run([sys.executable, "-c", FILE_LIMIT, str(path), fmt], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 3 and done.stdout.split()[0] == "OSError", (done.returncode, done.stderr[-2000:])
+    assert path.read_bytes() == b"the earlier policy" and sorted(p.name for p in tmp_path.iterdir()) == [path.name]

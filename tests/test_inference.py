@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from coin_app.algorithms.cig_td3.individual import Actor
+from coin_app.algorithms.td3.networks import Actor
 from coin_app.evaluation.policies import as_policy
 from coin_app.inference import NumpyPolicy, export_numpy, load_policy
 

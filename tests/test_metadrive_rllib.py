@@ -46,11 +46,12 @@ def test_ppo_two_iterations_on_metadrive():
     assert not open_in_this_process()  # stopping the algorithm shut the engine down
 
 
-TINY_TD3 = {**SMALL, "warmup_steps": 40, "train_batch_size_per_learner": 16, "hidden": 16, "latent_dim": 4, "node_width": 8}
+TINY_TD3 = {**SMALL, "warmup_steps": 40, "train_batch_size_per_learner": 16, "hidden": 16}  # ITD3's keys
+TINY_CIG_TD3 = {**TINY_TD3, "latent_dim": 4, "node_width": 8}  # and the centralized critic's widths
 
 
 def test_cig_td3_two_iterations_on_metadrive_with_evaluation():
-    cfg = build_config("cig_td3", "intersection", {**TINY_TD3, "eval_every": 2, "eval_episodes": 1}, 0)
+    cfg = build_config("cig_td3", "intersection", {**TINY_CIG_TD3, "eval_every": 2, "eval_episodes": 1}, 0)
     algo = cfg.reporting(min_sample_timesteps_per_iteration=40).build_algo()
     try:
         results = [algo.train() for _ in range(2)]

@@ -1,5 +1,6 @@
 """Tune sweeps: experiment grids, validation before any work, smoke sweeps end to end, resume after kill -9."""
 
+import dataclasses
 import importlib.util
 import json
 import os
@@ -20,14 +21,14 @@ from coin_app import training
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoint_files import verify
-from coin_app.algorithms.cig_td3.learner import lr_schedule
+from coin_app.algorithms.td3.learner import lr_schedule
 from coin_app.cli import main
 from coin_app.evaluation.sweep_results import load_trials, trial_name
 from coin_app.training import checkpoint_meta
 from tuning import EXPERIMENTS, get_experiment
 from tuning import sweep as sweep_module
 from tuning.ablations import VARIANTS
-from tuning.experiment import expand_grid, trial_overrides
+from tuning.experiment import expand_grid, trial_layers, trial_overrides
 from tuning.progress_csv import aligned_row, read_table, write_table
 from tuning.sweep import check_address, check_local_gpus, validate_trials
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus, trial_resources
@@ -188,12 +189,15 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     guard |= {"train_batch_size_per_learner": 256}  # the paper's minibatch, not the quick settings' 128 (after the fifth sweep)
     guard |= {"policy_delay": 1}  # the actor after every critic update (the quick settings' 2; the lever after batch 256)
     guard |= {"timeout_bootstrap": False}  # a time-out ends the TD target (the paper's d_i; the lever after policy delay 1)
+
+    def resolved(trial):  # every setting the trial runs with (a preset value equal to the default is no override)
+        return {s.key: s.value for s in registry.merged_settings(trial["algo"], trial["scenario"], trial_layers(trial))}
+
     for algo in ("cig_td3", "itd3"):
-        assert trial_overrides(by_algo[algo]) == registry.quick_settings(algo) | {"precision": "fp32"} | guard | decay
+        assert (registry.quick_settings(algo) | {"precision": "fp32"} | guard | decay).items() <= resolved(by_algo[algo]).items()
     # TraCo also adds its optional individual critic (its domain critic alone froze the actor at one constant action)
-    assert trial_overrides(by_algo["traco"]) == registry.quick_settings("traco") | {"precision": "fp32"} | guard | decay | {
-        "individual_critic": True
-    }
+    expected = registry.quick_settings("traco") | {"precision": "fp32"} | guard | decay | {"individual_critic": True}
+    assert expected.items() <= resolved(by_algo["traco"]).items()
     assert build_trial_config(by_algo["traco"]).individual_critic is True
     assert "individual_critic" not in trial_overrides(by_algo["cig_td3"]) | trial_overrides(by_algo["ippo"])
     assert trial_overrides(by_algo["ippo"]) == registry.quick_settings("ippo")
@@ -214,7 +218,7 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     assert trial_name(by_algo["copo"]) == "copo-s0" and trial_resources(by_algo["copo"]).bundles == [{"CPU": 1}]
     # the user's --set still comes last
     tweaked = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", ("itd3",), (0,), overrides={"hidden": 32}))
-    assert trial_overrides(tweaked[0]) == registry.quick_settings("itd3") | {"precision": "fp32", "hidden": 32} | guard | decay
+    assert (registry.quick_settings("itd3") | {"precision": "fp32", "hidden": 32} | guard | decay).items() <= resolved(tweaked[0]).items()
     # another budget moves the decay with it (an odd budget: the second half is the longer one)
     (short,) = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", ("traco",), (0,), steps=601))
     moved = {"lr_decay_start": 300, "lr_decay_steps": 301, "lr_final_fraction": 0.1}
@@ -579,3 +583,67 @@ def test_a_scale_fits_its_scenes_or_refuses_the_others_in_one_line():
         assert abs(quick["horizon"] - 300 * metres / road["intersection"]) <= 5  # to the nearest 10 steps
     smoke = {t["seed"]: t for t in validate_trials(seeds.param_space("roundabout", "smoke", methods=("ippo",)))}
     assert trial_overrides(smoke[0])["horizon"] == registry.quick_scenario("roundabout")["horizon"] > 600
+
+
+def _real_crafted_sweep(root: Path) -> Path:
+    """A smoke seeds sweep of itd3 (seeds 0 and 1) as its driver leaves it, without running it: settings and Tune's state."""
+
+    space = get_experiment("seeds").param_space("intersection", "smoke", ("itd3",), (0, 1), 300, {})
+    trials = expand_grid(space)
+    path = root / "seeds-intersection-smoke"
+    path.mkdir(parents=True)
+    settings = {"experiment": "seeds", "scenario": "intersection", "scale": "smoke", "methods": ["itd3"], "code_version": "v-then"}
+    sweep_module.write_settings(path, settings | {sweep_module.RESOLVED: sweep_module.resolved_settings(trials)})
+    data = [[json.dumps({"status": "PENDING", "config": t, "relative_logdir": trial_name(t)}), "{}"] for t in trials]
+    (path / "experiment_state-2026-01-01_00-00-00.json").write_text(json.dumps({"trial_data": data, "runner_data": {}, "stats": {}}))
+    assert registry.get("itd3").presets["smoke"].warmup_steps == 200
+    return path
+
+
+def test_resume_refuses_settings_the_code_now_resolves_differently_and_accept_changes_records_them(tmp_path, monkeypatch, capsys):
+
+    path = _real_crafted_sweep(tmp_path)
+    argv = ["sweep", "seeds", "--smoke", "--algos", "itd3", "--storage", str(tmp_path), "--resume"]
+    settings = json.loads((path / "coin_sweep.json").read_text())
+    assert sweep_module.check_protocol(path, settings, (), False, "cmd", print) == settings  # the same code: nothing changed
+    itd3 = registry.get("itd3")
+    monkeypatch.setitem(itd3.presets, "smoke", dataclasses.replace(itd3.presets["smoke"], warmup_steps=300))  # the scale edited since
+    monkeypatch.setattr(itd3.settings.__dataclass_fields__["tau"], "default", 0.01)  # and a declared default
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "this code resolves other settings than the sweep ran with (" in err
+    assert "warmup_steps: 200 -> 300 (2 trial(s))" in err and "tau: 0.005 -> 0.01 (2 trial(s))" in err
+    assert "allowed: --accept-changes to continue with them (recorded), --restart METHOD" in err and "(v-then)" in err
+    assert json.loads((path / "coin_sweep.json").read_text()) == settings  # refused: nothing written
+    # --accept-changes: continues, and the sweep's record says what changed, when and by which command
+    after = sweep_module.check_protocol(path, settings, (), True, "the accepting command", print)
+    assert "--accept-changes: the trials continue with 2 changed setting(s): tau, warmup_steps" in capsys.readouterr().out
+    (entry,) = after[sweep_module.ACCEPTED]
+    assert entry["command"] == "the accepting command" and entry["changes"]["warmup_steps"] == "200 -> 300 (2 trial(s))"
+    assert all(t["warmup_steps"] == 300 and t["tau"] == 0.01 for t in after[sweep_module.RESOLVED].values())
+    assert json.loads((path / "coin_sweep.json").read_text()) == after
+    assert sweep_module.check_protocol(path, after, (), False, "cmd", print) == after  # accepted: the next --resume goes on
+    # a restarted method's trials run this code's settings afresh: not a change to refuse
+    assert (
+        sweep_module.check_protocol(path, settings, ("itd3",), False, "cmd", print)[sweep_module.RESOLVED] == after[sweep_module.RESOLVED]
+    )
+
+
+def test_a_trial_restore_refuses_a_checkpoint_of_another_network_than_this_code_builds(tmp_path):
+    """What ``CoinTrial.load_checkpoint`` checks before RLlib's restore (which printed 180 lines of size mismatch)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from coin_app.algorithms.checkpoint_files import SHAPES_KEY
+    from coin_app.training import check_restorable
+
+    def algo(module):
+        return SimpleNamespace(learner_group=SimpleNamespace(_learner=SimpleNamespace(module={"shared": module})))
+
+    meta = {SHAPES_KEY: {"weight": [16, 91], "bias": [16], "actor_target.weight": [16, 91]}}
+    check_restorable(algo(torch.nn.Linear(91, 16)), tmp_path, meta, "x")  # the same network (targets are the learner's own)
+    hint = "sweep --resume --restart itd3 (reruns its trials with this code)"
+    with pytest.raises(ValueError, match=r"holds another network than this code builds \(bias: \(16,\) in the checkpoint, \(32,\) in this"):
+        check_restorable(algo(torch.nn.Linear(91, 32)), tmp_path, meta, hint)
+    check_restorable(algo(torch.nn.Linear(91, 32)), tmp_path, {}, hint)  # a checkpoint without recorded shapes: not checked

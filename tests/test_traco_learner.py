@@ -9,7 +9,7 @@ from fixtures import learner_update, module_of, params, same, scalar
 from test_cig_td3_learner import random_batch as cig_random_batch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
-from coin_app.algorithms.cig_td3 import columns as col
+from coin_app.algorithms.td3 import columns as col
 from coin_app.algorithms.traco.losses import TracoLossConfig, domain_batch, domain_rewards, domains, td_targets
 from coin_app.algorithms.traco.networks import DomainCritic
 from coin_app.algorithms.traco.traco import TracoConfig

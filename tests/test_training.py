@@ -1,8 +1,11 @@
-"""Training helpers: the per-iteration figures, their log text and the stand-still (TD3 freeze) detector."""
+"""Training helpers: the per-iteration figures, their log text, the stand-still (TD3 freeze) detector and the resume check."""
 
 import math
 
+import pytest
+
 from coin_app.training import FreezeDetector, iteration_metrics, outcome_text
+from coin_app.training.checkpoints import check_resume, checkpoint_meta
 
 
 def result(env_steps, speed_sum=0.0, agent_steps=0, finished=0, saturation=None, spread=None):
@@ -63,3 +66,12 @@ def test_detector_names_a_collapsed_actor_apart_from_the_saturation_freeze():
     # the saturation freeze itself: every output at tanh(u) = -1, so the spread is ~0 too; the guard advice, not "collapsed"
     saturated = warning(1.0, 1e-6)
     assert "frozen at full brake" in saturated and "whatever it observes" not in saturated
+
+
+def test_resume_check_ignores_keys_the_algorithm_no_longer_takes_but_not_a_changed_shape(tmp_path):
+    """An ITD3 run from before algorithms/td3/ carries CIG-TD3's keys (unused by ITD3) in its metadata; its resume is allowed."""
+    small = {"num_agents": 3, "horizon": 40, "max_agent_steps": 40, "hidden": 16}
+    meta = checkpoint_meta("itd3", "bottleneck", 0, small) | {"overrides": small | {"latent_dim": 4, "node_width": 8}}
+    check_resume(tmp_path, meta, "itd3", "bottleneck", small)  # no error: those keys shaped nothing of ITD3
+    with pytest.raises(ValueError, match="another network shape"):  # a key ITD3 takes still counts
+        check_resume(tmp_path, meta, "itd3", "bottleneck", small | {"hidden": 32})

@@ -20,54 +20,12 @@ from coin_app.algorithms import registry
 
 SCALES = ("paper", "reduced", "smoke")
 
-# Smoke scale: the quick scenario and small networks of the learning tests, and batch sizes so a
-# trial is a few iterations of a few seconds each (tests and CI). The PPO family's scales are its presets
-# (coin_app/algorithms/ppo_family/settings.py PRESETS: paper = CoPO's 4 sampling workers, reduced, smoke).
-SMOKE_TD3 = {"warmup_steps": 200, "updates_per_env_step": 0.1}
-
-
-# Reduced scale: COIN's comparison sized for one small machine (the protocol and its evidence are in
-# docs/results/README.md and journal.md): the quick scenario (4 agents) and small networks of the learning curves
-# (registry.quick_settings: for the TD3 family one update of 128 transitions per env step, the freeze
-# guard), plus each family's settings below.
-# fp32: at these sizes a bf16 update takes 3.3x the fp32 time for CIG-TD3 (benchmarks/learner_update.py --size quick).
-# The stronger saturation guard (10x the quick settings' weight, from |u| = 1 instead of 2): with the quick settings' guard
-# CIG-TD3 froze late in the protocol's first sweep (seed 0); with this one it did not (docs/results/journal.md).
-# Exploration noise 0.1 (the paper's is 0.05): judged on CIG-TD3 by a rule fixed before its trials were evaluated, it raised
-# the five seeds' validation success from 0.541 to 0.639 (docs/results/journal.md, "Levers after the fourth sweep"); the whole
-# TD3 family gets it, as it gets every other protocol setting.
-# Minibatches of 256 transitions per update (the paper's; the quick settings' 128): judged on CIG-TD3 by the rule fixed before
-# its trials, which adopts a setting of the paper's own unless it lowers the five seeds' validation success by more than 0.05:
-# 0.613 against 0.649 (seed 1 far higher, seed 4 far lower; docs/results/journal.md, "Levers after the fifth sweep").
-# The actor (and the targets) updated after every critic update (policy_delay 1; the paper's is 5, TD3's 2): judged on
-# CIG-TD3 by a rule fixed before its trials (adopted only above 0.663), 0.668 on the validation seeds, at the edge of what
-# ten validation seeds resolve (docs/results/journal.md, "Levers after the batch-256 lever").
-# A vehicle's time-out ends its TD target (timeout_bootstrap False: the paper's d_i, as the PPO family already does): judged
-# on CIG-TD3 by a rule fixed before its trials (a paper setting, adopted unless below 0.618), 0.766 on the validation seeds
-# against 0.668; the deterministic policies had deadlocked at the junction's entries (docs/results/journal.md, "Levers after
-# the policy-delay lever").
-# Exploration std 0.1 for the first half of the budget, then decaying linearly to REDUCED_NOISE_FINAL with the learning rates
-# (reduced_decay): judged on CIG-TD3 by a rule fixed before its trials (adopted only at or above 0.816), 0.843 on the
-# validation seeds against 0.766 (docs/results/journal.md, "Levers after the policy-delay lever").
-REDUCED_NOISE_FINAL = 0.02
-REDUCED_TD3: dict[str, Any] = {
-    "precision": "fp32",
-    "actor_preact_penalty": 0.01,
-    "actor_preact_threshold": 1.0,
-    "exploration_noise_initial": 0.1,
-    "exploration_noise": REDUCED_NOISE_FINAL,
-    "train_batch_size_per_learner": 256,
-    "policy_delay": 1,
-    "timeout_bootstrap": False,
-}
-# The TD3 family's learning rates decay linearly to this fraction over the second half of each trial's budget, as its
-# exploration std does to REDUCED_NOISE_FINAL (reduced_decay): with constant rates the policies learned, then froze or
-# crashed late (docs/results/journal.md).
+# The scales of each algorithm are presets of its settings (its package's settings.py: paper, reduced, smoke), over the quick
+# scenario at the smoke and reduced scales (registry.quick_scenario). The reduced protocol's TD3 family also decays its
+# learning rates to REDUCED_LR_FINAL_FRACTION, and its exploration std to the preset's exploration_noise, over the second half
+# of each trial's budget (reduced_decay): with constant rates the policies learned, then froze or crashed late
+# (docs/results/journal.md).
 REDUCED_LR_FINAL_FRACTION = 0.1
-# TraCo with its domain critic alone collapsed at once to one constant action for every observation (steer ~0.7,
-# throttle ~-0.7: braking) on seeds 0 and 1 under the protocol's guard; with its optional individual critic (Q^l_1 added to
-# its actor objective, one of TraCo's inferred options in docs/guides/traco.md) both seeds drove (docs/results/journal.md).
-REDUCED_ALGO: dict[str, dict[str, Any]] = {"traco": {"individual_critic": True}}
 
 
 @dataclass(frozen=True)
@@ -182,10 +140,9 @@ def reduced_decay(steps: int) -> dict[str, Any]:
 def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     """The named layers of one trial's registry overrides, lowest first: the scale's, the variant's, the user's ``--set``.
 
-    Smoke and reduced scales: the quick scenario, then the algorithm's preset of that name (the PPO
-    family's settings.py) or the TD3 family's quick settings with its scale's (its rates decaying over the
-    second half of the budget) and the per-algorithm ones (``REDUCED_ALGO``: TraCo's individual critic);
-    paper scale: the algorithm's ``paper`` preset (the PPO family's 4 env runners).
+    Every scale is the algorithm's preset of that name (its settings.py), over the quick scenario at the
+    smoke and reduced scales; the reduced TD3 family's rates and exploration decay over the second half of
+    the budget (``reduced_decay``); paper scale: the PPO family's 4 env runners.
     ``python -m coin_app config`` prints them.
     """
     algo, scale = config["algo"], config["scale"]
@@ -193,19 +150,11 @@ def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     layers: list[tuple[str, dict[str, Any]]] = []
     if scale in ("smoke", "reduced"):
         layers.append((f"quick scenario (registry.quick_scenario({config['scenario']!r}))", registry.quick_scenario(config["scenario"])))
-    if spec.settings is not None:  # the scale is a preset of the algorithm's settings (its family's settings.py)
-        if scale in spec.presets:
-            layers.append((f"preset {scale!r} ({spec.settings.__module__})", spec.presets[scale].changes()))
-    elif scale in ("smoke", "reduced"):  # the TD3 family: its quick settings, then the scale's
-        layers.append(("quick settings (the spec's quick)", dict(spec.quick)))
-        if scale == "smoke":
-            layers.append(("smoke scale (SMOKE_TD3)", dict(SMOKE_TD3)))
-        else:
-            layers.append(("reduced scale (REDUCED_TD3)", dict(REDUCED_TD3)))
-            steps = int(config["steps"])
-            layers.append((f"reduced scale: decay over the second half of {steps:,} env steps", reduced_decay(steps)))
-    if scale == "reduced" and algo in REDUCED_ALGO:
-        layers.append((f"reduced scale (REDUCED_ALGO[{algo!r}])", dict(REDUCED_ALGO[algo])))
+    if scale in spec.presets:
+        layers.append((f"preset {scale!r} ({spec.settings.__module__})", spec.presets[scale].changes()))
+    if scale == "reduced" and "lr_decay_start" in spec.keys():  # the TD3 family's late decay
+        steps = int(config["steps"])
+        layers.append((f"reduced scale: decay over the second half of {steps:,} env steps", reduced_decay(steps)))
     layers.append((f"variant {config['variant']!r}", dict(config["variant_overrides"][config["variant"]])))
     layers.append(("--set", dict(config["overrides"])))
     return layers

@@ -1,7 +1,7 @@
 """The main comparison (Table 5.1): every method trained with 8 seeds on one scenario, 1M env steps each.
 
 The reduced scale (``--scale reduced``) is the same comparison on one small machine: 5 seeds on the
-4-agent scenario (``tuning.experiment.REDUCED_TD3`` / the PPO family's ``reduced`` preset; docs/results/README.md).
+4-agent scenario (each algorithm's ``reduced`` preset, its package's settings.py; docs/results/README.md).
 """
 
 from coin_app.sim.scenes import DRIVING_SCENARIOS

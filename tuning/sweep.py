@@ -28,45 +28,35 @@ import importlib.util
 import json
 import os
 import signal
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlparse
 
 import ray
 from ray import tune
 
 from coin_app.algorithms import registry
+from coin_app.algorithms.checkpoint_files import code_version
 from coin_app.evaluation.generalization import evaluate_at_counts
+from coin_app.evaluation.limits import CONNECT_TIMEOUT_S, check_timeout
+from coin_app.evaluation.outputs import OutputLock, write_text_atomic
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings, trial_name
+from coin_app.training import check_address
 from tuning import get_experiment
-from tuning.experiment import expand_grid
+from tuning.experiment import expand_grid, trial_layers
 from tuning.progress_csv import AlignedCSVLogger
 from tuning.reaper import clear_mark, start_reaper
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus
 
 EXPERIMENT_STATE_GLOB = "experiment_state-*.json"
+RESOLVED = "resolved"  # coin_sweep.json: every trial's resolved settings (trial name -> key -> value), what it runs with
+ACCEPTED = "accepted_changes"  # coin_sweep.json: the setting changes a --resume --accept-changes continued with
 RESTART_PENDING = "restart_pending"  # coin_sweep.json: methods of a --restart begun and not yet run (a plain --resume is refused)
 LIVE_STATE_S = 30.0  # an experiment state written more recently than this: the sweep's driver may still be running
 REPLACED_DIR = "replaced"  # restarted trials' earlier directories: replaced/<time>/<trial dir> (out of the report's reach)
-
-
-def check_address(address: str | None, timeout: float = 5.0) -> None:
-    """A ValueError unless ``address`` is None, ``auto``/``local``, or a reachable ``[ray://]host:port``."""
-    if address in (None, "auto", "local"):
-        return
-    parsed = urlparse(address if "://" in address else f"tcp://{address}")
-    if parsed.scheme not in ("tcp", "ray") or not parsed.hostname or parsed.port is None:
-        raise ValueError(f"bad --address {address!r}; allowed: auto, local, HOST:PORT (GCS address) or ray://HOST:PORT (Ray client)")
-    try:
-        with socket.create_connection((parsed.hostname, parsed.port), timeout=timeout):
-            pass
-    except OSError as exc:
-        raise ValueError(f"cannot reach a Ray cluster at {address}: {exc} (is `ray start --head` running there?)") from exc
 
 
 def storage_root(storage: str | None) -> str:
@@ -103,7 +93,78 @@ def check_local_gpus(needed: float, started_here: bool) -> None:
         )
 
 
-def run_sweep(
+def sweep_name(name: str | None, experiment: str, scenario: str, scale: str) -> str:
+    """The experiment directory's name: ``name``, or ``<experiment>-<scenario>[-<scale>]``."""
+    return name or f"{experiment}-{scenario}" + ("" if scale == "paper" else f"-{scale}")
+
+
+def run_sweep(experiment: str, scenario: str = "intersection", scale: str = "paper", **kwargs: Any) -> dict[str, Any]:
+    """Run (or resume) one sweep with its local experiment directory locked to this driver (see :func:`_run_sweep`)."""
+    tracking_callbacks(kwargs.get("wandb_project"), kwargs.get("mlflow_uri"), experiment)  # the refusals that need no directory
+    get_experiment(experiment).scale(scale)
+    check_timeout(kwargs.get("connect_timeout", CONNECT_TIMEOUT_S), "--connect-timeout")
+    root = storage_root(kwargs.get("storage"))
+    if "://" in root:  # a remote store: Tune's own
+        return _run_sweep(experiment, scenario, scale, **kwargs)
+    path = experiment_path(root, sweep_name(kwargs.get("name"), experiment, scenario, scale))
+    with OutputLock(path, kwargs.get("command"), what="sweep directory (--name)") as lock:
+        if lock.stale_note():
+            kwargs.get("log", print)(str(lock.stale_note()))
+        return _run_sweep(experiment, scenario, scale, **kwargs)
+
+
+def resolved_settings(trials: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Every trial's settings as this code resolves them (``registry.merged_settings`` of its layers), by trial name."""
+    out = {}
+    for t in trials:
+        merged = {s.key: s.value for s in registry.merged_settings(t["algo"], t["scenario"], trial_layers(t))}
+        out[trial_name(t)] = json.loads(json.dumps(merged | {"steps": int(t["steps"])}, default=repr))
+    return out
+
+
+def protocol_changes(recorded: dict[str, dict[str, Any]], now: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """Setting key -> ``"old -> new (k trial(s))"`` for every key whose resolved value differs between the two records."""
+    changed: dict[str, list[tuple[Any, Any]]] = {}
+    for trial, settings in now.items():
+        before = recorded.get(trial)
+        if before is None:
+            continue
+        for key in sorted(before.keys() | settings.keys()):
+            if before.get(key, "absent") != settings.get(key, "absent"):
+                changed.setdefault(key, []).append((before.get(key, "absent"), settings.get(key, "absent")))
+    return {k: f"{v[0][0]!r} -> {v[0][1]!r} ({len(v)} trial(s))" for k, v in changed.items()}
+
+
+def check_protocol(
+    path: Path, settings: dict[str, Any], restart: tuple[str, ...], accept: bool, command: str | None, log: Callable[[str], None]
+) -> dict[str, Any]:
+    """Refuse to resume a sweep whose trials this code would run with other settings than recorded (restarted methods aside),
+    unless ``accept``: then the changes are recorded in ``coin_sweep.json``; returns the settings as written."""
+    configs = [t["config"] for t in _trial_states(path)[2]]
+    now = resolved_settings(configs)
+    kept = {trial_name(c) for c in configs if c["algo"] not in restart}  # restarted trials run this code's settings afresh
+    recorded = settings.get(RESOLVED)
+    if recorded is None:
+        log(f"note: {path} predates recorded trial settings; this code's are recorded now and checked on the next --resume")
+    else:
+        changes = protocol_changes(recorded, {k: v for k, v in now.items() if k in kept})
+        if changes and not accept:
+            listed = "; ".join(f"{k}: {v}" for k, v in changes.items())
+            raise ValueError(
+                f"{path}: this code resolves other settings than the sweep ran with ({listed}); allowed: --accept-changes to "
+                f"continue with them (recorded), --restart METHOD to rerun a method's trials, or the code the sweep started with "
+                f"({settings.get('code_version', 'unknown')})"
+            )
+        if changes:
+            log(f"--accept-changes: the trials continue with {len(changes)} changed setting(s): {', '.join(changes)} (recorded)")
+            entry = {"time": time.strftime("%Y-%m-%d %H:%M:%S"), "command": command, "code_version": code_version(), "changes": changes}
+            settings = settings | {ACCEPTED: [*settings.get(ACCEPTED, []), entry]}
+    settings = settings | {RESOLVED: {**(recorded or {}), **now}}
+    write_settings(path, settings)
+    return settings
+
+
+def _run_sweep(
     experiment: str,
     scenario: str = "intersection",
     scale: str = "paper",
@@ -122,8 +183,15 @@ def run_sweep(
     command: str | None = None,
     wandb_project: str | None = None,
     mlflow_uri: str | None = None,
+    accept_changes: bool = False,
+    connect_timeout: float = CONNECT_TIMEOUT_S,
 ) -> dict[str, Any]:
     """Run (or resume) one sweep; returns its summary (experiment directory, trials, generalization CSV).
+
+    A local sweep directory has one driver (:class:`~coin_app.evaluation.outputs.OutputLock`). It
+    records every trial's resolved settings (``RESOLVED``); ``resume`` refuses when this code
+    resolves other settings for a trial that is not restarted (:func:`protocol_changes`), unless
+    ``accept_changes``, which continues and records the changes (``ACCEPTED``).
 
     ``restart`` (with ``resume``): these methods' trials run again from scratch (``restart_trials``).
     ``wandb_project`` / ``mlflow_uri``: also log every trial's results with Tune's W&B / MLflow
@@ -137,8 +205,7 @@ def run_sweep(
         raise ValueError(f"bad --max-concurrent {max_concurrent}; allowed: an integer >= 1")
     if steps is not None and steps < 1:
         raise ValueError(f"bad --steps {steps}; allowed: an integer >= 1")
-    root = storage_root(storage)
-    name = name or f"{experiment}-{scenario}" + ("" if scale == "paper" else f"-{scale}")
+    root, name = storage_root(storage), sweep_name(name, experiment, scenario, scale)
     path = experiment_path(root, name)
     local = "://" not in root
     gpus = 0.0  # GPUs each trial reserves (fresh sweeps with learner settings)
@@ -155,10 +222,14 @@ def run_sweep(
             )
         if restart:
             check_restart(path, restart, settings, local)
+        if local:
+            settings = check_protocol(path, settings, restart, accept_changes, command, log)
         space = None
     else:
         if restart:
             raise ValueError(f"--restart {' '.join(restart)} without --resume; allowed: --restart only with --resume")
+        if accept_changes:
+            raise ValueError("--accept-changes without --resume; allowed: --accept-changes only with --resume")
         if local and path.exists() and any(path.iterdir()):
             raise ValueError(f"experiment directory {path} already exists; continue it with --resume or pick another --name")
         space = exp.param_space(scenario, scale, methods, seeds, steps, overrides)
@@ -180,11 +251,13 @@ def run_sweep(
             "trials": len(trials),
             "started": time.strftime("%Y-%m-%d %H:%M:%S"),
             "command": command,
+            "code_version": code_version(),
+            RESOLVED: resolved_settings(trials),
         }
         log(f"sweep {experiment} on {scenario} ({scale} scale): {len(trials)} trials -> {path}")
         if gpus:
             log(f"each trial reserves {gpus:g} GPU(s) for its learner")
-    check_address(address)
+    check_address(address, connect_timeout)
     os.environ.setdefault("TUNE_GLOBAL_CHECKPOINT_S", "5")
     # the frequent state saves above are deliberate (resume after kill -9); Tune's warning about them is noise
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")
@@ -299,9 +372,7 @@ def check_restart(path: Path, methods: tuple[str, ...], settings: dict[str, Any]
 
 def write_settings(path: Path, settings: dict[str, Any]) -> None:
     """Write a sweep's ``coin_sweep.json`` atomically."""
-    tmp = path / f"{SETTINGS_FILE}.tmp"
-    tmp.write_text(json.dumps(settings, indent=2))
-    os.replace(tmp, path / SETTINGS_FILE)
+    write_text_atomic(path / SETTINGS_FILE, json.dumps(settings, indent=2))
 
 
 def restart_trials(path: Path, methods: tuple[str, ...], command: str | None = None) -> tuple[list[str], Path]:
@@ -404,5 +475,5 @@ def write_generalization(
     log(f"generalization: {len(runs)} checkpoints x agent counts {counts} x {test_seeds} test seeds")
     table = evaluate_at_counts(runs, counts, test_seeds, log)
     out = Path(path) / "generalization.csv"
-    table.to_csv(out, index=False)
+    write_text_atomic(out, table.to_csv(index=False))
     return out

@@ -27,6 +27,7 @@ from ray.tune import PlacementGroupFactory
 
 from coin_app.algorithms.checkpoint_files import verify
 from coin_app.training import build_config, checkpoint_meta, iteration_metrics, save
+from coin_app.training.checkpoints import check_restorable
 from tuning.experiment import trial_overrides
 
 
@@ -88,7 +89,9 @@ class CoinTrial(tune.Trainable):
 
     def load_checkpoint(self, checkpoint: str) -> None:
         """Restore the algorithm (weights, optimizers, replay buffer, counters) from a verified checkpoint."""
-        verify(Path(checkpoint))  # a torn or altered checkpoint is refused by name
+        meta = verify(Path(checkpoint))  # a torn or altered checkpoint is refused by name
+        method = self.config["algo"]
+        check_restorable(self.algo, Path(checkpoint), meta, f"sweep --resume --restart {method} (reruns its trials with this code)")
         self.algo.restore_from_path(str(Path(checkpoint).resolve()))
         self.last = {"env_steps": int(self.algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))}
 

@@ -23,8 +23,9 @@ from pettingzoo import ParallelEnv
 from coin_app.backends.factory import make_driving_env
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.inputs import check_seed
 from coin_app.sim.rendering import render_frame
-from coin_app.sim.scenarios import config_from_dict
+from coin_app.sim.scenarios import env_config
 
 
 class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
@@ -49,12 +50,10 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
     ):
 
         config: Any
-        if isinstance(scenario, (ScenarioConfig, ArenaConfig)):
-            if preset is not None or overrides:
-                raise ValueError("pass either a config or scenario/preset/overrides, not both")
-            config = scenario
+        if isinstance(scenario, (ScenarioConfig, ArenaConfig)):  # a config in the scenario's place (this env's first argument)
+            config = env_config(scenario, None, preset, overrides, "CoinParallelEnv")
         else:
-            config = config_from_dict(scenario, overrides if preset is None else {**overrides, "preset": preset})
+            config = env_config(None, scenario, preset, overrides, "CoinParallelEnv")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unknown render_mode {render_mode!r}; allowed: {', '.join(self.metadata['render_modes'])} or None")
         if render_mode is not None and isinstance(config, ArenaConfig):
@@ -67,6 +66,7 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         self.agents: list[str] = []
         self._obs_spaces: dict[str, gym.spaces.Box] = {}
         self._act_spaces: dict[str, gym.spaces.Box] = {}
+        self._closed = False
 
     def _check_id(self, agent: str) -> None:
         if agent not in self._pool:
@@ -91,13 +91,16 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         return space
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
-        """Start a new episode; returns observations and infos of the initial agents (``options`` is unused)."""
-        obs, infos = self.driving_env.reset(seed)
+        """Start a new episode (``seed``: None or an integer >= 0); returns observations and infos of the initial agents
+        (``options`` is unused)."""
+        self._check_open()
+        obs, infos = self.driving_env.reset(check_seed(seed))
         self.agents = list(self.driving_env.agents)
         return obs, infos
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Act for every agent in ``agents``; newcomers get reward 0.0 and False flags (see module doc)."""
+        self._check_open()
         obs, rewards, terms, truncs, infos = self.driving_env.step(actions)
         for aid in obs:
             if aid not in rewards:
@@ -116,6 +119,11 @@ class CoinParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         return render_frame(self.driving_env)
 
     def close(self) -> None:
-        """Release the backend (shuts a MetaDrive engine down)."""
+        """Release the backend (shuts a MetaDrive engine down); ``reset`` and ``step`` are refused afterwards."""
         self.agents = []
+        self._closed = True
         self.driving_env.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("the env is closed (close() was called); allowed: a new CoinParallelEnv")

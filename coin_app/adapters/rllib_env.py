@@ -52,11 +52,14 @@ from coin_app.backends.factory import make_driving_env
 from coin_app.sim import schema
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
-from coin_app.sim.scenarios import config_from_dict, scenario_name
+from coin_app.sim.inputs import check_seed
+from coin_app.sim.scenarios import env_config as env_config_of_parts
+from coin_app.sim.scenarios import scenario_name
 from coin_app.sim.scenes import SCENARIOS, env_id
 
 OUTCOMES = ("finished", "succeeded", "collided", "agent_steps", "speed_sum")  # CoinMultiAgentEnv.outcomes (module doc)
 SCENARIO_CONFIG_KEY = "scenario_config"  # env_config key of an already parsed (typed) scenario config
+WHO = "CoinMultiAgentEnv"  # how the shared checks name this env
 ADAPTER_KEYS = ("scenario", "lcf", SCENARIO_CONFIG_KEY)  # env_config keys of the adapter itself, not of the scenario
 ENV_IDS: dict[str, str] = {env_id(name): name for name in SCENARIOS}
 
@@ -95,7 +98,9 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         self.outcomes = dict.fromkeys(OUTCOMES, 0)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
-        """Start a new episode; returns observations and infos of the initial agents (``options`` is unused)."""
+        """Start a new episode (``seed``: None or an integer >= 0); returns observations and infos of the initial agents
+        (``options`` is unused)."""
+        seed = check_seed(seed)
         super().reset(seed=seed, options=options)
         obs, infos = self.driving_env.reset(seed)
         self.agents = list(self.driving_env.agents)
@@ -164,17 +169,14 @@ class CoinMultiAgentEnv(MultiAgentEnv):
 def _scenario_config(env_config: dict[str, Any]) -> ScenarioConfig | ArenaConfig:
     """The scenario config of an env_config without its ``lcf``: the typed one it carries, or parsed from overrides."""
     if SCENARIO_CONFIG_KEY not in env_config:
-        return config_from_dict(env_config.pop("scenario", "intersection"), env_config)
+        return env_config_of_parts(None, env_config.pop("scenario", None), env_config.pop("preset", None), env_config, WHO)
     config = env_config.pop(SCENARIO_CONFIG_KEY)
     if not isinstance(config, (ScenarioConfig, ArenaConfig)):
         raise ValueError(f"bad env_config scenario_config {config!r}; allowed: a ScenarioConfig or an ArenaConfig")
     name = env_config.pop("scenario", scenario_name(config))
-    if env_config or name != scenario_name(config):
-        raise ValueError(
-            f"env_config has a scenario_config of {scenario_name(config)!r} and also {sorted(env_config) or name!r}; "
-            "allowed: scenario_config alone (set overrides on the config instead)"
-        )
-    return config
+    if name != scenario_name(config):
+        raise ValueError(f"env_config has a scenario_config of {scenario_name(config)!r} and scenario {name!r}; allowed: one scenario")
+    return env_config_of_parts(config, None, env_config.pop("preset", None), env_config, WHO)  # refuses any other key: never dropped
 
 
 def parse_env_config(env_config: Mapping[str, Any] | None) -> tuple[ScenarioConfig | ArenaConfig, dict[str, float] | None]:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import pickle
 import shutil
 import subprocess
 from importlib import metadata
@@ -26,7 +27,10 @@ META_FILE = "coin_app.json"  # the algorithm, scenario, seed, overrides and env 
 MANIFEST_FILE = "coin_app_manifest.json"  # every file's size and SHA-256, the config hash and the code version
 SHARED_MODULE_ID = "shared"  # the one RLModule all agents share (parameter sharing; common.py's glue builds it)
 
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 1  # the manifest format this code writes
+READABLE_MANIFEST_VERSIONS = (1,)  # the manifest formats this code reads
+SHAPES_KEY = "parameter_shapes"  # coin_app.json: name -> shape of every tensor of the shared module, as saved
+MODULE_STATE_FILE = "module_state.pkl"  # the shared module's tensors (RLlib's file, a pickle of numpy arrays)
 MODULE_PATH = ("learner_group", "learner", "rl_module", SHARED_MODULE_ID)  # the shared module inside a checkpoint
 PARTIAL_SUFFIX = ".partial"  # a checkpoint being written: <parent>/.<name>.partial
 PREVIOUS_SUFFIX = ".prev"  # the previous checkpoint, kept until the new one is in place
@@ -132,6 +136,13 @@ def verify(checkpoint: Path) -> dict[str, Any]:
         files = dict(manifest["files"])
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{checkpoint}: unreadable {MANIFEST_FILE} or {META_FILE} ({exc})") from exc
+    version = manifest.get("version")
+    if version not in READABLE_MANIFEST_VERSIONS:
+        raise ValueError(
+            f"checkpoint {checkpoint}: its manifest has format version {version!r}, this code reads version(s) "
+            f"{', '.join(map(str, READABLE_MANIFEST_VERSIONS))}; allowed: a checkpoint of this coin_app version, or the coin_app "
+            f"that wrote it ({manifest.get('code_version', 'unknown')})"
+        )
     present = _files(checkpoint)
     missing = sorted(set(files) - set(present))
     extra = sorted(set(present) - set(files))
@@ -153,8 +164,35 @@ def verify(checkpoint: Path) -> dict[str, Any]:
                 f"checkpoint {checkpoint}: {META_FILE} says {field_name} {value!r}, its manifest "
                 f"{manifest.get(field_name)!r} (files of two checkpoints mixed)"
             )
+    if SHAPES_KEY in meta:
+        recorded = {k: tuple(v) for k, v in meta[SHAPES_KEY].items()}
+        differ = shape_difference(recorded, module_shapes(checkpoint), "in its metadata", "in its tensors")
+        if differ:
+            raise ValueError(f"checkpoint {checkpoint}: its tensors are not the network its metadata records ({differ})")
     _VERIFIED[key] = meta
     return dict(meta)
+
+
+def module_shapes(checkpoint: Path) -> dict[str, tuple[int, ...]]:
+    """Name -> shape of every tensor of the shared module saved in ``checkpoint`` (read from its module state file)."""
+    path = Path(checkpoint).joinpath(*MODULE_PATH, MODULE_STATE_FILE)
+    try:
+        with open(path, "rb") as f:
+            state = pickle.load(f)
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:
+        raise ValueError(f"checkpoint {checkpoint}: cannot read its module's tensors ({type(exc).__name__}: {exc})") from exc
+    return {str(k): tuple(v.shape) for k, v in state.items() if hasattr(v, "shape")}
+
+
+def shape_difference(
+    there: dict[str, tuple[int, ...]], here: dict[str, tuple[int, ...]], there_name: str = "there", here_name: str = "here"
+) -> str | None:
+    """None if two networks' tensors have the same names and shapes; else the first difference and how many differ."""
+    diff = sorted(k for k in there.keys() | here.keys() if there.get(k) != here.get(k))
+    if not diff:
+        return None
+    k = diff[0]
+    return f"{k}: {there.get(k, 'absent')} {there_name}, {here.get(k, 'absent')} {here_name}; {len(diff)} tensor(s) differ"
 
 
 def _previous_hint(checkpoint: Path) -> str:
@@ -187,6 +225,7 @@ def save_checkpoint(algo: Any, checkpoint: Path, meta: dict[str, Any], atomic: b
     checkpoint = Path(checkpoint)
     if not atomic:
         algo.save_to_path(str(checkpoint.resolve()))
+        meta = meta | {SHAPES_KEY: module_shapes(checkpoint)}
         write_metadata(checkpoint, meta)
         write_manifest(checkpoint, meta)
         return checkpoint
@@ -194,6 +233,7 @@ def save_checkpoint(algo: Any, checkpoint: Path, meta: dict[str, Any], atomic: b
     prev = checkpoint.with_name(checkpoint.name + PREVIOUS_SUFFIX)
     shutil.rmtree(partial, ignore_errors=True)
     algo.save_to_path(str(partial.resolve()))
+    meta = meta | {SHAPES_KEY: module_shapes(partial)}
     write_metadata(partial, meta)
     write_manifest(partial, meta)
     if checkpoint.exists():

@@ -12,12 +12,13 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from coin_app.algorithms.choices import ALGORITHM_NAMES
-from coin_app.algorithms.cig_td3.cig_td3 import CIG_TD3, ITD3
+from coin_app.algorithms.cig_td3.settings import CIG_TD3
 from coin_app.algorithms.copo.settings import COPO
 from coin_app.algorithms.nav_ppo.settings import NAV_PPO
 from coin_app.algorithms.ppo_family.settings import CPPO, IPPO, MFPO
 from coin_app.algorithms.spec import AlgorithmSpec
-from coin_app.algorithms.traco.traco import TRACO
+from coin_app.algorithms.td3.settings import ITD3
+from coin_app.algorithms.traco.settings import TRACO
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import PRESETS, ScenarioConfig
 from coin_app.sim.road_map import load_map

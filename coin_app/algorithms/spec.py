@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
-from coin_app.algorithms.checks import RULES, Rule
+from coin_app.algorithms.checks import Rule
 from coin_app.algorithms.choices import LCF_MODES  # noqa: F401 (re-exported)
 from coin_app.algorithms.settings import Settings
 from coin_app.sim.arena.config import ArenaConfig
@@ -58,34 +58,35 @@ class AlgorithmSpec:
     description: str
     build: ConfigBuilder | str  # the builder, or "package.module:function" imported when a config is built
     capabilities: Capabilities
-    # the algorithm's settings class (coin_app.algorithms.settings) and its presets (values of it: quick, tiny, ...);
-    # ``hyperparameters``, ``quick`` and ``tiny`` derive from them
-    settings: type[Settings] | None = None
-    presets: Mapping[str, Settings] = field(default_factory=dict)
-    hyperparameters: Mapping[str, tuple[Any, str]] = field(default_factory=dict)  # --set key -> (default, meaning)
+    settings: type[Settings]  # every --set key of the algorithm, declared once (coin_app.algorithms.settings)
+    presets: Mapping[str, Settings] = field(default_factory=dict)  # values of ``settings``: paper, quick, smoke, reduced, tiny
     scenarios: tuple[str, ...] = DRIVING_SCENARIOS
-    quick: Mapping[str, Any] = field(default_factory=dict)  # hyper-parameters of the small quick scenario
-    # the smallest settings that build, update and checkpoint in seconds (tests; registry.tiny_settings adds the scenario's)
-    tiny: Mapping[str, Any] = field(default_factory=dict)
     # scenario values the algorithm sets beneath the user's --set (nav_ppo's stage mix), from its --set values
     scenario_defaults: Callable[[Mapping[str, Any]], dict[str, Any]] = _no_scenario_defaults
 
-    def __post_init__(self) -> None:
-        if self.settings is not None:  # everything below is derived from the one declaration of each setting
-            object.__setattr__(self, "hyperparameters", {**self.settings.hyperparameters(), **self.hyperparameters})
-            for name in ("quick", "tiny"):
-                if name in self.presets:
-                    object.__setattr__(self, name, self.presets[name].changes())
+    @property
+    def hyperparameters(self) -> dict[str, tuple[Any, str]]:
+        """``--set`` key -> (default, meaning), from the settings class."""
+        return self.settings.hyperparameters()
+
+    @property
+    def quick(self) -> dict[str, Any]:
+        """The ``quick`` preset's changes from the defaults (the small networks of ``--quick`` and the learning curves)."""
+        return self.presets["quick"].changes() if "quick" in self.presets else {}
+
+    @property
+    def tiny(self) -> dict[str, Any]:
+        """The ``tiny`` preset's changes: the smallest settings that build, update and checkpoint in seconds (tests)."""
+        return self.presets["tiny"].changes() if "tiny" in self.presets else {}
 
     def keys(self) -> tuple[str, ...]:
         """The algorithm's ``--set`` keys."""
         return tuple(self.hyperparameters)
 
     def rule(self, key: str) -> Rule | None:
-        """The rule of ``key``'s values: its declaration's (the settings class), else the checks table's; None for neither."""
-        if self.settings is not None and key in self.settings.keys():
-            return self.settings.declarations()[key].rule
-        return RULES.get(key)
+        """The rule of ``key``'s values (its declaration's in the settings class); None for a key the class does not declare."""
+        decl = self.settings.declarations().get(key)
+        return decl.rule if decl is not None else None
 
     def value_errors(self, values: Mapping[str, Any]) -> list[str]:
         """The one-line message of every bad value in ``values`` (keys without a rule pass)."""

@@ -55,7 +55,7 @@ import numpy as np
 
 from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig, make_config
-from coin_app.sim.driving_env import checked_actions
+from coin_app.sim.inputs import checked_actions
 from coin_app.sim.rendering import render_frame
 from coin_app.sim.road_map import RoadMap, load_map
 from coin_app.sim.scenes import SCENES

@@ -6,6 +6,7 @@ import argparse
 
 from cluster import jobs
 from coin_app.cli.parser import UsageError, build_parser
+from coin_app.evaluation.limits import check_timeout
 
 
 def _check_command(command: list[str]) -> None:
@@ -20,6 +21,8 @@ def cmd_submit(args: argparse.Namespace) -> int:
     """Submit a coin_app command as a Ray job; print the job id (and follow it with --wait)."""
 
     command = args.command[1:] if args.command[:1] == ["--"] else args.command
+    if args.wait:
+        check_timeout(args.timeout, "--timeout")  # before the job is sent: a job nobody follows is not started
     address = args.address or jobs.DEFAULT_ADDRESS
     job_id = jobs.submit(command, address, args.install, args.submission_id, check_command=_check_command)
     print(f"submitted job {job_id} to {address}: python -m coin_app {' '.join(command)}")
@@ -27,7 +30,13 @@ def cmd_submit(args: argparse.Namespace) -> int:
     if not args.wait:
         print(job_id)
         return 0
-    state = jobs.wait(job_id, address, args.timeout)
+    try:
+        state = jobs.wait(job_id, address, args.timeout)
+    except ValueError:  # --wait's time ran out: the job goes on, and that is said
+        print(
+            f"job {job_id} still runs after --timeout {args.timeout:g} s; stop it: python -m coin_app job stop {job_id} --address {address}"
+        )
+        raise
     print(f"\njob {job_id} ended: {state}")
     return 0 if state == "SUCCEEDED" else 1
 

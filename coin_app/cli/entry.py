@@ -43,9 +43,9 @@ def main(argv: list[str] | None = None) -> int:
     args.command_line = shlex.join(["python", "-m", "coin_app", *argv])
     try:
         return int(command(args.run)(args))
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or a signal a command turned into a stop (its exit_code: 128 + the signal's number)
+        print(f"interrupted: {exc}" if str(exc) else "interrupted", file=sys.stderr)
+        return int(getattr(exc, "exit_code", 130))
     except Exception as exc:
         if debug:
             traceback.print_exc()

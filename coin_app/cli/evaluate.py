@@ -15,8 +15,8 @@ import pandas as pd
 
 from coin_app.algorithms.checkpoint_files import read_metadata
 from coin_app.algorithms.checkpoints import export_actor, load_module
-from coin_app.algorithms.checks import parse_overrides
 from coin_app.cli.drive import drive
+from coin_app.cli.flags import overrides_of
 from coin_app.cli.output import CONSOLE_ROWS, shown
 from coin_app.cli.policy_settings import check_preset, driving_config
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
@@ -31,29 +31,34 @@ from coin_app.evaluation.arena_suite import (
     summarize,
 )
 from coin_app.evaluation.evaluate import evaluate_policy
+from coin_app.evaluation.fit import policy_fit
+from coin_app.evaluation.limits import MAX_EPISODES, MAX_SCENARIOS_PER_CASE, check_count
 from coin_app.evaluation.metrics import aggregate
+from coin_app.evaluation.outputs import check_dir_output, check_file_output, write_text_atomic
 from coin_app.evaluation.policies import as_policy
 from coin_app.inference import export_policy, load_policy
 from coin_app.inference.formats import check_format
 from coin_app.inference.shipped import is_shipped_name
-from coin_app.inference.switching import write_pair
+from coin_app.inference.switching import check_arena_part, write_pair
 from coin_app.sim.config import DynamicsConfig
 from coin_app.sim.replay import write_replay
 from coin_app.sim.seeds import TEST_SEED_BASE, eval_test_seeds
 
 
-def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any], preset: str | None = None) -> Any:
-    """The scenario config to evaluate ``source`` on: its training config (checkpoint / export metadata), ``preset``, then overrides."""
-
+def _policy_meta(source: Path) -> tuple[dict[str, Any], int | None]:
+    """A policy's metadata (a checkpoint's or an exported file's) and the observation size its weights take (files only)."""
     if source.is_dir():
-        meta = read_metadata(source)
-        config = driving_config(meta, source, None, overrides, preset)
-        if scenario is not None and scenario != config.scenario:
-            raise ValueError(f"--scenario {scenario} contradicts the checkpoint's scenario {config.scenario}")
-        return config
-    if not source.is_file() and not is_shipped_name(source):
-        raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx)")
-    return driving_config(load_policy(source).meta, source, scenario, overrides, preset)
+        return read_metadata(source), None
+    if source.is_file() or is_shipped_name(source):
+        exported = load_policy(source)
+        return exported.meta, getattr(exported, "obs_dim", None)
+    raise ValueError(f"policy {source} does not exist; allowed: a checkpoint directory or an exported policy file (.npz, .pt, .onnx)")
+
+
+def _evaluation_config(source: Path, scenario: str | None, overrides: dict[str, Any], preset: str | None = None) -> Any:
+    """The scenario config to evaluate ``source`` on: its training config (checkpoint / export metadata), ``preset``,
+    ``scenario``, then overrides."""
+    return driving_config(_policy_meta(source)[0], source, scenario, overrides, preset)
 
 
 def _dynamics_name(dynamics: DynamicsConfig) -> str:
@@ -62,25 +67,23 @@ def _dynamics_name(dynamics: DynamicsConfig) -> str:
     return names.get(dynamics, "custom")
 
 
-def _within(path: Path, source: Path) -> bool:
-    """Whether ``path`` is ``source`` or lies inside it (an output that would overwrite the input)."""
-    path, source = path.resolve(), source.resolve()
-    return path == source or source in path.parents
-
-
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate a checkpoint or exported policy deterministically on test seeds and print the six metrics."""
 
-    if args.episodes < 1:
-        raise ValueError(f"bad --episodes {args.episodes}; allowed: an integer >= 1")
+    check_count(args.episodes, "--episodes", MAX_EPISODES)
     check_preset(args.preset)
     seeds = args.seeds if args.seeds else eval_test_seeds(args.episodes)
+    check_count(len(seeds), "number of --seeds", MAX_EPISODES)
     repeated = sorted({s for s in seeds if seeds.count(s) > 1})
     if repeated:
         raise ValueError(f"bad --seeds: {repeated} given more than once (an episode would count twice); allowed: distinct seeds")
+    if args.replay and Path(args.replay).suffix != ".html":
+        raise ValueError(f"bad --replay {args.replay}; allowed: a path ending in .html")
     for flag, out in (("--out", args.out), ("--replay", args.replay)):
-        if out and _within(Path(out), Path(args.policy)):
-            raise ValueError(f"bad {flag} {out}: it is, or is inside, the policy it evaluates; allowed: a path outside {args.policy}")
+        if out:
+            check_file_output(Path(out), [Path(args.policy)], flag, "the policy it evaluates")
+    if args.out and args.replay and Path(args.out).resolve() == Path(args.replay).resolve():
+        raise ValueError(f"--out and --replay name one file {args.out}; allowed: two paths")
     not_test = [s for s in seeds if s < TEST_SEED_BASE]
     if not_test:
         print(
@@ -88,17 +91,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             f"(test seeds are >= {TEST_SEED_BASE}); figures on them are not test results",
             file=sys.stderr,
         )
-    overrides = parse_overrides(args.set)
-    if args.num_agents is not None:
-        overrides["num_agents"] = args.num_agents
-    if args.backend is not None:
-        overrides["backend"] = args.backend
-    if args.replay and Path(args.replay).suffix != ".html":
-        raise ValueError(f"bad --replay {args.replay}; allowed: a path ending in .html")
+    overrides = overrides_of(args.set, {"num_agents": ("--num-agents", args.num_agents), "backend": ("--backend", args.backend)})
     source = Path(args.policy)
-    config = _evaluation_config(source, args.scenario, overrides, args.preset)
+    meta, obs_dim = _policy_meta(source)
+    config = driving_config(meta, source, args.scenario, overrides, args.preset)
+    warnings = policy_fit(meta, config, source, obs_dim)  # a layout it cannot read is refused here
     if args.replay and config.backend != "native":
         raise ValueError(f"--replay records the native simulator; got backend {config.backend!r} (drop --replay or --backend)")
+    for line in warnings:
+        print(line, file=sys.stderr)
     policy = as_policy(source)
     print(
         f"evaluate: {source} on {config.scenario} ({config.num_agents} agents, backend {config.backend}), "
@@ -123,8 +124,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "as COIN's Table 5.1; travel (arrived): arrivals only\n"
         "  time-outs: vehicles done without arriving, crashing or leaving the road (their step limit or the forced stop)"
     )
+    for line in warnings:  # in the summary too, where the figures are read
+        print(f"  {line}")
     if args.out:
-        Path(args.out).write_text(json.dumps({"seeds": seeds, "episodes": per_episode, "aggregate": agg}, indent=2, default=float))
+        results = {"seeds": seeds, "episodes": per_episode, "aggregate": agg, "warnings": warnings}
+        write_text_atomic(Path(args.out), json.dumps(results, indent=2, default=float))
         print(f"  per-episode results: {args.out}")
     if args.replay:
         limit = config.force_stop_factor * config.horizon
@@ -139,6 +143,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     check_format(args.format, args.out)  # before loading anything
     checkpoint = Path(args.checkpoint)
+    check_file_output(Path(args.out), [checkpoint], what="the checkpoint it exports")  # inside, it would tear it (its manifest)
     meta = read_metadata(checkpoint)
     module = load_module(checkpoint)
     actor, reference, extra = export_actor(module)
@@ -164,8 +169,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_pair(args: argparse.Namespace) -> int:
     """Write a switching-policy file: the short-range policy inside --switch-radius of the target, the long-range one outside."""
 
+    check_file_output(Path(args.out), [Path(args.long), Path(args.short)], what="a policy it pairs")
+    for role, source in (("long", args.long), ("short", args.short)):
+        part = as_policy(source)  # a bad source fails now, not in the evaluation
+        check_arena_part(role, part, read_metadata(Path(source)).get("scenario") if Path(source).is_dir() else None)
     out = write_pair(args.out, args.long, args.short, args.switch_radius)
-    policy = as_policy(out)  # loads both parts: a bad source fails now, not in the evaluation
+    policy = as_policy(out)
     print(f"pair: long {args.long} + short {args.short}, switch at {policy.switch_radius} m -> {out}")
     return 0
 
@@ -175,8 +184,8 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
 
     cases = parse_cases(args.cases)
     labels = policy_labels(args.policy)
-    if args.scenarios_per_case < 1:
-        raise ValueError(f"bad --scenarios-per-case {args.scenarios_per_case}; allowed: an integer >= 1")
+    check_count(args.scenarios_per_case, "--scenarios-per-case", MAX_SCENARIOS_PER_CASE)
+    check_dir_output(Path(args.out), [Path(p) for p in args.policy if Path(p).exists()], what="a policy it evaluates")
     observes = {  # a bad source or entity count fails now, before any policy is evaluated
         source: policy_config(load_arena_policy(source), args.max_steps, args.protocol, args.generator, args.observed_entities)
         for source in args.policy

@@ -6,6 +6,7 @@ import argparse
 from typing import Any, NoReturn
 
 from coin_app.algorithms.choices import ALGORITHM_NAMES, ARENA
+from coin_app.evaluation.limits import CONNECT_TIMEOUT_S, MAX_EPISODES, MAX_SCENARIOS_PER_CASE
 from coin_app.sim.arena.config import GENERATORS, PROTOCOLS
 from coin_app.sim.config import PRESETS
 from coin_app.sim.scenes import DRIVING_SCENARIOS as DRIVING
@@ -104,6 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="torch threads of the training process (1; more only if benchmarks/learner_update.py shows it helps)",
     )
     tr.add_argument("--address", default=None, help="a running Ray cluster (default: a local session over all of this machine's cores)")
+    tr.add_argument(
+        "--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, help="seconds to wait for the cluster at --address before refusing it"
+    )
     tr.set_defaults(run="train.cmd_train")
 
     ev = sub.add_parser("evaluate", help="evaluate a checkpoint or exported policy on test seeds (deterministic actions)")
@@ -117,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
         "presets set (e.g. metadrive_compat: lidar_range 40); --set still wins (default: the policy's own training config)",
     )
     ev.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
-    ev.add_argument("--episodes", type=int, default=20, help="number of test seeds (paper: 20)")
+    ev.add_argument("--episodes", type=int, default=20, help=f"number of test seeds (paper: 20; at most {MAX_EPISODES})")
     ev.add_argument("--seeds", type=int, nargs="*", default=None, help="explicit seeds (default: the fixed test seeds)")
     ev.add_argument("--num-agents", type=int, default=None, help="evaluate at another agent count (generalization)")
     ev.add_argument("--out", default=None, help="write per-episode results to this JSON file")
@@ -183,7 +187,12 @@ def build_parser() -> argparse.ArgumentParser:
         "a shipped policy's name (nav_ppo-arena) | checkpoint directory | exported .npz | pair .json",
     )
     ea.add_argument("--cases", default="all", help="all (the paper's 24) or e.g. 4x3,20x8")
-    ea.add_argument("--scenarios-per-case", type=int, default=100, help="fixed test scenarios per case (the paper: 4062)")
+    ea.add_argument(
+        "--scenarios-per-case",
+        type=int,
+        default=100,
+        help=f"fixed test scenarios per case (the paper: 4062; at most {MAX_SCENARIOS_PER_CASE})",
+    )
     ea.add_argument(
         "--max-steps", type=int, default=400, help="steps of 0.1 s per scenario (400 = 40 s; agnn: the same time in its 0.2 s steps)"
     )
@@ -231,7 +240,15 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--name", default=None, help="experiment directory name (default <experiment>-<scenario>[-<scale>])")
     sw.add_argument("--max-concurrent", type=int, default=None, help="trials running at once (default: as many as fit)")
     sw.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
+    sw.add_argument(
+        "--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, help="seconds to wait for the cluster at --address before refusing it"
+    )
     sw.add_argument("--resume", action="store_true", help="continue the named sweep: finished trials stay, others resume")
+    sw.add_argument(
+        "--accept-changes",
+        action="store_true",
+        help="with --resume: continue although this code resolves other trial settings than the sweep ran with (recorded)",
+    )
     sw.add_argument(
         "--restart",
         nargs="+",

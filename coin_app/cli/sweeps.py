@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from coin_app.algorithms.checks import parse_overrides
+from coin_app.cli.flags import overrides_of
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
 from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, write_arena_html
+from coin_app.evaluation.outputs import OutputLock, check_dir_output, staged_outputs
 from coin_app.evaluation.report import ReportOptions, build_report
 from tuning.sweep import run_sweep, write_generalization
 
@@ -29,7 +30,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         methods=tuple(args.algos) if args.algos else None,
         seeds=tuple(args.seeds) if args.seeds else None,
         steps=args.steps,
-        overrides=parse_overrides(args.set),
+        overrides=overrides_of(args.set),
         storage=args.storage,
         name=args.name,
         address=args.address,
@@ -40,6 +41,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         command=getattr(args, "command_line", None),
         wandb_project=args.wandb,
         mlflow_uri=args.mlflow,
+        accept_changes=args.accept_changes,
+        connect_timeout=args.connect_timeout,
     )
     print(f"\nsweep summary: {summary['experiment_dir']} ({summary['wall_s']:.0f} s, {summary['errors']} errored trials)")
     for t in summary.get("trials", []):
@@ -84,22 +87,24 @@ def cmd_report(args: argparse.Namespace) -> int:
     )
     arena = [Path(p) for p in args.sources if is_arena_eval(p)]  # evaluate-arena outputs: the arena page
     sweeps = [Path(p) for p in args.sources if not is_arena_eval(p)]
-    if arena:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        page = write_arena_html(out / ARENA_PAGE, [load_arena_eval(p) for p in arena], options.command)
-        print(f"arena report: {len(arena)} evaluate-arena run(s) -> {page}")
-        if not sweeps:
-            return 0
-    summary = build_report(sweeps, Path(args.out), options)
-    print(
-        f"\nreport summary: {summary['episodes']} test episodes of {summary['models']} models "
-        f"in {summary['wall_s']:.0f} s -> {summary['out']}"
-    )
+    out = Path(args.out)
+    options.check()
+    check_dir_output(out, [p for p in map(Path, args.sources) if p.is_dir()], what="a sweep it reads")
+    # one writer; the old report's files stay whole until the new ones are complete (other files in --out stay)
+    with OutputLock(out, options.command, "the report directory") as lock, staged_outputs(out) as stage:
+        if lock.stale_note():
+            print(lock.stale_note())
+        if arena:
+            page = write_arena_html(stage / ARENA_PAGE, [load_arena_eval(p) for p in arena], options.command)
+            print(f"arena report: {len(arena)} evaluate-arena run(s) -> {out / page.name}")
+        summary = build_report(sweeps, stage, options, shown_as=out) if sweeps else None
+    if summary is None:
+        return 0
+    print(f"\nreport summary: {summary['episodes']} test episodes of {summary['models']} models in {summary['wall_s']:.0f} s -> {out}")
     for key, value in summary["success"].items():
         print(f"  success {key:<40} {100 * value:6.2f} %")
     drawn = [k for k, v in summary["figures"].items() if not v.startswith("not drawn")]
-    print(f"  figures: {len(drawn)} of {len(summary['figures'])} drawn; page: {Path(summary['out']) / 'report.html'}")
+    print(f"  figures: {len(drawn)} of {len(summary['figures'])} drawn; page: {out / 'report.html'}")
     for name, value in summary["figures"].items():
         if value.startswith("not drawn"):
             print(f"    {name}: {value}")

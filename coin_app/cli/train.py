@@ -6,8 +6,8 @@ import argparse
 import time
 from pathlib import Path
 
-from coin_app.algorithms.checks import parse_overrides
 from coin_app.algorithms.registry import quick_settings
+from coin_app.cli.flags import overrides_of
 from coin_app.cli.output import format_metrics
 from coin_app.evaluation.critic_probe import probe_checkpoint
 from coin_app.training import STOPPED_AT_BUDGET, train
@@ -16,13 +16,10 @@ from coin_app.training import STOPPED_AT_BUDGET, train
 def cmd_train(args: argparse.Namespace) -> int:
     """Train an algorithm of the registry; checkpoints and a summary go to ``--out``."""
 
-    overrides = parse_overrides(args.set)
+    flags = {"num_agents": ("--num-agents", args.num_agents), "backend": ("--backend", None if args.backend == "native" else args.backend)}
+    overrides = overrides_of(args.set, flags)
     if args.quick:  # the small settings that learn within minutes, beneath the user's --set
         overrides = {**quick_settings(args.algo, args.scenario), **overrides}
-    if args.num_agents is not None:
-        overrides["num_agents"] = args.num_agents
-    if args.backend != "native":
-        overrides["backend"] = args.backend
     out = Path(args.out or f"runs/{args.algo}_{args.scenario}_s{args.seed}")
     resume = Path(args.resume) if args.resume else None
     print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
@@ -42,12 +39,16 @@ def cmd_train(args: argparse.Namespace) -> int:
         address=args.address,
         overwrite=args.overwrite,
         progress={"auto": None, "always": True, "never": False}[args.progress],
+        connect_timeout=args.connect_timeout,
+        command=getattr(args, "command_line", None),
     )
     print(f"\nsummary: {summary['env_steps']} env steps in {summary['iterations']} iterations, {summary['wall_s']:.0f} s")
     print(f"  checkpoint: {summary['checkpoint']}")
     if summary.get("stopped", STOPPED_AT_BUDGET) != STOPPED_AT_BUDGET:
         where = f"{summary['env_steps']} of {args.steps} env steps"
         print(f"  stopped early ({summary['stopped']}) at {where}; continue with --resume {summary['checkpoint']}")
+    if summary.get("note"):
+        print(f"  note: {summary['note']}")
     if summary.get("eval"):
         print("  last periodic evaluation (validation seeds):")
         print(format_metrics(summary["eval"]))

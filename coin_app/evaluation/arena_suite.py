@@ -42,6 +42,7 @@ import pandas as pd
 import torch
 
 from coin_app.algorithms.checkpoint_files import read_metadata
+from coin_app.evaluation.limits import MAX_CASE_OBSTACLES, MAX_CASE_VEHICLES
 from coin_app.evaluation.policies import as_policy
 from coin_app.inference.agnn import AgnnArenaPolicy
 from coin_app.inference.shipped import resolve
@@ -122,8 +123,11 @@ def parse_cases(spec: str) -> list[tuple[int, int]]:
             n, m = (int(x) for x in part.lower().split("x"))
         except ValueError:
             raise ValueError(f"bad case {part!r}; allowed: 'all' or VEHICLESxOBSTACLES like 4x3, comma separated") from None
-        if n < 1 or m < 0:
-            raise ValueError(f"bad case {part!r}; allowed: >= 1 vehicle and >= 0 obstacles")
+        if not (1 <= n <= MAX_CASE_VEHICLES and 0 <= m <= MAX_CASE_OBSTACLES):
+            raise ValueError(
+                f"bad case {part!r}; allowed: 1 to {MAX_CASE_VEHICLES} vehicles and 0 to {MAX_CASE_OBSTACLES} obstacles (the paper's "
+                "largest case: 20x8)"
+            )
         cases.append((n, m))
     return cases
 

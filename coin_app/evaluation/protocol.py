@@ -43,6 +43,8 @@ EPISODE_METRICS = (*METRIC_KEYS, "avg_travel_steps_arrived", "episode_return", "
 KEYS = ("method", "variant", "trained_seed", "test_seed", "scenario", "agent_count", "trained_agent_count")
 RESULT_COLUMNS = (*KEYS, "backend", *EPISODE_METRICS, "episode_length", "wall_time_s", "trained_env_steps", "checkpoint")
 
+EVALUATION_FILE = "evaluation.json"  # beside results.csv: the evaluation's settings and failures
+
 
 @dataclass(frozen=True)
 class EvalRun:
@@ -222,5 +224,5 @@ def write_results(evaluation: Evaluation, out_dir: Path, settings: dict[str, Any
     path = out_dir / "results.csv"
     evaluation.table.to_csv(path, index=False)
     meta = {**settings, "failures": evaluation.failures, "wall_s": round(evaluation.wall_s, 1), "episodes": len(evaluation.table)}
-    (out_dir / "evaluation.json").write_text(json.dumps(meta, indent=2, default=str))
+    (out_dir / EVALUATION_FILE).write_text(json.dumps(meta, indent=2, default=str))
     return path

@@ -23,6 +23,7 @@ named in the page with the reason instead.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -40,7 +41,7 @@ from coin_app.evaluation.evaluate import run_episode
 from coin_app.evaluation.html_report import write_html
 from coin_app.evaluation.latents import collect_latents
 from coin_app.evaluation.marl_eval import run_label, write_marl_eval
-from coin_app.evaluation.protocol import EvalRun, Evaluation, read_results, run_evaluation, write_results
+from coin_app.evaluation.protocol import EVALUATION_FILE, EvalRun, Evaluation, read_results, run_evaluation, write_results
 from coin_app.evaluation.selection import FINAL, SELECTION_FILE, SELECTIONS, VALIDATION, Candidates, select_checkpoints, selection_caption
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings
 from coin_app.evaluation.transfer import transfer_table, write_transfer
@@ -111,7 +112,7 @@ def gather(paths: Sequence[Path]) -> Sources:
     for raw in paths:
         path = Path(raw)
         if path.is_file():
-            meta = path.parent / "evaluation.json"
+            meta = path.parent / EVALUATION_FILE
             settings = json.loads(meta.read_text()) if meta.is_file() else {}
             out.tables.append({"path": path, "table": read_results(path), "settings": settings})
             continue
@@ -288,17 +289,31 @@ def _attempt(name: str, figures: dict[str, Any], log: Log, fn: Callable[[], Path
         log(f"  {name}: not drawn ({exc})")
 
 
-def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None = None, log: Log = print) -> dict[str, Any]:
-    """Evaluate the sources and write every table, figure, the marl-eval JSON and report.html into ``out``."""
+def build_report(
+    paths: Sequence[Path], out: Path, options: ReportOptions | None = None, log: Log = print, shown_as: Path | None = None
+) -> dict[str, Any]:
+    """Evaluate the sources and write every table, figure, the marl-eval JSON and report.html into ``out``.
+
+    ``shown_as``: where ``out`` will be once complete (the CLI builds a report in a staging directory,
+    :func:`~coin_app.evaluation.outputs.staged_outputs`): the paths logged and returned name it. A report
+    redrawn from one results table (no sweep) keeps that table's evaluation record beside it
+    (``evaluation.json``, ``selection.csv``).
+    """
 
     options = options or ReportOptions()
     options.check()
     t0 = time.perf_counter()
     sources = gather(paths)
     out = Path(out)
+    shown = Path(shown_as) if shown_as is not None else out
     out.mkdir(parents=True, exist_ok=True)
     n_runs = sum(len(s["runs"]) for s in sources.sweeps)
-    log(f"report: {len(sources.sweeps)} sweeps ({n_runs} models) and {len(sources.tables)} results tables -> {out}")
+    log(f"report: {len(sources.sweeps)} sweeps ({n_runs} models) and {len(sources.tables)} results tables -> {shown}")
+    if not sources.sweeps and len(sources.tables) == 1:  # a redraw: the table's record of how it was evaluated stays with it
+        record_dir = Path(sources.tables[0]["path"]).parent
+        for name in (EVALUATION_FILE, SELECTION_FILE):
+            if (record_dir / name).is_file() and not (out / name).exists():
+                shutil.copy2(record_dir / name, out / name)
     for sweep in sources.sweeps:
         if sweep["unfinished"]:
             log(f"  note: unfinished trials in {sweep['path']}, their newest checkpoints are evaluated: {', '.join(sweep['unfinished'])}")
@@ -376,13 +391,13 @@ def build_report(paths: Sequence[Path], out: Path, options: ReportOptions | None
     }
     html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context, transfer)
     summary = {
-        "out": str(out),
+        "out": str(shown),
         "episodes": len(table),
         "models": int(table["checkpoint"].nunique()),
         "failures": failures,
         "unreadable": unreadable,
-        "files": [str(f) for f in [*files, html]],
-        "figures": {k: str(v) for k, v in figures.items()},
+        "files": [str(shown / Path(f).relative_to(out)) for f in [*files, html]],
+        "figures": {k: str(shown / v.relative_to(out)) if isinstance(v, Path) else str(v) for k, v in figures.items()},
         "success": {f"{r.scenario}/{r.label}": r.mean for r in main_summary[main_summary["metric"] == "success_rate"].itertuples()},
         "wall_s": round(time.perf_counter() - t0, 1),
     }

@@ -30,10 +30,21 @@ class ExportedPolicy:
         return self._obs_dim
 
     def batch(self, obs: np.ndarray) -> np.ndarray:
-        """``obs`` as a contiguous float32 (N, obs_dim) array, or a ValueError naming the bad shape."""
+        """``obs`` as a contiguous float32 (N, obs_dim) array; a ValueError naming a bad shape or a non-finite number.
+
+        Every format refuses NaN and inf (one check, here): the actions of such an observation would be NaN or
+        arbitrary, and a vehicle would drive on them. The refusal names the first row and column.
+        """
         x = np.ascontiguousarray(obs, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != self.obs_dim:
             raise ValueError(f"observations must have shape (N, {self.obs_dim}), got {x.shape}")
+        finite = np.isfinite(x)
+        if not finite.all():
+            row, col = (int(i[0]) for i in np.nonzero(~finite))
+            count = int((~finite).any(axis=1).sum())
+            raise ValueError(
+                f"observation row {row} holds {x[row, col]} at index {col} ({count} row(s) non-finite); allowed: finite numbers"
+            )
         return x
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:

@@ -54,12 +54,22 @@ def _describe(options: dict[str, Any]) -> str:
     return f"{options['observed_entities']} entities" + (" and the candidate features" if options["candidate_features"] else "")
 
 
+def check_arena_part(role: str, part: Any, scenario: str | None = None) -> None:
+    """Refuse a part of a pair that was trained on a driving scenario (``scenario``, else its metadata's; unknown: accepted)."""
+    meta = getattr(part, "meta", None)
+    scenario = scenario or (meta.get("scenario") if isinstance(meta, dict) else None)
+    if scenario is not None and scenario != "arena":
+        raise ValueError(f"the {role}-range policy was trained on {scenario!r}, not the arena; allowed: two arena policies (nav_ppo)")
+
+
 class SwitchingPolicy:
     """Short-range policy inside ``switch_radius`` of the target, long-range outside."""
 
     def __init__(self, long: Callable[[np.ndarray], np.ndarray], short: Callable[[np.ndarray], np.ndarray], switch_radius: float):
         if not switch_radius > 0:
             raise ValueError(f"bad switch_radius {switch_radius!r}; allowed: a number of metres > 0")
+        for role, part in (("long", long), ("short", short)):
+            check_arena_part(role, part)
         self.long, self.short, self.switch_radius = long, short, float(switch_radius)
         self.meta: dict[str, Any] = {"scenario": "arena", "switch_radius": self.switch_radius}
         seen = {name: observation_options(part) for name, part in (("long", long), ("short", short))}
@@ -96,7 +106,12 @@ def write_pair(path: str | Path, long: str | Path, short: str | Path, switch_rad
         return os.path.relpath(Path(p).resolve(), path.parent.resolve())
 
     spec = {"format": FORMAT, "long": rel(long), "short": rel(short), "switch_radius": float(switch_radius)}
-    path.write_text(json.dumps(spec, indent=2))
+    partial = path.with_name(f".{path.name}.partial")  # whole or not at all: written beside, renamed over
+    try:
+        partial.write_text(json.dumps(spec, indent=2))
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
     return path
 
 

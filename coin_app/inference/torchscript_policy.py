@@ -8,6 +8,7 @@ PyTorch 2.13 marks TorchScript deprecated; its deprecation warnings are silenced
 
 from __future__ import annotations
 
+import io
 import json
 import warnings
 from pathlib import Path
@@ -49,9 +50,12 @@ def export_torchscript(actor: Any, path: str | Path, meta: dict[str, Any] | None
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = json.dumps({"format": FORMAT, "obs_dim": first.in_features, "meta": meta or {}})
+    buffer = io.BytesIO()  # serialized in memory, written by Python: a full disk is an OSError, not an abort in torch's writer
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.jit.save(torch.jit.script(actor.eval()), str(path), _extra_files={EXTRA: header})
+        torch.jit.save(torch.jit.script(actor.eval()), buffer, _extra_files={EXTRA: header})
+    with open(path, "wb") as f:
+        f.write(buffer.getbuffer())
     return path
 
 

@@ -14,15 +14,21 @@ import gymnasium as gym
 import numpy as np
 
 from coin_app.sim import schema
-from coin_app.sim.config import ScenarioConfig, make_config
+from coin_app.sim.config import ScenarioConfig
+from coin_app.sim.inputs import check_seed, checked_actions
+from coin_app.sim.scenarios import env_config
 from coin_app.sim.simulator import ACTIVE, DrivingSimulator, StepResult, agent_name
+
+__all__ = ["DrivingEnv", "checked_actions", "result_dicts"]  # checked_actions: coin_app.sim.inputs, re-exported
 
 
 class DrivingEnv:
     """A native multi-agent driving scenario with respawning vehicles."""
 
-    def __init__(self, config: ScenarioConfig | None = None, scenario: str = "intersection", preset: str = "paper", **overrides: Any):
-        self.config = config if config is not None else make_config(scenario, preset, **overrides)
+    def __init__(self, config: ScenarioConfig | None = None, scenario: str | None = None, preset: str | None = None, **overrides: Any):
+        """A ``config``, or ``scenario`` (default intersection) with ``preset`` (default paper) and overrides; never both
+        (:func:`~coin_app.sim.inputs.env_config`, the check every env API shares)."""
+        self.config: ScenarioConfig = env_config(config, scenario, preset, overrides, "DrivingEnv", arena=False)  # type: ignore[assignment]
         self.sim = DrivingSimulator(self.config)
         self.possible_agents = [agent_name(i) for i in range(self.sim.max_agent_ids)]
         self.observation_space = gym.spaces.Box(0.0, 1.0, (self.config.obs_dim,), np.float32)
@@ -38,8 +44,8 @@ class DrivingEnv:
         return self.config.scenario
 
     def reset(self, seed: int | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
-        """Start a new episode; returns observations and infos of the initial agents."""
-        res = self.sim.reset(seed)
+        """Start a new episode (``seed``: None or an integer >= 0); returns observations and infos of the initial agents."""
+        res = self.sim.reset(check_seed(seed))
         self._returns[:] = 0.0
         self.episode_over = False
         obs, _, _, _, infos = self._unpack(res)
@@ -71,23 +77,6 @@ class DrivingEnv:
 
     def close(self) -> None:
         """Nothing to release (the MetaDrive backend's ``close`` shuts its engine down)."""
-
-
-def checked_actions(actions: dict[str, Any], agents: list[str]) -> dict[str, np.ndarray]:
-    """``actions`` as float arrays of shape (2,), after checking there is exactly one per agent in ``agents``."""
-    unknown = sorted(set(actions) - set(agents))
-    if unknown:
-        raise ValueError(f"actions for agent(s) {unknown} that cannot act now; acting agents: {agents}")
-    missing = [a for a in agents if a not in actions]
-    if missing:
-        raise ValueError(f"missing actions for agent(s) {missing}; every agent in env.agents must act")
-    out = {}
-    for aid, a in actions.items():
-        a = np.asarray(a, dtype=float).reshape(-1)
-        if a.shape != (schema.ACT_DIM,):
-            raise ValueError(f"action of {aid} must have 2 numbers [steer, throttle_brake], got shape {a.shape}")
-        out[aid] = a
-    return out
 
 
 def result_dicts(res: StepResult, slots: np.ndarray, returns: np.ndarray, env: int) -> tuple[dict, dict, dict, dict, dict]:

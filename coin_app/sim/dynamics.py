@@ -18,6 +18,7 @@ a1 >= 0 a scrub loss scrub * (1 + scrub_throttle * a1) * |v r tan(delta)| is sub
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from coin_app.sim.config import DynamicsConfig
@@ -74,6 +75,47 @@ def wrap_angle(angle: np.ndarray) -> np.ndarray:
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+@numba.njit(cache=True)
+def friction_bicycle(
+    x: float, y: float, heading: float, speed: float, pedal: float, steer: float, dt: float, wheelbase: float, friction: float
+) -> tuple[float, float, float, float]:
+    """One vehicle's step of Eq. 1 (``friction_bicycle_step``): the new (x, y, heading, speed)."""
+    return friction_bicycle_tan(x, y, heading, speed, pedal, np.tan(steer), dt, wheelbase, friction)[:4]
+
+
+@numba.njit(cache=True)
+def friction_bicycle_tan(
+    x: float, y: float, heading: float, speed: float, pedal: float, tan_steer: float, dt: float, wheelbase: float, friction: float
+) -> tuple[float, float, float, float, float, float]:
+    """``friction_bicycle`` given the tangent of the steering angle (rollouts hold one); also the new heading's cos and sin."""
+    v_new = friction * speed + pedal * dt
+    shifted = heading + v_new * tan_steer * dt / wheelbase + np.pi
+    # wrap_angle: (a % 2 pi) is a itself where 0 <= a < 2 pi (the usual case), so only the others pay for the remainder
+    heading_new = (shifted if 0.0 <= shifted < 2.0 * np.pi else shifted % (2.0 * np.pi)) - np.pi
+    step, c, s = v_new * dt, np.cos(heading_new), np.sin(heading_new)
+    return x + step * c, y + step * s, heading_new, v_new, c, s
+
+
+@numba.njit(cache=True)
+def _friction_bicycle_all(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    pedal: np.ndarray,
+    steer: np.ndarray,
+    dt: float,
+    wheelbase: float,
+    friction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    n = len(heading)
+    pos_new, heading_new, v_new = np.empty((n, 2)), np.empty(n), np.empty(n)
+    for i in range(n):
+        pos_new[i, 0], pos_new[i, 1], heading_new[i], v_new[i] = friction_bicycle(
+            pos[i, 0], pos[i, 1], heading[i], speed[i], pedal[i], steer[i], dt, wheelbase, friction
+        )
+    return pos_new, heading_new, v_new
+
+
 def friction_bicycle_step(
     pos: np.ndarray,
     heading: np.ndarray,
@@ -91,10 +133,15 @@ def friction_bicycle_step(
     (wrapped to [-pi, pi)); ``(x, y)' = (x, y) + v' * dt * (cos psi', sin psi')``. The speed
     may be negative (reversing).
     """
-    v_new = friction * speed + pedal * dt
-    heading_new = wrap_angle(heading + v_new * np.tan(steer) * dt / wheelbase)
-    pos_new = pos + (v_new * dt)[:, None] * np.stack([np.cos(heading_new), np.sin(heading_new)], axis=1)
-    return pos_new, heading_new, v_new
+    heading = np.asarray(heading, dtype=np.float64)
+    n = heading.shape
+
+    def arr(a: np.ndarray, shape: tuple) -> np.ndarray:
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), shape))
+
+    return _friction_bicycle_all(
+        arr(pos, (*n, 2)), arr(heading, n), arr(speed, n), arr(pedal, n), arr(steer, n), float(dt), float(wheelbase), float(friction)
+    )
 
 
 def position_first_step(

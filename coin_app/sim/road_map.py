@@ -15,8 +15,10 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
+import numba
 import numpy as np
 
+from coin_app.sim.collision import _grid_row
 from coin_app.sim.scenes import DRIVING_SCENARIOS
 
 MAP_DIR = Path(__file__).parent / "maps"
@@ -24,9 +26,186 @@ MAP_NAMES = DRIVING_SCENARIOS  # one map file per driving scenario (sim/scenes.p
 SOLID_LINE_TYPES = ("ROAD_LINE_SOLID_SINGLE_WHITE", "ROAD_LINE_SOLID_SINGLE_YELLOW")
 
 
+@numba.njit(cache=True)
 def wrap_to_pi(angle: np.ndarray) -> np.ndarray:
     """Wrap angles to [-pi, pi)."""
     return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lane_sr(rows: np.ndarray, is_circ: np.ndarray, lane: int, x: float, y: float) -> tuple[float, float]:
+    """Lane-local (s, r) of the point (x, y) on ``lane`` (``RoadMap.lane_rows``; see ``RoadMap.local_coordinates``)."""
+    row = rows[lane]
+    if not is_circ[lane]:
+        rx, ry = x - row[0], y - row[1]
+        return rx * row[2] + ry * row[3], rx * row[3] - ry * row[2]
+    dx, dy = x - row[4], y - row[5]
+    sp, direc, mid, rad = row[6], row[7], row[8], row[9]
+    # wrap around the arc's middle (mid), not its start: MetaDrive wraps around the start,
+    # which flips s to negative near the end of its 180-degree U-turn lanes
+    dphi = mid + wrap_to_pi(np.arctan2(dy, dx) - sp - mid)
+    return direc * dphi * rad, direc * (np.hypot(dx, dy) - rad)
+
+
+@numba.njit(cache=True)
+def _local_coordinates(rows: np.ndarray, is_circ: np.ndarray, lane: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    s, r = np.empty(len(lane)), np.empty(len(lane))
+    for i in range(len(lane)):
+        s[i], r[i] = _lane_sr(rows, is_circ, lane[i], pos[i, 0], pos[i, 1])
+    return s, r
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lane_heading(
+    unit: np.ndarray, start_phase: np.ndarray, direction: np.ndarray, radius: np.ndarray, is_circ: np.ndarray, lane: int, s: float
+) -> float:
+    """Heading (rad) of ``lane`` at longitudinal position ``s`` (``RoadMap.heading_at``)."""
+    if not is_circ[lane]:
+        return np.arctan2(unit[lane, 1], unit[lane, 0])
+    return start_phase[lane] + direction[lane] * s / radius[lane] + direction[lane] * np.pi / 2
+
+
+@numba.njit(cache=True)
+def _heading_at(
+    unit: np.ndarray,
+    start_phase: np.ndarray,
+    direction: np.ndarray,
+    radius: np.ndarray,
+    is_circ: np.ndarray,
+    lane: np.ndarray,
+    s: np.ndarray,
+) -> np.ndarray:
+    out = np.empty(len(lane))
+    for i in range(len(lane)):
+        out[i] = _lane_heading(unit, start_phase, direction, radius, is_circ, lane[i], s[i])
+    return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lane_position(lanes: tuple, lane: int, s: float, r: float) -> tuple[float, float]:
+    """World position of lane-local (s, r) on ``lane``; ``lanes``: ``RoadMap.lane_arrays``."""
+    start, unit, center, start_phase, direction, radius, is_circ = lanes
+    if not is_circ[lane]:
+        u0, u1 = unit[lane, 0], unit[lane, 1]
+        return start[lane, 0] + u0 * s + u1 * r, start[lane, 1] + u1 * s + -u0 * r
+    direc, rad = direction[lane], radius[lane]
+    phi = start_phase[lane] + direc * s / rad
+    rr = rad + r * direc
+    return center[lane, 0] + rr * np.cos(phi), center[lane, 1] + rr * np.sin(phi)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lane_right_normal(lanes: tuple, lane: int, x: float, y: float) -> tuple[float, float]:
+    """Unit vector to the right of ``lane``'s direction at (x, y); ``lanes``: ``RoadMap.lane_arrays``."""
+    start, unit, center, start_phase, direction, radius, is_circ = lanes
+    if not is_circ[lane]:
+        return unit[lane, 1], -unit[lane, 0]
+    dx, dy = x - center[lane, 0], y - center[lane, 1]
+    nrm = max(np.hypot(dx, dy), 1e-9)
+    return direction[lane] * dx / nrm, direction[lane] * dy / nrm
+
+
+@numba.njit(cache=True)
+def _positions(lanes: tuple, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
+    out = np.empty((len(lane), 2))
+    for i in range(len(lane)):
+        out[i, 0], out[i, 1] = _lane_position(lanes, lane[i], s[i], r[i])
+    return out
+
+
+@numba.njit(cache=True)
+def _right_normals(lanes: tuple, lane: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    out = np.empty((len(lane), 2))
+    for i in range(len(lane)):
+        out[i, 0], out[i, 1] = _lane_right_normal(lanes, lane[i], pos[i, 0], pos[i, 1])
+    return out
+
+
+@numba.njit(cache=True)
+def _in_hull(normals: np.ndarray, offsets: np.ndarray, bbox: np.ndarray, lane: int, x: float, y: float, margin: float) -> bool:
+    """Whether (x, y) lies within ``margin`` of lane ``lane``'s on-lane region (its bounding box, then its half-planes)."""
+    bb = bbox[lane]
+    if not (x >= bb[0] - margin and x <= bb[2] + margin and y >= bb[1] - margin and y <= bb[3] + margin):
+        return False
+    for k in range(normals.shape[1]):
+        if not normals[lane, k, 0] * x + normals[lane, k, 1] * y - offsets[lane, k] <= margin:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _hull_contains(
+    table: np.ndarray, origin: np.ndarray, cell: float, shape: np.ndarray, normals: np.ndarray, offsets: np.ndarray, bbox: np.ndarray,
+    pos: np.ndarray, margin: float,
+) -> np.ndarray:  # fmt: skip
+    out = np.zeros((len(pos), len(bbox)), np.bool_)
+    for i in range(len(pos)):
+        for lane in _grid_row(table, origin, cell, shape, pos[i, 0], pos[i, 1]):
+            if lane < 0:
+                break
+            out[i, lane] = _in_hull(normals, offsets, bbox, lane, pos[i, 0], pos[i, 1], margin)
+    return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def localize(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    idx: np.ndarray,
+    route: np.ndarray,
+    ref_idx: np.ndarray,
+    lane: np.ndarray,
+    grid: tuple,
+    hull: tuple,
+    lanes: tuple,
+    routes: tuple,
+    ckpt_range: float,
+) -> np.ndarray:
+    """Localise the vehicles ``idx`` (slots of the per-slot arrays): update ``lane`` and ``ref_idx`` in place; (n,) on a lane.
+
+    A vehicle's lane is, among the lanes whose on-lane region (within 5 cm) holds its centre and that point its way
+    (cos of the heading difference > 0), the first by route priority (its reference road, then the next, then any)
+    and then by distance off the lane (|r| plus how far s lies beyond either end); none keeps the previous lane.
+    The reference road switches to a later road of the route when the lane starts it (s < ``ckpt_range``).
+    ``grid``: ``GridIndex`` (table, origin, cell, shape) of the hulls; ``hull``: (normals, offsets, bbox);
+    ``lanes``: (lane_rows, is_circ, unit, start_phase, direction, radius, length, lane_road);
+    ``routes``: (route_roads, route_nroads, route_road_pos).
+    """
+    table, origin, cell, shape = grid
+    normals, offsets, bbox = hull
+    rows, is_circ, unit, start_phase, direction, radius, length, lane_road = lanes
+    route_roads, route_nroads, route_road_pos = routes
+    on_lane = np.zeros(len(idx), np.bool_)
+    for n in range(len(idx)):
+        i = idx[n]
+        x, y, hd = pos[i, 0], pos[i, 1], heading[i]
+        rt, ref = route[i], ref_idx[i]
+        cur_road = route_roads[rt, ref]
+        nxt_road = route_roads[rt, min(ref + 1, route_nroads[rt] - 1)]
+        best, best_key = -1, np.inf
+        for ln in _grid_row(table, origin, cell, shape, x, y):
+            if ln < 0:
+                break
+            if not _in_hull(normals, offsets, bbox, ln, x, y, 0.05):
+                continue
+            on_lane[n] = True
+            s, r = _lane_sr(rows, is_circ, ln, x, y)
+            if not np.cos(_lane_heading(unit, start_phase, direction, radius, is_circ, ln, s) - hd) > 0:
+                continue
+            l1 = abs(r) + max(s - length[ln], 0.0) + max(-s, 0.0)
+            road = lane_road[ln]
+            prio = 0.0 if road == cur_road else (1.0 if road == nxt_road else 2.0)
+            key = prio * 1e6 + l1
+            if key < best_key or (key == best_key and ln < best):
+                best, best_key = ln, key
+        if best >= 0:
+            lane[i] = best
+        # reference road: switch when the localised lane starts a later road of the route
+        s_lane, _ = _lane_sr(rows, is_circ, lane[i], x, y)
+        pos_in_route = route_road_pos[rt, lane_road[lane[i]]]
+        if pos_in_route > ref and s_lane < ckpt_range:
+            ref_idx[i] = pos_in_route
+    return on_lane
 
 
 def _pad(polys: list[np.ndarray]) -> np.ndarray:
@@ -40,7 +219,8 @@ def _pad(polys: list[np.ndarray]) -> np.ndarray:
 
 
 class GridIndex:
-    """Uniform grid over the map listing, per cell, the items whose box touches the cell."""
+    """Uniform grid over the map listing, per cell, the items whose box touches the cell (``table``: a row per cell, -1 padded;
+    the kernels read the row of a point's cell with ``collision._grid_row``)."""
 
     def __init__(self, bbox: np.ndarray, reach: float, cell: float = 4.0):
         lo = bbox[:, :2].min(0) - reach - cell
@@ -58,14 +238,6 @@ class GridIndex:
         self.table = np.full((len(cells), k), -1, dtype=np.int64)
         for i, c in enumerate(cells):
             self.table[i, : len(c)] = c
-
-    def candidates(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(point index, item index) pairs of items near each point (a superset)."""
-        c = np.floor((pos - self.origin) / self.cell).astype(np.int64)
-        c = np.minimum(np.maximum(c, 0), self.shape - 1)  # np.clip, cheaper on small arrays
-        rows = self.table[c[:, 0] * self.shape[1] + c[:, 1]]
-        pi, k = np.nonzero(rows >= 0)
-        return pi, rows[pi, k]
 
 
 @dataclass(frozen=True)
@@ -116,6 +288,8 @@ class RoadMap:
         self.lane_rows = np.column_stack(
             [self.start, self.unit, self.center, self.start_phase, self.direction, self.direction * self.angle / 2, self.radius]
         )
+        # what the position and normal kernels read of each lane (_lane_position, _lane_right_normal)
+        self.lane_arrays = (self.start, self.unit, self.center, self.start_phase, self.direction, self.radius, self.is_circ)
         self.polygons = [np.array(lane["polygon"], dtype=float) for lane in lanes]
         self.centerlines = [np.array(lane["centerline_s_x_y_heading"], dtype=float)[:, 1:3] for lane in lanes]
 
@@ -244,65 +418,31 @@ class RoadMap:
     # ----------------------------------------------------------------- lane queries
     def position(self, lane: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
         """World positions (N, 2) of lane-local coordinates (s, r) on lanes ``lane``."""
-        circ = self.is_circ[lane]
-        u = self.unit[lane]
-        straight = self.start[lane] + u * s[:, None] + np.stack([u[:, 1], -u[:, 0]], 1) * r[:, None]
-        direc = self.direction[lane]
-        rad = self.radius[lane]
-        phi = self.start_phase[lane] + direc * s / rad
-        rr = rad + r * direc
-        curved = self.center[lane] + rr[:, None] * np.stack([np.cos(phi), np.sin(phi)], 1)
-        return np.where(circ[:, None], curved, straight)
+        lane = np.ascontiguousarray(lane, dtype=np.int64)
+        s, r = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), lane.shape)) for a in (s, r))
+        return _positions(self.lane_arrays, lane, s, r)
 
     def heading_at(self, lane: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Lane heading (rad) at longitudinal positions ``s``."""
-        straight = np.arctan2(self.unit[lane, 1], self.unit[lane, 0])
-        direc = self.direction[lane]
-        phi = self.start_phase[lane] + direc * s / self.radius[lane]
-        return np.where(self.is_circ[lane], phi + direc * np.pi / 2, straight)
+        lane = np.ascontiguousarray(lane, dtype=np.int64)
+        s = np.ascontiguousarray(np.broadcast_to(np.asarray(s, dtype=np.float64), lane.shape))
+        return _heading_at(self.unit, self.start_phase, self.direction, self.radius, self.is_circ, lane, s)
 
     def local_coordinates(self, lane: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lane-local (s, r) of world points ``pos`` (N, 2) on lanes ``lane`` (N,)."""
-        row = self.lane_rows[lane]
-        rel = pos - row[:, 0:2]
-        u = row[:, 2:4]
-        s_straight = np.einsum("nd,nd->n", rel, u)
-        r_straight = rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0]
-        delta = pos - row[:, 4:6]
-        sp, direc, mid, rad = row[:, 6], row[:, 7], row[:, 8], row[:, 9]
-        # wrap around the arc's middle (mid), not its start: MetaDrive wraps around the start,
-        # which flips s to negative near the end of its 180-degree U-turn lanes
-        dphi = mid + wrap_to_pi(np.arctan2(delta[:, 1], delta[:, 0]) - sp - mid)
-        s_circ = direc * dphi * rad
-        r_circ = direc * (np.hypot(delta[:, 0], delta[:, 1]) - rad)
-        circ = self.is_circ[lane]
-        return np.where(circ, s_circ, s_straight), np.where(circ, r_circ, r_straight)
+        lane = np.ascontiguousarray(lane, dtype=np.int64)
+        return _local_coordinates(self.lane_rows, self.is_circ, lane, np.ascontiguousarray(pos, dtype=np.float64).reshape(len(lane), 2))
 
     def right_normal(self, lane: np.ndarray, pos: np.ndarray) -> np.ndarray:
         """Unit vector pointing to the right of the lane's direction at ``pos``."""
-        u = self.unit[lane]
-        straight = np.stack([u[:, 1], -u[:, 0]], 1)
-        delta = pos - self.center[lane]
-        nrm = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-9)[:, None]
-        curved = self.direction[lane][:, None] * delta / nrm
-        return np.where(self.is_circ[lane][:, None], curved, straight)
+        lane = np.ascontiguousarray(lane, dtype=np.int64)
+        return _right_normals(self.lane_arrays, lane, np.ascontiguousarray(pos, dtype=np.float64).reshape(len(lane), 2))
 
     def hull_contains(self, pos: np.ndarray, margin: float = 0.05) -> np.ndarray:
         """(N, L) bool: point n lies in the on-lane region (convex hull) of lane l."""
-        out = np.zeros((len(pos), self.num_lanes), bool)
-        vi, li = self.hull_grid.candidates(pos)
-        bb, p = self.hull_bbox[li], pos[vi]
-        inside_bb = (
-            (p[:, 0] >= bb[:, 0] - margin)
-            & (p[:, 0] <= bb[:, 2] + margin)
-            & (p[:, 1] >= bb[:, 1] - margin)
-            & (p[:, 1] <= bb[:, 3] + margin)
-        )
-        vi, li = vi[inside_bb], li[inside_bb]
-        if len(vi):
-            proj = np.einsum("ckd,cd->ck", self.hull_normals[li], pos[vi]) - self.hull_offsets[li]
-            out[vi, li] = np.all(proj <= margin, axis=1)
-        return out
+        g = self.hull_grid
+        pos = np.ascontiguousarray(pos, dtype=np.float64).reshape(-1, 2)
+        return _hull_contains(g.table, g.origin, g.cell, g.shape, self.hull_normals, self.hull_offsets, self.hull_bbox, pos, float(margin))
 
     def successors(self) -> dict[int, list[int]]:
         """Physically continuing lanes: a lane's end meets the successor's start."""

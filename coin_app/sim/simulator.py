@@ -3,9 +3,9 @@
 State lives in flat per-slot numpy arrays; env ``e`` owns slots ``e*S .. e*S+S-1``. A slot
 is EMPTY, ACTIVE (an agent that acts) or DYING (a crashed / off-road / timed-out vehicle
 left as a static obstacle for ``delay_done`` steps). Every per-vehicle computation in
-:meth:`DrivingSimulator.step` is one numpy call over all slots of all envs; pairwise
-tests only pair vehicles of the same env. The only Python loops run over the four
-separating axes and over respawn *events*. Each env has its own random generator, so env
+:meth:`DrivingSimulator.step` is one numpy call or one compiled kernel (``docs/decisions.md`` §3.6)
+over all slots of all envs; pairwise tests only pair vehicles of the same env. The only
+Python loops run over respawn *events*. Each env has its own random generator, so env
 ``e`` of a batch reproduces a single env seeded the same way.
 
 Step order (as MetaDrive): clip actions -> dynamics -> lane localisation and reference
@@ -20,17 +20,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from coin_app.sim import rules, schema
-from coin_app.sim.collision import boxes_overlap, footprint_samples
+from coin_app.sim.collision import footprint_in_polygons, places_blocked, same_env_overlaps, touches_boxes
 from coin_app.sim.config import PHYSICS_DT, ScenarioConfig
 from coin_app.sim.dynamics import bicycle_step, wrap_angle
-from coin_app.sim.road_map import GridIndex, load_map
+from coin_app.sim.road_map import GridIndex, load_map, localize
 from coin_app.sim.scenes import scene
-from coin_app.sim.sensors import ego_features, lidar_scan, line_detector, local_state
+from coin_app.sim.sensors import ego_features, lidar_same_env, line_detector, local_state
 from coin_app.sim.vehicle import RaycastVehicles
 
 EMPTY, ACTIVE, DYING = 0, 1, 2
 CKPT_UPDATE_RANGE = 5.0  # m: the reference road switches within this s on the next road
 MAX_RESPAWN_PER_STEP = 8  # one per respawn place
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    """``a`` as a contiguous float64 array (what the kernels take)."""
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 def agent_name(num: int) -> str:
@@ -103,6 +108,13 @@ class DrivingSimulator:
         self.max_agent_ids = config.num_agents + min(MAX_RESPAWN_PER_STEP, config.num_agents) * config.horizon
         # until an env is reset with a seed it draws from a fixed stream (env e: seed e)
         self.rngs = [np.random.default_rng(e) for e in range(num_envs)]
+        g = m.hull_grid
+        self._map_arrays = (  # what road_map.localize reads of the map
+            (g.table, g.origin, float(g.cell), g.shape),
+            (m.hull_normals, m.hull_offsets, m.hull_bbox),
+            (m.lane_rows, m.is_circ, m.unit, m.start_phase, m.direction, m.radius, m.length, m.lane_road),
+            (m.route_roads, m.route_nroads, m.route_road_pos),
+        )
         self._alloc()
 
     # ------------------------------------------------------------------ state
@@ -324,69 +336,37 @@ class DrivingSimulator:
 
     # ------------------------------------------------------------------ pieces
     def _localize(self, idx: np.ndarray) -> np.ndarray:
-        """Update each vehicle's lane and reference road; return whether it is on a lane."""
-        m = self.map
-        pos, hd = self.pos[idx], self.heading[idx]
-        contains = m.hull_contains(pos)
-        on_lane = contains.any(1)
-        vi, li = np.nonzero(contains)
-        key = np.full(contains.shape, np.inf)
-        if len(vi):
-            s, r = m.local_coordinates(li, pos[vi])
-            same_dir = np.cos(m.heading_at(li, s) - hd[vi]) > 0
-            l1 = np.abs(r) + np.maximum(s - m.length[li], 0) + np.maximum(-s, 0)
-            route = self.route[idx][vi]
-            ref = self.ref_idx[idx][vi]
-            road = m.lane_road[li]
-            cur_road = m.route_roads[route, ref]
-            nxt_road = m.route_roads[route, np.minimum(ref + 1, m.route_nroads[route] - 1)]
-            prio = np.where(road == cur_road, 0.0, np.where(road == nxt_road, 1.0, 2.0))
-            key[vi, li] = np.where(same_dir, prio * 1e6 + l1, np.inf)
-        best = key.argmin(1)
-        found = np.isfinite(key[np.arange(len(idx)), best])
-        lane = np.where(found, best, self.lane[idx])
-        self.lane[idx] = lane
-        # reference road: switch when the localised lane starts a later road of the route
-        s_lane, _ = m.local_coordinates(lane, pos)
-        pos_in_route = m.route_road_pos[self.route[idx], m.lane_road[lane]]
-        switch = (pos_in_route > self.ref_idx[idx]) & (s_lane < CKPT_UPDATE_RANGE)
-        self.ref_idx[idx] = np.where(switch, pos_in_route, self.ref_idx[idx])
-        return on_lane
+        """Update each vehicle's lane and reference road; return whether it is on a lane (``road_map.localize``)."""
+        return localize(
+            self.pos,
+            self.heading,
+            np.asarray(idx, dtype=np.int64),
+            self.route,
+            self.ref_idx,
+            self.lane,
+            *self._map_arrays,
+            CKPT_UPDATE_RANGE,
+        )
 
     def _touches_solid_line(self, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """Whether each footprint overlaps a physical solid line (or road edge) box."""
-        out = np.zeros(len(pos), bool)
         if self.seg_grid is None or len(pos) == 0:
-            return out
-        vi, si = self.seg_grid.candidates(pos)
-        rel = pos[vi] - self.seg_center[si]
-        near = rel[:, 0] ** 2 + rel[:, 1] ** 2 < (self.seg_half[si, 0] + self.half_diag + self.seg_half[si, 1]) ** 2
-        vi, si = vi[near], si[near]
-        if len(vi):
-            hit = boxes_overlap(
-                pos[vi], heading[vi], np.broadcast_to(self.half, (len(vi), 2)), self.seg_center[si], self.seg_heading[si], self.seg_half[si]
-            )
-            np.logical_or.at(out, vi, hit)
-        return out
+            return np.zeros(len(pos), bool)
+        g = self.seg_grid
+        return touches_boxes(
+            _f64(pos), _f64(heading), self.half, g.table, g.origin, g.cell, g.shape, self.seg_center, self.seg_heading, self.seg_half
+        )
 
     def _on_sidewalk(self, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """Whether a footprint sample point lies on a sidewalk (triangulated strips)."""
         m = self.map
-        out = np.zeros(len(pos), bool)
         if self.sidewalk_grid is None or len(pos) == 0:
-            return out
-        vi, ti = self.sidewalk_grid.candidates(pos)
-        near = np.hypot(*(pos[vi] - self.tri_centroid[ti]).T) < self.tri_radius[ti] + self.half_diag
-        vi, ti = vi[near], ti[near]
-        if len(vi):
-            pts = footprint_samples(pos, heading, self.half[0], self.half[1])[vi]  # (C, 9, 2)
-            px, py = pts[..., 0], pts[..., 1]
-            nrm, off = m.sidewalk_normals[ti], m.sidewalk_offsets[ti]
-            inside = np.ones(px.shape, bool)
-            for k in range(nrm.shape[1]):
-                inside &= nrm[:, k, 0:1] * px + nrm[:, k, 1:2] * py <= off[:, k : k + 1]
-            np.logical_or.at(out, vi, inside.any(1))
-        return out
+            return np.zeros(len(pos), bool)
+        g = self.sidewalk_grid
+        return footprint_in_polygons(
+            _f64(pos), _f64(heading), self.half, g.table, g.origin, g.cell, g.shape, self.tri_centroid, self.tri_radius,
+            m.sidewalk_normals, m.sidewalk_offsets,
+        )  # fmt: skip
 
     def _same_env_pairs(self, max_dist: float, observers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Slot pairs of vehicles of one env closer than ``max_dist``.
@@ -409,40 +389,22 @@ class DrivingSimulator:
 
     def _crashes(self) -> np.ndarray:
         """Per slot: whether its box overlaps another active or dying vehicle's box."""
-        out = np.zeros(self.num_slots, bool)
-        i, j = self._same_env_pairs(2 * self.half_diag)
-        if len(i):
-            hb = np.broadcast_to(self.half, (len(i), 2))
-            hit = boxes_overlap(self.pos[i], self.heading[i], hb, self.pos[j], self.heading[j], hb)
-            out[i[hit]] = True
-            out[j[hit]] = True
-        return out
+        return same_env_overlaps(self.pos, self.heading, self.status != EMPTY, self.slots_per_env, self.half, 2 * self.half_diag)
 
     def _respawn(self, vacated: np.ndarray, env_ok: np.ndarray) -> np.ndarray:
         """Spawn new agents on free respawn places while under each env's cap; new slots."""
         cfg, m = self.cfg, self.map
         if not cfg.allow_respawn:
             return np.zeros(0, dtype=np.int64)
-        e_n, s_n, p_n = self.num_envs, self.slots_per_env, len(self.place_pos)
+        e_n, s_n = self.num_envs, self.slots_per_env
         live = (self.status != EMPTY).reshape(e_n, s_n)
         allowed = np.where(env_ok & (self.env_step < cfg.horizon), cfg.num_agents - live.sum(1), 0)
         if not (allowed > 0).any():
             return np.zeros(0, dtype=np.int64)
         # which places are blocked by a vehicle of the same env (8 x 3 m box at the place)
-        ee, jj = np.nonzero(live & (allowed > 0)[:, None])
-        blocked = np.zeros((e_n, p_n), bool)
-        if len(ee):
-            slot = np.repeat(ee * s_n + jj, p_n)
-            pl = np.tile(np.arange(p_n), len(ee))
-            hit = boxes_overlap(
-                self.place_pos[pl],
-                self.place_heading[pl],
-                np.broadcast_to(self.place_half, (len(pl), 2)),
-                self.pos[slot],
-                self.heading[slot],
-                np.broadcast_to(self.half, (len(pl), 2)),
-            )
-            np.logical_or.at(blocked, (np.repeat(ee, p_n), pl), hit)
+        blocked = places_blocked(
+            self.place_pos, self.place_heading, self.place_half, self.pos, self.heading, self.half, live.reshape(-1), allowed > 0, s_n
+        )
         free = (self.status == EMPTY) & ~vacated
         new_slots = []
         for e in np.nonzero(allowed > 0)[0]:
@@ -469,10 +431,10 @@ class DrivingSimulator:
             m, pos, hd, self.heading_prev[slots], self.speed[slots], self.action[slots], self.lane[slots], ref_road, next_road,
             cfg.dynamics.max_speed_kmh, cfg.navi_point_dist, cfg.dynamics.dt,
         )  # fmt: skip
-        row = np.full(self.num_slots, -1)
-        row[slots] = np.arange(len(slots))
-        po, pb = self._same_env_pairs(cfg.lidar_range + self.half_diag, observers=row >= 0)
-        lidar = lidar_scan(pos, hd, row[po], self.pos[pb], self.heading[pb], tuple(self.half), cfg.lidar_beams, cfg.lidar_range)
+        lidar = lidar_same_env(
+            np.asarray(slots, dtype=np.int64), self.pos, self.heading, self.status != EMPTY, self.slots_per_env, self.half,
+            cfg.lidar_beams, cfg.lidar_range,
+        )  # fmt: skip
         if cfg.obs_layout == "bottleneck96":  # MetaDrive's bottleneck observation
             hw = m.solid_half_width
             side = line_detector(pos, hd, m.line_p1[m.line_solid], m.line_p2[m.line_solid], hw, cfg.side_detector_range)

@@ -5,7 +5,7 @@ inertia) on four raycast wheels with spring-damper suspensions, engine force and
 as per-wheel impulses, and Bullet's friction model (a damped lateral constraint per wheel, clamped
 by a friction circle of ``suspension force x friction slip``, which is where the car slides in
 hard turns and the rear wheels lock under hard braking). This module steps the same equations
-for every vehicle at once, in numpy, in Bullet's order per physics step of 0.02 s (MetaDrive's
+for every vehicle, compiled (Numba), in Bullet's order per physics step of 0.02 s (MetaDrive's
 ``physics_world_step_size``; 5 per env step, its ``decision_repeat``):
 
 1. gravity: ``v += g dt`` (``integrateVelocities``);
@@ -36,16 +36,8 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
-
-# cross products of vectors stacked on a leading axis (x, y, z), one gather per factor: with the rolled rows
-# a[_ROLL12] = (a_y, a_z, a_x, a_z, a_x, a_y) and b[_ROLL21] = (b_z, b_x, b_y, b_y, b_z, b_x), d = a[_ROLL12] * b[_ROLL21]
-# gives a x b = d[:3] - d[3:]; r[_ROLL121][:6] and [3:] are r[_ROLL12] and r[_ROLL21] from one gather
-_ROLL12, _ROLL21, _ROLL121 = np.array([1, 2, 0, 2, 0, 1]), np.array([2, 0, 1, 1, 2, 0]), np.array([1, 2, 0, 2, 0, 1, 1, 2, 0])
-_W_ROLL12 = 3 + _ROLL12  # the same rows of the angular part of a stacked (v, w)
-# turn_matrices: the product pairs of its off-diagonal entries, and its entries' rows in row-major matrix order
-_PAIR_A, _PAIR_B = np.array([0, 1, 0]), np.array([1, 2, 2])
-_MATRIX_ORDER = np.array([6, 0, 5, 3, 7, 1, 2, 4, 8])
 
 
 @dataclass(frozen=True)
@@ -103,28 +95,38 @@ def chassis_basis(heading: np.ndarray, pitch: np.ndarray | float = 0.0, roll: np
     )
 
 
+@numba.njit(cache=True)
+def _turn(wx: float, wy: float, wz: float, dt: float) -> tuple:
+    """The 9 entries (row-major) of the rotation of turning at angular velocity (wx, wy, wz) for ``dt``: see ``turn_matrices``."""
+    norm = np.sqrt(wx * wx + wy * wy + wz * wz)
+    angle = norm * dt
+    inv = max(norm, 1e-12)
+    kx, ky, kz = wx / inv, wy / inv, wz / inv
+    s, c1 = np.sin(angle), 1.0 - np.cos(angle)
+    kxx, kyy, kzz = kx * kx, ky * ky, kz * kz
+    xy, yz, xz = c1 * kx * ky, c1 * ky * kz, c1 * kx * kz
+    sx, sy, sz = s * kx, s * ky, s * kz
+    return (1.0 - c1 * (kyy + kzz), xy - sz, xz + sy, xy + sz, 1.0 - c1 * (kxx + kzz), yz - sx, xz - sy, yz + sx, 1.0 - c1 * (kxx + kyy))
+
+
+@numba.njit(cache=True)
+def _turn_all(w: np.ndarray, dt: float) -> np.ndarray:
+    out = np.empty((len(w), 3, 3))
+    for i in range(len(w)):
+        t = _turn(w[i, 0], w[i, 1], w[i, 2], dt)
+        for a in range(3):
+            for b in range(3):
+                out[i, a, b] = t[3 * a + b]
+    return out
+
+
 def turn_matrices(w: np.ndarray, dt: float) -> np.ndarray:
     """Rotation matrices (n, 3, 3) of turning at world angular velocities ``w`` (n, 3) for ``dt`` (the exponential map).
 
     Rodrigues' formula ``I + sin(a) [k] + (1 - cos(a)) [k]^2`` about the unit axis ``k``: off the diagonal
     ``c1 k_i k_j -+ s k_m``, on it ``1 - c1 (k_j^2 + k_m^2)`` (s = sin(a), c1 = 1 - cos(a)).
     """
-    sq = w.T * w.T
-    norm = np.sqrt(sq[0] + sq[1] + sq[2])
-    angle = norm * dt
-    k = w.T / np.maximum(norm, 1e-12)  # rows x, y, z
-    s, c1 = np.sin(angle), 1.0 - np.cos(angle)
-    kk = k * k
-    entries = np.empty((9, len(angle)))  # rows: (0,1), (1,2), (2,0), (1,0), (2,1), (0,2), (0,0), (1,1), (2,2)
-    np.add(kk[1], kk[2], out=entries[6])
-    np.add(kk[0], kk[2], out=entries[7])
-    np.add(kk[0], kk[1], out=entries[8])
-    np.subtract(1, c1 * entries[6:], out=entries[6:])
-    pairs = (c1 * k)[_PAIR_A] * k[_PAIR_B]  # c1 kx ky, c1 ky kz, c1 kx kz
-    skew = s * k[_ROLL21[:3]]  # s kz, s kx, s ky
-    np.subtract(pairs, skew, out=entries[:3])
-    np.add(pairs, skew, out=entries[3:6])
-    return entries.T[:, _MATRIX_ORDER].reshape(-1, 3, 3)
+    return _turn_all(np.ascontiguousarray(w, dtype=np.float64), float(dt))
 
 
 class RaycastVehicles:
@@ -137,13 +139,6 @@ class RaycastVehicles:
         self.vel = np.zeros((n, 3))
         self.ang = np.zeros((n, 3))
         self.inv_inertia = 1.0 / np.asarray(self.p.inertia)
-        # constants of the step, shaped for the stacked (component, wheel, vehicle) arrays
-        self._connection = np.ascontiguousarray(self.p.connection.T[:, :, None])  # (3, 4, 1): right, forward, up
-        self._inv_m = 1.0 / self.p.mass
-        self._inv_inertia = self.inv_inertia[:, None, None]
-        self._inv_mass = np.concatenate([np.full(3, self._inv_m), self.inv_inertia])[:, None]  # (6, 1): of (v, w)
-        self._length_min = self.p.suspension_rest - self.p.suspension_travel
-        self._length_max = self.p.suspension_rest + self.p.suspension_travel
 
     def place(self, slots: np.ndarray, xy: np.ndarray, heading: np.ndarray, speed: np.ndarray | float = 0.0, settled: bool = False) -> None:
         """Put vehicles at ``xy`` and ``heading``, driving straight at ``speed``.
@@ -170,120 +165,211 @@ class RaycastVehicles:
 
         Returns the reported pose of each: position (n, 2) and heading (n,), as MetaDrive reads them.
         The physics runs in the chassis frame (constant connection points, diagonal inertia); the
-        state is kept in the world frame. Vectors are stacked on a leading axis (x, y, z) over
-        (wheel, vehicle), so that each line below is one array operation for every component,
-        wheel and vehicle.
+        state is kept in the world frame (``_raycast_step``, compiled).
         """
-        p = self.p
-        dt, gdt, ray = p.physics_dt, p.gravity * p.physics_dt, p.suspension_rest + p.wheel_radius
-        pos, rot = self.pos[slots], self.rot[slots]
-        world_v = self.vel[slots]
-        n = len(pos)
+        slots = np.ascontiguousarray(np.atleast_1d(slots), dtype=np.int64)
+        action = np.ascontiguousarray(action, dtype=np.float64).reshape(len(slots), 2)
+        return _raycast_step(
+            self.pos,
+            self.rot,
+            self.vel,
+            self.ang,
+            slots,
+            action,
+            int(substeps),
+            float(max_speed_kmh),
+            float(max_steer_deg),
+            _constants(self.p),
+        )
+
+
+@functools.cache
+def _constants(p: VehicleParams) -> np.ndarray:
+    """The kernel's constants of ``p`` in the order ``_raycast_step`` reads them."""
+    return np.array(
+        [
+            p.mass, *p.inertia, p.wheel_radius, p.suspension_rest, p.suspension_travel, p.suspension_stiffness, p.damping_relaxation,
+            p.damping_compression, p.max_suspension_force, p.friction_slip, p.roll_influence, p.engine_force, p.brake_force,
+            p.coast_brake, p.side_damping, p.forward_skid_factor, p.gravity, p.physics_dt, *p.connection.reshape(-1),
+        ]
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _raycast_step(
+    pos_all: np.ndarray,
+    rot_all: np.ndarray,
+    vel_all: np.ndarray,
+    ang_all: np.ndarray,
+    slots: np.ndarray,
+    action: np.ndarray,
+    substeps: int,
+    max_speed_kmh: float,
+    max_steer_deg: float,
+    c: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bullet's vehicle step (module doc) for the vehicles ``slots``, in place; their reported poses (n, 2) and headings (n,).
+
+    One vehicle at a time, in Bullet's order; per wheel: the ray, the suspension impulse, then the friction impulses.
+    """
+    mass, inertia = c[0], c[1:4]
+    wheel_radius, rest, travel, stiffness, relax, compress, max_force = c[4], c[5], c[6], c[7], c[8], c[9], c[10]
+    friction_slip, roll_influence, engine_force, brake_force, coast_brake, side_damping, skid_factor = c[11:18]
+    gravity, dt = c[18], c[19]
+    conn = c[20:32].reshape(4, 3)  # front right, front left, rear right, rear left: right, forward, up
+    inv_m = 1.0 / mass
+    inv_mass = np.array([inv_m, inv_m, inv_m, 1.0 / inertia[0], 1.0 / inertia[1], 1.0 / inertia[2]])
+    gdt, ray = gravity * dt, rest + wheel_radius
+    length_min, length_max = rest - travel, rest + travel
+    n = len(slots)
+    shown_xy = np.empty((n, 2))
+    shown_heading = np.empty(n)
+    rot = np.empty((3, 3))
+    vw = np.empty(6)  # chassis-frame linear and angular velocity
+    up = np.empty(3)  # world up in the chassis frame
+    r = np.empty((4, 3))  # contact points relative to the centre of mass
+    force = np.empty(4)
+    fwd = np.empty((4, 3))
+    axle = np.empty((4, 3))
+    rolling = np.empty(4)
+    side = np.empty(4)
+    contact = np.empty(4, np.bool_)
+    sums = np.empty(6)
+    side_sums = np.empty(6)
+    for i in range(n):
+        sl = slots[i]
+        px, py, pz = pos_all[sl, 0], pos_all[sl, 1], pos_all[sl, 2]
+        rot[:] = rot_all[sl]
+        vx, vy = vel_all[sl, 0], vel_all[sl, 1]
         # MetaDrive's _apply_throttle_brake, once per env step: engine off above the speed limit, brake 2.0 unless braking
-        fast = np.sqrt(world_v[:, 0] ** 2 + world_v[:, 1] ** 2) * 3.6 > max_speed_kmh
-        pedal = action[:, 1]
-        engine = np.where(pedal >= 0.0, np.where(fast, 0.0, p.engine_force * pedal), 0.0)
-        brake = np.where(pedal >= 0.0, p.coast_brake, -pedal * p.brake_force)
+        fast = np.sqrt(vx**2 + vy**2) * 3.6 > max_speed_kmh
+        steer, pedal = action[i, 0], action[i, 1]
+        engine = (0.0 if fast else engine_force * pedal) if pedal >= 0.0 else 0.0
+        brake = coast_brake if pedal >= 0.0 else -pedal * brake_force
         engine_on, engine_impulse = engine != 0.0, engine * dt
-        delta = np.where(p.front[:, None], np.deg2rad(max_steer_deg) * action[:, 0], 0.0)  # (4, n)
-        # the wheels' heading in the chassis plane; z = -0.0 so that -0.0 - x is -x to the bit
-        wheel_dir = np.stack([np.cos(delta), np.sin(delta), np.full((4, n), -0.0)])
-        vw = np.empty((6, n))  # chassis-frame linear and angular velocity
-        vw[:3] = np.einsum("nji,nj->ni", rot, world_v).T
-        vw[3:] = np.einsum("nji,nj->ni", rot, self.ang[slots]).T
-        up = np.empty((3, 4, n))  # world up in the chassis frame, at every wheel
-        points = np.empty((2, 3, 4, n))  # contact points and the side impulses' points, relative to the centre of mass
-        points[0, :2] = self._connection[:2]
-        r = points[0]
-        dirs = np.empty((2, 3, 4, n))  # each wheel's forward direction and axle on the ground
-        lift_sums = np.empty((6, 4, n))  # the suspension impulses and their torques, per wheel
-        friction_sums = np.empty((2, 6, 4, n))  # the forward and side impulses and their torques, per wheel
-        friction = np.empty((2, 4, n))  # the forward and side impulse sizes
-        shown_pos, shown_fwd = pos[:, :2], rot[:, :2, 1]
+        delta = np.deg2rad(max_steer_deg) * steer
+        cos_d, sin_d = np.cos(delta), np.sin(delta)
+        for a in range(3):
+            vw[a] = rot[0, a] * vel_all[sl, 0] + rot[1, a] * vel_all[sl, 1] + rot[2, a] * vel_all[sl, 2]
+            vw[3 + a] = rot[0, a] * ang_all[sl, 0] + rot[1, a] * ang_all[sl, 1] + rot[2, a] * ang_all[sl, 2]
+        shown_px, shown_py, shown_fx, shown_fy = px, py, rot[0, 1], rot[1, 1]
         for k in range(substeps):
             if k == substeps - 1:  # Bullet's motion state shows the pose before the last integration
-                shown_pos, shown_fwd = pos[:, :2].copy(), rot[:, :2, 1].copy()
-            vw[:3] -= gdt * rot[:, 2, :].T  # gravity
-            v = np.ascontiguousarray(vw[:3].T)
-            pos = pos + np.einsum("nij,nj->ni", rot, v) * dt
-            turn = turn_matrices(vw[3:].T, dt)  # a body-frame turn: R exp([w] dt)
-            rot = rot @ turn
-            vw[:3] = np.einsum("nji,nj->ni", turn, v).T  # the same world velocity in the turned frame
-            up[:] = rot[:, None, 2, :].T
+                shown_px, shown_py, shown_fx, shown_fy = px, py, rot[0, 1], rot[1, 1]
+            for a in range(3):  # gravity
+                vw[a] -= gdt * rot[2, a]
+            v0, v1, v2 = vw[0], vw[1], vw[2]
+            px += (rot[0, 0] * v0 + rot[0, 1] * v1 + rot[0, 2] * v2) * dt
+            py += (rot[1, 0] * v0 + rot[1, 1] * v1 + rot[1, 2] * v2) * dt
+            pz += (rot[2, 0] * v0 + rot[2, 1] * v1 + rot[2, 2] * v2) * dt
+            t = _turn(vw[3], vw[4], vw[5], dt)  # a body-frame turn: R exp([w] dt)
+            for a in range(3):
+                r0, r1, r2 = rot[a, 0], rot[a, 1], rot[a, 2]
+                rot[a, 0] = r0 * t[0] + r1 * t[3] + r2 * t[6]
+                rot[a, 1] = r0 * t[1] + r1 * t[4] + r2 * t[7]
+                rot[a, 2] = r0 * t[2] + r1 * t[5] + r2 * t[8]
+            for a in range(3):  # the same world velocity in the turned frame
+                vw[a] = t[a] * v0 + t[3 + a] * v1 + t[6 + a] * v2
+            up[0], up[1], up[2] = rot[2, 0], rot[2, 1], rot[2, 2]
             nz = up[2]
-            # rays straight down the chassis' -z from the connection points to the ground z = 0
-            arm = up * self._connection
-            height = pos[:, 2] + arm[0] + arm[1] + arm[2]  # connection points above the ground (4, n)
             steep = nz > 0.1
-            upright = steep.all()  # the usual case, and then np.where(steep, x, y) is x
-            safe_nz = nz if upright else np.where(steep, nz, 1.0)
-            dist = height / safe_nz if upright else np.where(steep, height / safe_nz, np.inf)
-            contact = (dist >= 0.0) & (dist <= ray)
-            grounded = contact.all()  # the usual case, and then np.where(contact, x, y) is x
-            length = np.minimum(np.maximum(dist - p.wheel_radius, self._length_min), self._length_max)  # np.clip to the bit
-            np.subtract(self._connection[2], dist if grounded else np.where(contact, dist, ray), out=r[2])  # contact heights
-            rr = r[_ROLL121]
-            r12, r21 = rr[:6], rr[3:]
-            # suspension: spring and damper along the ray, impulse along world up at the contact
-            cross = vw[_W_ROLL12, None] * r21
-            cv = vw[:3, None] + cross[:3] - cross[3:]  # v + w x r
-            inv_cos = 1.0 / safe_nz if upright else np.where(steep, 1.0 / safe_nz, 10.0)
-            along = up * cv
-            rel_vel = (along[0] + along[1] + along[2]) * inv_cos
-            if not upright:
-                rel_vel = np.where(steep, rel_vel, 0.0)
-            damping = np.where(rel_vel < 0.0, p.damping_compression, p.damping_relaxation)
-            force = np.maximum((p.suspension_stiffness * (p.suspension_rest - length) * inv_cos - damping * rel_vel) * p.mass, 0.0)
-            if not grounded:
-                force = np.where(contact, force, 0.0)
-            lift = np.minimum(force, p.max_suspension_force) * dt
-            np.multiply(lift, up, out=lift_sums[:3])
-            cross = r12 * lift_sums[_ROLL21]
-            np.subtract(cross[:3], cross[3:], out=lift_sums[3:])
-            vw += lift_sums.sum(1) * self._inv_mass
-            # friction: each wheel's axle and forward direction on the ground
-            tilt = wheel_dir[0] * up[0] + wheel_dir[1] * up[1]
-            axle = wheel_dir - up * tilt
-            sq = axle * axle
-            axle = np.divide(axle, np.sqrt(sq[0] + sq[1] + sq[2]), out=dirs[1])
-            cross = up[_ROLL12] * axle[_ROLL21]
-            np.subtract(cross[:3], cross[3:], out=dirs[0])  # forward: up x axle
-            cross = vw[_W_ROLL12, None] * r21
-            cv = vw[:3, None] + cross[:3] - cross[3:]
-            # Bullet's impulse denominators 1/m + (r x d)^T I^-1 (r x d) (forward, side)
-            cross = r12 * dirs[:, _ROLL21]
-            moment = cross[:, :3] - cross[:, 3:]
-            q = moment * moment * self._inv_inertia
-            den = self._inv_m + q[:, 0] + q[:, 1] + q[:, 2]
-            along = cv * dirs
-            slip = along[:, 0] + along[:, 1] + along[:, 2]  # contact point velocity (forward, side)
-            side = -p.side_damping * slip[1] / den[1]
-            stop = -slip[0] / den[0]  # the impulse that stops the contact point (not shared out)
-            rolling = np.where(engine_on, engine_impulse, np.minimum(np.maximum(stop, -brake), brake))  # np.clip to the bit
-            if not grounded:
-                side, rolling = np.where(contact, side, 0.0), np.where(contact, rolling, 0.0)
-            limit = force * dt * p.friction_slip
-            demand = (rolling * p.forward_skid_factor) ** 2 + side * side
-            skidding = contact & (demand > limit * limit)
-            if skidding.any():
-                skid = np.where(skidding, limit / np.sqrt(np.where(skidding, demand, 1.0)), 1.0)
-                scale = np.where(skidding.any(0) & (side != 0.0) & (skid < 1.0), skid, 1.0)
-                rolling, side = rolling * scale, side * scale
+            safe_nz = nz if steep else 1.0
+            inv_cos = 1.0 / safe_nz if steep else 10.0
+            sums[:] = 0.0
+            for w in range(4):
+                # a ray straight down the chassis' -z from the connection point to the ground z = 0
+                height = pz + up[0] * conn[w, 0] + up[1] * conn[w, 1] + up[2] * conn[w, 2]
+                dist = height / safe_nz if steep else np.inf
+                contact[w] = (dist >= 0.0) and (dist <= ray)
+                length = min(max(dist - wheel_radius, length_min), length_max)
+                r[w, 0], r[w, 1] = conn[w, 0], conn[w, 1]
+                r[w, 2] = conn[w, 2] - (dist if contact[w] else ray)
+                # suspension: spring and damper along the ray, impulse along world up at the contact
+                cv0 = vw[0] + vw[4] * r[w, 2] - vw[5] * r[w, 1]  # v + w x r
+                cv1 = vw[1] + vw[5] * r[w, 0] - vw[3] * r[w, 2]
+                cv2 = vw[2] + vw[3] * r[w, 1] - vw[4] * r[w, 0]
+                rel_vel = (up[0] * cv0 + up[1] * cv1 + up[2] * cv2) * inv_cos if steep else 0.0
+                damping = compress if rel_vel < 0.0 else relax
+                f = max((stiffness * (rest - length) * inv_cos - damping * rel_vel) * mass, 0.0)
+                force[w] = f if contact[w] else 0.0
+                lift = min(force[w], max_force) * dt
+                l0, l1, l2 = lift * up[0], lift * up[1], lift * up[2]
+                sums[0] += l0
+                sums[1] += l1
+                sums[2] += l2
+                sums[3] += r[w, 1] * l2 - r[w, 2] * l1
+                sums[4] += r[w, 2] * l0 - r[w, 0] * l2
+                sums[5] += r[w, 0] * l1 - r[w, 1] * l0
+            for a in range(6):
+                vw[a] += sums[a] * inv_mass[a]
+            for w in range(4):
+                # friction: the wheel's axle and forward direction on the ground
+                wd0, wd1 = (cos_d, sin_d) if w < 2 else (1.0, 0.0)
+                tilt = wd0 * up[0] + wd1 * up[1]
+                a0, a1, a2 = wd0 - up[0] * tilt, wd1 - up[1] * tilt, -0.0 - up[2] * tilt
+                norm = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                a0, a1, a2 = a0 / norm, a1 / norm, a2 / norm
+                axle[w, 0], axle[w, 1], axle[w, 2] = a0, a1, a2
+                f0, f1, f2 = up[1] * a2 - up[2] * a1, up[2] * a0 - up[0] * a2, up[0] * a1 - up[1] * a0  # forward: up x axle
+                fwd[w, 0], fwd[w, 1], fwd[w, 2] = f0, f1, f2
+                r0, r1, r2 = r[w, 0], r[w, 1], r[w, 2]
+                cv0 = vw[0] + vw[4] * r2 - vw[5] * r1
+                cv1 = vw[1] + vw[5] * r0 - vw[3] * r2
+                cv2 = vw[2] + vw[3] * r1 - vw[4] * r0
+                # Bullet's impulse denominators 1/m + (r x d)^T I^-1 (r x d) (forward, side)
+                m0, m1, m2 = r1 * f2 - r2 * f1, r2 * f0 - r0 * f2, r0 * f1 - r1 * f0
+                den_f = inv_m + m0 * m0 * inv_mass[3] + m1 * m1 * inv_mass[4] + m2 * m2 * inv_mass[5]
+                m0, m1, m2 = r1 * a2 - r2 * a1, r2 * a0 - r0 * a2, r0 * a1 - r1 * a0
+                den_s = inv_m + m0 * m0 * inv_mass[3] + m1 * m1 * inv_mass[4] + m2 * m2 * inv_mass[5]
+                slip_f = cv0 * f0 + cv1 * f1 + cv2 * f2  # contact point velocity (forward, side)
+                slip_s = cv0 * a0 + cv1 * a1 + cv2 * a2
+                if contact[w]:
+                    side[w] = -side_damping * slip_s / den_s
+                    stop = -slip_f / den_f  # the impulse that stops the contact point (not shared out)
+                    rolling[w] = engine_impulse if engine_on else min(max(stop, -brake), brake)
+                else:
+                    side[w], rolling[w] = 0.0, 0.0
+            for w in range(4):
+                limit = force[w] * dt * friction_slip
+                demand = (rolling[w] * skid_factor) ** 2 + side[w] * side[w]
+                if contact[w] and demand > limit * limit and side[w] != 0.0:
+                    skid = limit / np.sqrt(demand)
+                    if skid < 1.0:
+                        rolling[w] *= skid
+                        side[w] *= skid
             # the forward impulse acts at the contact point; the side one with its height over the ground scaled (roll influence)
-            across = up * r
-            up_part = (1.0 - p.roll_influence) * (across[0] + across[1] + across[2])
-            np.subtract(r, up_part * up, out=points[1])
-            friction[0], friction[1] = rolling, side
-            impulse = np.multiply(friction[:, None], dirs, out=friction_sums[:, :3])
-            cross = points[:, _ROLL12] * impulse[:, _ROLL21]
-            np.subtract(cross[:, :3], cross[:, 3:], out=friction_sums[:, 3:])
-            total = friction_sums.sum(2) * self._inv_mass
-            vw += total[0]
-            vw += total[1]
-        self.pos[slots], self.rot[slots] = pos, rot
-        self.vel[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[:3].T))
-        self.ang[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[3:].T))
-        return shown_pos, np.arctan2(shown_fwd[:, 1], shown_fwd[:, 0])
+            sums[:] = 0.0
+            for w in range(4):
+                i0, i1, i2 = rolling[w] * fwd[w, 0], rolling[w] * fwd[w, 1], rolling[w] * fwd[w, 2]
+                sums[0] += i0
+                sums[1] += i1
+                sums[2] += i2
+                sums[3] += r[w, 1] * i2 - r[w, 2] * i1
+                sums[4] += r[w, 2] * i0 - r[w, 0] * i2
+                sums[5] += r[w, 0] * i1 - r[w, 1] * i0
+            side_sums[:] = 0.0
+            for w in range(4):
+                up_part = (1.0 - roll_influence) * (up[0] * r[w, 0] + up[1] * r[w, 1] + up[2] * r[w, 2])
+                q0, q1, q2 = r[w, 0] - up_part * up[0], r[w, 1] - up_part * up[1], r[w, 2] - up_part * up[2]
+                i0, i1, i2 = side[w] * axle[w, 0], side[w] * axle[w, 1], side[w] * axle[w, 2]
+                side_sums[0] += i0
+                side_sums[1] += i1
+                side_sums[2] += i2
+                side_sums[3] += q1 * i2 - q2 * i1
+                side_sums[4] += q2 * i0 - q0 * i2
+                side_sums[5] += q0 * i1 - q1 * i0
+            for a in range(6):
+                vw[a] += sums[a] * inv_mass[a]
+            for a in range(6):
+                vw[a] += side_sums[a] * inv_mass[a]
+        pos_all[sl, 0], pos_all[sl, 1], pos_all[sl, 2] = px, py, pz
+        rot_all[sl] = rot
+        for a in range(3):
+            vel_all[sl, a] = rot[a, 0] * vw[0] + rot[a, 1] * vw[1] + rot[a, 2] * vw[2]
+            ang_all[sl, a] = rot[a, 0] * vw[3] + rot[a, 1] * vw[4] + rot[a, 2] * vw[5]
+        shown_xy[i, 0], shown_xy[i, 1] = shown_px, shown_py
+        shown_heading[i] = np.arctan2(shown_fy, shown_fx)
+    return shown_xy, shown_heading
 
 
 @functools.cache

@@ -8,9 +8,19 @@ it). ``loop.train`` runs RLlib iterations until an env-step or wall-time budget,
 iteration (``monitor``) and writes coin_app checkpoints (RLlib's layout plus ``coin_app.json``; ``checkpoints``).
 """
 
-from coin_app.training.checkpoints import check_resume, check_run_dir, checkpoint_meta, save
+from coin_app.training.address import check_address
+from coin_app.training.checkpoints import check_restorable, check_resume, check_run_dir, checkpoint_meta, clear_run, save
 from coin_app.training.config import build_config, fresh_module, with_env_runner
-from coin_app.training.loop import RAY_LOG, STOPPED_AT_BUDGET, STOPPED_AT_MAX_MINUTES, TENSORBOARD_DIR, StopRequest, stop_on_signal, train
+from coin_app.training.loop import (
+    RAY_LOG,
+    STOPPED_AT_BUDGET,
+    STOPPED_AT_MAX_MINUTES,
+    TENSORBOARD_DIR,
+    Interrupted,
+    StopRequest,
+    stop_on_signal,
+    train,
+)
 from coin_app.training.monitor import (
     COLLAPSED_ACTION_STD,
     CRITIC_LOSS_KEYS,
@@ -33,13 +43,17 @@ __all__ = [
     "STOPPED_AT_MAX_MINUTES",
     "TENSORBOARD_DIR",
     "FreezeDetector",
+    "Interrupted",
     "PeriodicEvaluation",
     "RunProgress",
     "StopRequest",
     "build_config",
+    "check_address",
+    "check_restorable",
     "check_resume",
     "check_run_dir",
     "checkpoint_meta",
+    "clear_run",
     "evaluate_algorithm",
     "fresh_module",
     "iteration_metrics",

@@ -1,223 +1,46 @@
-"""CIG-TD3 (COIN) and ITD3 on RLlib's new API stack: config, algorithm and spec in one file (as RLlib's ``tqc.py``).
+"""CIG-TD3 (COIN): what it adds to the TD3 family's base (``td3/``): config and algorithm (as RLlib's ``tqc.py``).
 
-``CigTd3Config`` holds every hyper-parameter, documented once in ``HYPERPARAMETERS`` with the
-paper's defaults (COIN §5.1; where the official code differs, its value is noted, and
-``docs/decisions.md`` §2.1 says which side coin_app follows). ``global_critic=False`` is ITD3, the
-independent TD3 baseline with parameter sharing (``CigTd3Config.itd3()``).
+``CigTd3Config`` is ``Td3Config`` plus CIG-TD3's keys, declared once in ``settings.py`` (``CigTd3Settings``) with
+the paper's defaults (COIN §5.1; where the official code differs, its value is noted, and
+``docs/decisions.md`` §2.1 says which side coin_app follows): the centralized critic (twin global Q,
+counterfactual baseline V, CVAE pair latents, GAT; ``critic.py``, ``pairwise.py``, ``graph.py``),
+its learning rate and loss weights, and the ablation switches of COIN's Tables 5.2 and B.1-B.3.
+``global_critic=False`` leaves TD3 (ITD3 is its own algorithm, ``td3/``: ``--algo itd3``).
+The algorithm is ``Td3``'s (sample -> joint-step replay -> updates -> sync); the module and the
+learner add the centralized critic (``rl_module.py``, ``learner.py``, ``losses.py``).
 
-``CigTd3`` runs sample -> joint-step replay -> learner updates -> weight sync. Each
-``training_step``: the env runners sample ``rollout_fragment_length`` env steps (uniform random
-actions during the warm-up, from the module's seeded exploration), the episodes are turned into
-per-agent transitions and added to the joint-step replay buffer (the centralized-critic
-connector: it attaches the other agents' states, actions and next observations by env step at
-sample time), then ``updates_per_env_step`` gradient updates per sampled env step run on
-batches of ``train_batch_size_per_learner`` transitions, and the actor weights go back to the
-env runners. The buffer, its RNG and the update credit are part of the algorithm's checkpoint
-state, so a resumed run continues exactly. The replay stays in the algorithm process; the learner
-runs there too (``num_learners=0``) or as one remote learner actor that each sampled batch is
-sent to (``num_learners=1``; more would need more than one replay), on a GPU with
-``num_gpus_per_learner=1``. ``precision="bf16"`` runs the learner's loss forward passes in
-bfloat16 (``learner.py``).
-
-``CIG_TD3`` and ``ITD3`` are their :class:`~coin_app.algorithms.spec.AlgorithmSpec` entries.
+``CIG_TD3``, its :class:`~coin_app.algorithms.spec.AlgorithmSpec` entry, is in ``settings.py``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, ClassVar
 
-import torch
-from ray.rllib.algorithms.algorithm import Algorithm
-from ray.rllib.algorithms.algorithm_config import AlgorithmConfig, NotProvided
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
-from ray.rllib.execution.rollout_ops import synchronous_parallel_sample
-from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
-from ray.rllib.utils.metrics import (
-    ENV_RUNNER_RESULTS,
-    ENV_RUNNER_SAMPLING_TIMER,
-    LEARNER_RESULTS,
-    LEARNER_UPDATE_TIMER,
-    NUM_AGENT_STEPS_SAMPLED_LIFETIME,
-    NUM_ENV_STEPS_SAMPLED_LIFETIME,
-    REPLAY_BUFFER_ADD_DATA_TIMER,
-    REPLAY_BUFFER_SAMPLE_TIMER,
-    SYNCH_WORKER_WEIGHTS_TIMER,
-    TIMERS,
-)
 
-from coin_app.adapters.rllib_env import ENV_IDS, env_config_of, register_envs
-from coin_app.algorithms.checks import value_errors
-from coin_app.algorithms.cig_td3.buffer import JointStepReplayBuffer
 from coin_app.algorithms.cig_td3.learner import CigTd3TorchLearner
 from coin_app.algorithms.cig_td3.rl_module import CigTd3TorchRLModule
-from coin_app.algorithms.cig_td3.transitions import episodes_to_transitions
-from coin_app.algorithms.common import (
-    SHARED_MODULE_ID,
-    ProgressReporting,
-    backend_errors,
-    policy_mapping_fn,
-    scenario_config_of,
-)
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
-from coin_app.sim import schema
-from coin_app.sim.config import ScenarioConfig
-from coin_app.sim.road_map import load_map
-from coin_app.sim.scenarios import scenario_name
-from coin_app.sim.simulator import MAX_RESPAWN_PER_STEP
-
-ITD3_PRECISION = "fp32"  # ITD3's default precision (CIG-TD3's is bf16: docs/studies/learning_curves_precision)
-
-# name -> (default, meaning); the single source of the documentation and of training() kwargs
-HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
-    "actor_lr": (2e-4, "Adam learning rate of the actor (paper; official code 1e-4)"),
-    "critic_lr": (3e-4, "Adam learning rate of the twin local critics"),
-    "central_critic_lr": (3e-4, "Adam learning rate of the centralized critic: twin global Q, baseline V and CVAE (official 2e-4)"),
-    "tau": (0.005, "soft target update rate of actor, local and global critics"),
-    "policy_delay": (5, "actor and target updates every this many critic updates (official code 3)"),
-    "exploration_noise": (0.05, "std of the Gaussian noise added to actions while collecting"),
-    "target_noise": (0.1, "std of the target-policy smoothing noise (Eq. 8)"),
-    "target_noise_clip": (0.5, "clip of the target-policy smoothing noise"),
-    "timeout_bootstrap": (
-        True,
-        "True: a vehicle's time-out (its own step limit or the force stop, reported truncated) bootstraps its TD targets; "
-        "False: every done is terminal, time-outs too (the paper's d_i and the official code)",
-    ),
-    "warmup_steps": (30_000, "env steps with uniform random actions before the policy acts (official code)"),
-    "replay_capacity": (10_000_000, "agent transitions kept in the joint-step replay buffer (official code; memory grows with use)"),
-    "updates_per_env_step": (1.0, "gradient updates per sampled env step (official: one per env step)"),
-    "global_critic": (True, "use the centralized critic (False = ITD3)"),
-    "counterfactual_baseline": (True, "subtract the counterfactual baseline V in the actor loss (Eq. 12)"),
-    "local_module": ("cvae", "pairwise interaction module: cvae | attention (Table B.1) | none (w/o VAE)"),
-    "global_module": ("gat", "global interaction module: gat | gcn | graphsage | none (w/o GAT: mean-pool)"),
-    "graph": ("full", "'full' graph, or a radius in metres for a sparse graph (Tables B.2/B.3: 40)"),
-    "global_weight": (1.0, "weight of the global term in the actor loss (paper 1.0; official 0.8)"),
-    "vae_weight": (1.0, "weight of the CVAE loss in the centralized-critic loss (official 0.01)"),
-    "kl_beta": (1.0, "weight of the KL term inside the CVAE loss"),
-    "hidden": (256, "width of actor, local-critic and CVAE layers"),
-    "actor_layers": (3, "hidden layers of the actor (paper: a three-layer MLP; official code 3 x 256; 2 before coin_app 0.2)"),
-    "latent_dim": (20, "CVAE latent size"),
-    "node_width": (128, "GAT node feature width"),
-    "gat_heads": (2, "heads of the first GAT layer, concatenated (official code 2; the paper is silent; 1 before coin_app 0.2)"),
-    "gat_init": ("xavier", "GAT weight initialization: xavier (gain 1.414, official code) | default (torch Linear, before 0.2)"),
-    "update_order": (
-        "critic_first",
-        "critic_first: the critics step, then the actor loss on the updated critics (TD3, official code) | "
-        "joint: every loss from the critics before the update (before coin_app 0.2)",
-    ),
-    # guards against the saturated full-brake freeze of TD3-family actors (docs/guides/train-cig-td3.md, "TD3 freeze"); all off = the paper
-    "actor_preact_penalty": (0.0, "weight w of w * mean(max(|u| - actor_preact_threshold, 0)^2) over the actor's pre-tanh outputs u"),
-    "actor_preact_threshold": (0.0, "pre-tanh magnitude the penalty starts at (0 = the plain penalty w * mean(u^2))"),
-    "critic_feature_norm": (
-        False,
-        "divide every critic's last hidden features by their L2 norm before its output layer (the penultimate "
-        "normalization of Bjorck et al., 2022, against seed-to-seed variance; not in COIN or its code)",
-    ),
-    "actor_start_steps": (0, "env steps after the warm-up before the actor's first update (the critics learn the warm-up data first)"),
-    "exploration_noise_initial": (
-        None,
-        "exploration std right after the warm-up, decaying linearly to exploration_noise (None = constant)",
-    ),
-    "exploration_noise_decay_steps": (0, "env steps of that decay"),
-    "exploration_noise_decay_start": (None, "env step at which that decay starts (None = the end of the warm-up)"),
-    # an optional late decay of every Adam learning rate (off = constant rates, the paper)
-    "lr_decay_start": (0, "env steps at which the learning rates start to decay linearly"),
-    "lr_decay_steps": (0, "env steps of that decay (0 = constant learning rates, the paper)"),
-    "lr_final_fraction": (1.0, "fraction of each learning rate reached at the decay's end and kept after it"),
-    "learner_threads": (1, "torch threads for updates in the learner's process (more only if a benchmark shows it helps)"),
-    "precision": (
-        "bf16",
-        "learner update precision: bf16 | fp32 (bf16: every loss forward pass under torch.autocast bfloat16; parameters, "
-        "optimizer state, TD targets, loss reductions and soft updates stay fp32; 0.37x the fp32 update time at the paper's "
-        "sizes on this CPU, no loss of success at equal env steps: docs/studies/learning_curves_precision)",
-    ),
-    "checkpoint_replay": (
-        True,
-        "keep the replay buffer in checkpoints (at its used size), so --resume continues exactly; False = small "
-        "checkpoints, and a resumed run refills an empty buffer (its updates wait for a batch of new transitions)",
-    ),
-    "eval_every": (25, "training iterations between deterministic evaluations on validation seeds (0 = off)"),
-    "eval_episodes": (5, "validation episodes (seeds) per periodic evaluation"),
-}
+from coin_app.algorithms.cig_td3.settings import CigTd3Settings
+from coin_app.algorithms.td3.td3 import Td3, Td3Config, config_builder
 
 
-class CigTd3Config(AlgorithmConfig):
-    """Configuration of CIG-TD3 (and ITD3) on RLlib's new API stack; the base of every TD3-family config on the joint-step replay."""
+class CigTd3Config(Td3Config):
+    """Configuration of CIG-TD3 on RLlib's new API stack: TD3's with the centralized critic's keys."""
 
-    HYPERPARAMETERS: ClassVar[dict[str, tuple[Any, str]]] = HYPERPARAMETERS  # this config's own keys (TraCo has its own)
-    LABEL: ClassVar[str] = "CIG-TD3"  # the name in error messages
+    SETTINGS: ClassVar[type[CigTd3Settings]] = CigTd3Settings
+    LABEL: ClassVar[str] = "CIG-TD3"
 
     def __init__(self, algo_class: type | None = None):
         super().__init__(algo_class=algo_class or CigTd3)
-        for name, (default, _) in self.HYPERPARAMETERS.items():
-            setattr(self, name, default)
-        self.gamma = 0.99
-        self.train_batch_size_per_learner = 256
-        self.rollout_fragment_length = 1
-        self.min_sample_timesteps_per_iteration = 500
-        self.lr = None  # separate optimizers; see actor_lr, critic_lr, central_critic_lr
-        self.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)  # parameter sharing
-
-    def training(self, **kwargs: Any) -> CigTd3Config:
-        """Set training options; this algorithm's keys are those of ``HYPERPARAMETERS``, the rest go to RLlib."""
-        own = {k: kwargs.pop(k) for k in list(kwargs) if k in self.HYPERPARAMETERS}
-        super().training(**kwargs)
-        for name, value in own.items():
-            if value is not NotProvided:
-                setattr(self, name, value)
-        return self
-
-    def itd3(self) -> CigTd3Config:
-        """Switch to ITD3: no centralized critic, only the individual twin critics."""
-        return self.training(
-            global_critic=False,
-            counterfactual_baseline=False,
-            local_module="none",
-            global_module="none",
-            vae_weight=0.0,
-            precision=ITD3_PRECISION,
-        )
-
-    # ---------------------------------------------------------------- env facts
-    def scenario_config(self) -> ScenarioConfig:
-        """The scenario config this algorithm trains on: the typed one ``env_config`` carries (parsed once), or parsed from overrides."""
-        return scenario_config_of(self)
-
-    @property
-    def max_others(self) -> int:
-        """Padded number of other agents per transition: everyone who can be present at t+1."""
-        return self.scenario_config().num_agents + MAX_RESPAWN_PER_STEP
-
-    # ---------------------------------------------------------------- validation
-    def validate(self) -> None:
-        """Refuse bad values and invalid ablation combinations before any work starts."""
-        super().validate()
-        errors = value_errors({key: getattr(self, key) for key in self.HYPERPARAMETERS})  # types, finiteness, ranges, choices
-        if errors:  # the combinations below assume well-typed values
-            raise ValueError(f"invalid {self.LABEL} config: " + "; ".join(errors))
-        errors = self.combination_errors()
-        if self.num_learners > 1:
-            errors.append(
-                f"num_learners={self.num_learners}; allowed: 0 (local learner) or 1 (one remote learner: one replay, one learner)"
-            )
-        try:
-            self.scenario_config()
-        except ValueError as exc:
-            errors.append(str(exc))
-        errors += backend_errors(self)
-        if errors:
-            raise ValueError(f"invalid {self.LABEL} config: " + "; ".join(errors))
 
     def combination_errors(self) -> list[str]:
         """One line per invalid combination of well-typed keys (CIG-TD3's ablation switches)."""
         errors = []
         if not self.global_critic:
             if self.counterfactual_baseline:
-                errors.append("counterfactual_baseline=True needs global_critic=True (ITD3 has no global critic; use .itd3())")
+                errors.append("counterfactual_baseline=True needs global_critic=True (without it this is ITD3: --algo itd3)")
             if self.local_module != "none" or self.global_module != "none":
-                errors.append(
-                    "local_module/global_module configure the global critic; with global_critic=False set both to 'none' (.itd3())"
-                )
+                errors.append("local_module/global_module configure the global critic; with global_critic=False set both to 'none'")
             if self.vae_weight > 0:
                 errors.append("vae_weight > 0 needs global_critic=True (the CVAE lives in the global critic)")
         elif self.local_module != "cvae" and self.vae_weight > 0:
@@ -226,7 +49,6 @@ class CigTd3Config(AlgorithmConfig):
             errors.append("a sparse graph radius needs a graph module (gat | gcn | graphsage), not global_module='none'")
         return errors
 
-    # ---------------------------------------------------------------- RLlib wiring
     def get_default_rl_module_spec(self) -> RLModuleSpec:
         """The CIG-TD3 torch RLModule."""
         return RLModuleSpec(module_class=CigTd3TorchRLModule)
@@ -237,8 +59,8 @@ class CigTd3Config(AlgorithmConfig):
 
     @property
     def _model_config_auto_includes(self) -> dict[str, Any]:
-        """Hyper-parameters the RLModule needs to build its networks and exploration."""
-        return self.td3_model_config() | {
+        """TD3's model-config entries and the centralized critic's."""
+        return super()._model_config_auto_includes | {
             "latent_dim": self.latent_dim,
             "node_width": self.node_width,
             "gat_heads": self.gat_heads,
@@ -250,239 +72,14 @@ class CigTd3Config(AlgorithmConfig):
             "graph_radius": None if self.graph == "full" else float(self.graph),
         }
 
-    def td3_model_config(self) -> dict[str, Any]:
-        """The model-config entries of every TD3-family module: widths, map scale, exploration and warm-up."""
-        scenario = self.scenario_config() if isinstance(self.env, str) and self.env in ENV_IDS else None
-        return super()._model_config_auto_includes | {
-            "hidden": self.hidden,
-            "actor_layers": self.actor_layers,
-            "critic_feature_norm": self.critic_feature_norm,
-            "position_scale": load_map(scenario.scenario).scale if scenario else 1.0,
-            "exploration_noise": self.exploration_noise,
-            "exploration_noise_initial": self.exploration_noise_initial,
-            "exploration_noise_decay_steps": self.exploration_noise_decay_steps,
-            "exploration_noise_decay_start": self.exploration_noise_decay_start,
-            "warmup_steps": self.warmup_steps,
-        }
 
-
-REPLAY_STATE_KEY = "cig_td3_replay"
-
-
-class CigTd3(ProgressReporting, Algorithm):
-    """Counterfactual individual-global TD3 (COIN) with a shared policy for all agents."""
+class CigTd3(Td3):
+    """Counterfactual individual-global TD3 (COIN) with a shared policy for all agents: TD3's loop with CIG-TD3's module and learner."""
 
     @classmethod
     def get_default_config(cls) -> CigTd3Config:
         """A default ``CigTd3Config``."""
         return CigTd3Config()
 
-    def setup(self, config: CigTd3Config) -> None:
-        """Register the envs, build runners and learners, then the seeded joint-step buffer."""
-        register_envs()
-        torch.set_num_threads(config.learner_threads)
-        super().setup(config)
-        scen = self.config.scenario_config()
-        seed = 0 if self.config.seed is None else int(self.config.seed)
-        self.replay = JointStepReplayBuffer(
-            capacity=self.config.replay_capacity,
-            obs_dim=scen.obs_dim,
-            state_dim=schema.STATE_DIM,
-            act_dim=schema.ACT_DIM,
-            max_others=self.config.max_others,
-            seed=seed,
-            # one step entry per env step: with few agents there are nearly as many steps as transitions
-            step_capacity=max(self.config.replay_capacity // 2 + 64, self.config.replay_capacity // max(1, scen.num_agents - 1)),
-        )
-        self._update_credit = 0.0
-        self._num_updates = 0
 
-    def training_step(self) -> None:
-        """One sample -> replay -> update(s) -> sync cycle."""
-        cfg = self.config
-        self._sync_env_steps()
-        self.report_progress("sampling", 0, 0)
-        with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
-            episodes, runner_results = synchronous_parallel_sample(
-                worker_set=self.env_runner_group,
-                concat=True,
-                sample_timeout_s=cfg.sample_timeout_s,
-                _uses_new_env_runners=True,
-                _return_metrics=True,
-            )
-        self.metrics.aggregate(runner_results, key=ENV_RUNNER_RESULTS)
-        with self.metrics.log_time((TIMERS, REPLAY_BUFFER_ADD_DATA_TIMER)):
-            self.replay.add(episodes_to_transitions(episodes))
-        env_steps = sum(len(e) for e in episodes)
-        lifetime = self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0)
-        batch_size = cfg.train_batch_size_per_learner
-        if lifetime < cfg.warmup_steps or len(self.replay) < batch_size:
-            return
-        self._update_credit += env_steps * cfg.updates_per_env_step
-        n_updates = int(self._update_credit)
-        self._update_credit -= n_updates
-        for i in range(n_updates):
-            self.report_progress("updates", i, n_updates)
-            with self.metrics.log_time((TIMERS, REPLAY_BUFFER_SAMPLE_TIMER)):
-                sample = self.replay.sample(batch_size)
-            batch = MultiAgentBatch({SHARED_MODULE_ID: SampleBatch(sample)}, env_steps=batch_size)
-            with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-                results = self.learner_group.update(
-                    batch=batch,
-                    timesteps={
-                        NUM_ENV_STEPS_SAMPLED_LIFETIME: lifetime,
-                        NUM_AGENT_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
-                            (ENV_RUNNER_RESULTS, NUM_AGENT_STEPS_SAMPLED_LIFETIME), default=0
-                        ),
-                    },
-                )
-            self.metrics.aggregate(results, key=LEARNER_RESULTS)
-        self.report_progress("updates", n_updates, n_updates)
-        done_before, self._num_updates = self._num_updates, self._num_updates + n_updates
-        if done_before // cfg.policy_delay != self._num_updates // cfg.policy_delay:  # the actor changed
-            with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
-                self._sync_actor()
-
-    def _sync_actor(self) -> None:
-        """Give the env runners the learner's actor weights: copied in place when learner and runner share this process.
-
-        With no remote env runner and a local learner (``num_learners=0``, the reduced protocol), RLlib's
-        ``sync_weights`` would still build the module's state, put it into Ray's object store and load it
-        back (a training step takes 0.925x the time without it: ``benchmarks/weight_sync.py``); the in-place
-        copy gives the runner the same weights bit for bit (RLlib's DreamerV3 reaches the local learner's
-        module the same way).
-        """
-        learner = getattr(self.learner_group, "_learner", None)  # None when the learner is a remote actor
-        runner = self.env_runner
-        if learner is not None and runner is not None and self.env_runner_group.num_remote_env_runners() == 0:
-            copy_weights(learner.module[SHARED_MODULE_ID].unwrapped(), runner.module[SHARED_MODULE_ID].unwrapped())
-            return
-        self.sync_actor_through_rllib()
-
-    def sync_actor_through_rllib(self) -> None:
-        """RLlib's own weight sync of the actor to every env runner (module state -> object store -> load)."""
-        self.env_runner_group.sync_weights(
-            from_worker_or_learner_group=self.learner_group, policies=[SHARED_MODULE_ID], inference_only=True
-        )
-
-    def _sync_env_steps(self) -> None:
-        """Give the env runners the exact lifetime env-step count before they sample (an exact warm-up boundary).
-
-        RLlib syncs the runners' count only at the end of an iteration, so exploration's ``t``
-        would otherwise lag by up to an iteration (the whole first one uniform random).
-        """
-        lifetime = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
-        if self.env_runner_group.num_remote_env_runners() == 0:
-            self.env_runner.num_env_steps_sampled_lifetime = lifetime
-        else:
-            self.env_runner_group.sync_env_runner_states(config=self.config, env_steps_sampled=lifetime)
-
-    # ------------------------------------------------------------------ checkpoints
-    def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
-        """Algorithm state plus the replay buffer (RLlib's new stack leaves it out)."""
-        state = super().get_state(*args, **kwargs)
-        state[REPLAY_STATE_KEY] = {
-            "buffer": self.replay.get_state() if self.config.checkpoint_replay else None,
-            "update_credit": self._update_credit,
-            "num_updates": self._num_updates,
-        }
-        return state
-
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Restore the algorithm and its replay buffer."""
-        super().set_state(state)
-        extra = state.get(REPLAY_STATE_KEY)
-        if extra is not None:
-            if extra["buffer"] is not None:  # None: saved with checkpoint_replay=False, the buffer starts empty
-                self.replay.set_state(extra["buffer"])
-            self._update_credit = float(extra["update_credit"])
-            self._num_updates = int(extra["num_updates"])
-
-
-def copy_weights(source: torch.nn.Module, dest: torch.nn.Module) -> None:
-    """Copy each of ``dest``'s parameters and buffers from ``source``'s of the same name, in place (any devices)."""
-    with torch.no_grad():
-        for name, tensor in dest.named_parameters():
-            tensor.copy_(source.get_parameter(name))
-        for name, tensor in dest.named_buffers():
-            tensor.copy_(source.get_buffer(name))
-
-
-# ---------------------------------------------------------------------- the spec (algorithm contract)
-# RLlib keys CIG-TD3 also takes from --set: name -> (default, meaning)
-RLLIB_KEYS: dict[str, tuple[Any, str]] = {
-    "gamma": (0.99, "discount"),
-    "train_batch_size_per_learner": (256, "agent transitions per gradient update (paper: 256)"),
-    "rollout_fragment_length": (1, "env steps each env runner samples per training step"),
-    "num_env_runners": (0, "remote env runners (0 = sample in the algorithm process)"),
-}
-
-# CIG-TD3 / ITD3 on the small quick scenario (CI learning test, learning curves): small networks, faster rates
-QUICK_TD3: dict[str, Any] = {
-    "warmup_steps": 500,
-    "train_batch_size_per_learner": 128,
-    "hidden": 64,
-    "latent_dim": 8,
-    "node_width": 16,
-    "policy_delay": 2,
-    "actor_lr": 6e-4,
-    "critic_lr": 1e-3,
-    "central_critic_lr": 1e-3,
-    "eval_every": 0,
-    # The freeze guard is the reduced-scale default of every TD3-family method (quick settings, smoke sweeps), chosen by
-    # 5 seeds x 40k env steps of CIG-TD3 and of ITD3 with and without it (docs/studies/learning_curves_freeze*); the paper scale
-    # keeps the paper's setting (no guard).
-    "actor_preact_penalty": 1e-3,
-    "actor_preact_threshold": 2.0,
-}
-
-
-# CIG-TD3 / ITD3 at the smallest scale (registry.tiny_settings: tests that build, update and checkpoint in seconds)
-TINY_TD3: dict[str, Any] = {
-    "warmup_steps": 60,
-    "train_batch_size_per_learner": 16,
-    "hidden": 16,
-    "latent_dim": 4,
-    "node_width": 8,
-    "policy_delay": 2,
-    "eval_every": 0,
-}
-
-
-def _builder(itd3: bool) -> Any:
-    """The config builder of CIG-TD3 (``itd3=False``) or ITD3."""
-
-    def build(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> CigTd3Config:
-        """A validated CIG-TD3 / ITD3 config on the parsed ``scenario``."""
-        cfg = CigTd3Config().environment(f"coin-{scenario_name(scenario)}-v0", env_config=env_config_of(scenario)).debugging(seed=seed)
-        cfg = cfg.env_runners(
-            num_env_runners=algo_cfg.pop("num_env_runners", 0), rollout_fragment_length=algo_cfg.pop("rollout_fragment_length", 1)
-        )
-        cfg = cfg.evaluation(evaluation_interval=None)
-        if itd3:
-            cfg = cfg.itd3()
-        return cfg.training(**algo_cfg)
-
-    return build
-
-
-CIG_TD3 = AlgorithmSpec(
-    name="cig_td3",
-    description="COIN: CIG-TD3 with the interaction-aware centralized critic",
-    hyperparameters={**HYPERPARAMETERS, **RLLIB_KEYS},
-    build=_builder(itd3=False),
-    capabilities=Capabilities(on_policy=False, centralized_critic=True, joint_replay=True, periodic_evaluation=True),
-    quick=QUICK_TD3,
-    tiny=TINY_TD3,
-)
-ITD3 = dataclasses.replace(  # the same algorithm without the centralized critic
-    CIG_TD3,
-    name="itd3",
-    hyperparameters={
-        **CIG_TD3.hyperparameters,
-        "precision": (ITD3_PRECISION, "learner update precision: fp32 | bf16 (ITD3: fp32 until a learning-curve comparison backs bf16)"),
-    },
-    description="ITD3: independent TD3 with parameter sharing",
-    build=_builder(itd3=True),
-    capabilities=dataclasses.replace(CIG_TD3.capabilities, centralized_critic=False),
-)
+build_cig_td3_config = config_builder(CigTd3Config)  # CIG-TD3's spec (settings.py) names it

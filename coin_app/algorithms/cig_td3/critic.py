@@ -32,7 +32,10 @@ each), ``N`` padded slots for the other agents, ``M = N + 1`` graph nodes (node 
 Cost: with every slot valid, one forward + backward of twin Q + V + ELBO is about 1.3 M
 multiply-adds per node (over half in the CVAE's three 256x256 layers; the 2-head first GAT layer
 adds about 0.2 M over a single head), i.e. about 33 GFLOP for B=256, N=47 (28 with
-``gat_heads=1``); use :meth:`CentralCritic.forward` to run the encoder once for all terms.
+``gat_heads=1``); use :meth:`CentralCritic.forward` to run the encoder once for all terms. The
+graph is built over the occupied slots only: trailing slot columns that no row of the batch fills
+(the replay pads every row to ``max_others``) are dropped before anything runs, which changes no
+output (padded slots contribute exact zeros) and shrinks the GAT's dense (B, M, M) attention.
 """
 
 from __future__ import annotations
@@ -45,9 +48,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, Graph, GraphModule, build_graph
-from coin_app.algorithms.cig_td3.individual import full_precision, mlp, q_head
+from coin_app.algorithms.cig_td3.graph import GAT_INITS, GLOBAL_MODULES, Graph, GraphModule, build_graph, occupied_slots
 from coin_app.algorithms.cig_td3.pairwise import LOCAL_MODULES, PairAttention, PairCVAE
+from coin_app.algorithms.td3.networks import full_precision, mlp, q_head
 from coin_app.sim import schema
 
 __all__ = ["CentralCritic", "CentralCriticConfig", "CriticBranch", "CriticOutputs"]
@@ -83,7 +86,7 @@ class CentralCriticConfig:
     (``docs/decisions.md`` §2; ``gat_heads=1, gat_init="default"`` is the single-head GAT used before
     issue #27); both are validated for every ``global_module`` and used by "gat" only;
     ``feature_norm`` divides each branch's features ``[h_ego, obs MLP]`` by their L2 norm before its
-    output layer (:func:`~coin_app.algorithms.cig_td3.individual.q_head`; not in COIN).
+    output layer (:func:`~coin_app.algorithms.td3.networks.q_head`; not in COIN).
     """
 
     obs_dim: int
@@ -190,19 +193,25 @@ class CentralCritic(nn.Module):
 
     # ------------------------------------------------------------------ internals
     def _graph(self, state: Tensor, action: Tensor, others_state: Tensor, others_action: Tensor, others_mask: Tensor) -> Graph:
+        """The agent graph over the occupied slots (the trailing slots no row fills change no output, so they are dropped)."""
+        n = occupied_slots(others_mask)
+        others_state, others_action, others_mask = others_state[:, :n], others_action[:, :n], others_mask[:, :n]
         return build_graph(state, action, others_state, others_action, others_mask, self.cfg.graph_radius, self.cfg.position_scale)
 
-    def _q_nodes(self, obs: Tensor, state: Tensor, action: Tensor, graph: Graph, mu: Tensor | None = None) -> Tensor:
+    @staticmethod
+    def _pairs(obs: Tensor, state: Tensor, action: Tensor, graph: Graph) -> tuple[Tensor, Tensor]:
+        """(ego_x = [o_i, s_i, a_i] (B, O+S+A), packed pair_x = [s_j, a_j] (P, S+A)): the local module's inputs."""
+        return torch.cat([obs, state, action], -1), graph.packer.pack(torch.cat([graph.state_all, graph.action_all], -1))
+
+    def _q_nodes(self, ego_x: Tensor, pair_x: Tensor, graph: Graph, mu: Tensor | None = None) -> Tensor:
         """Packed Q node inputs [s_j, a_j, f_ij] (P, S+A(+L)); ``mu`` = packed CVAE means if already computed."""
-        pair_x = graph.packer.pack(torch.cat([graph.state_all, graph.action_all], -1))
         if self.local is None:
             return pair_x
-        ego_x = torch.cat([obs, state, action], -1)
         if isinstance(self.local, PairAttention):
             feat = self.local(ego_x, pair_x, graph.packer)
         else:
             if mu is None:
-                mu = self.local.encode(ego_x, pair_x, graph.packer)[0]
+                mu = self.local.encode_mean(ego_x, pair_x, graph.packer)
             feat = mu.detach() if self.cfg.detach_latent else mu
         return torch.cat([pair_x, feat], -1)
 
@@ -211,22 +220,14 @@ class CentralCritic(nn.Module):
         return self.v_branch(graph.packer.pack(torch.cat([graph.state_all, action_v], -1)), obs, graph)
 
     def _elbo(
-        self,
-        obs: Tensor,
-        state: Tensor,
-        action: Tensor,
-        graph: Graph,
-        target_y: Tensor,
-        generator: torch.Generator | None,
+        self, ego_x: Tensor, pair_x: Tensor, graph: Graph, target_y: Tensor, generator: torch.Generator | None
     ) -> tuple[Tensor, Tensor, Tensor]:
         """(recon_mse, kl, packed mu) over the valid pairs."""
         assert isinstance(self.local, PairCVAE)
-        ego_x = torch.cat([obs, state, action], -1)
-        pair_x = graph.packer.pack(torch.cat([graph.state_all, graph.action_all], -1))
         mu, logvar = map(full_precision, self.local.encode(ego_x, pair_x, graph.packer))  # the ELBO in fp32 under bf16 autocast
         eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
         y_hat = full_precision(self.local.decode(mu + eps * torch.exp(0.5 * logvar), ego_x, pair_x, graph.packer))
-        target = graph.packer.rows(target_y) if target_y.dim() == 2 else graph.packer.pack(target_y)
+        target = graph.packer.rows(target_y) if target_y.dim() == 2 else graph.packer.pack(target_y[:, : graph.valid.shape[1]])
         recon = (y_hat - target).square().mean()
         kl = -0.5 * (1.0 + logvar - mu.square() - logvar.exp()).mean()
         return recon, kl, mu
@@ -237,13 +238,13 @@ class CentralCritic(nn.Module):
     ) -> tuple[Tensor, Tensor]:
         """Global twin Q (q1, q2), each (B,), of ego action ``action`` given the others' states/actions."""
         graph = self._graph(state, action, others_state, others_action, others_mask)
-        node_x, obs_x = self._q_nodes(obs, state, action, graph), torch.cat([obs, action], -1)
+        node_x, obs_x = self._q_nodes(*self._pairs(obs, state, action, graph), graph), torch.cat([obs, action], -1)
         return self.q1_branch(node_x, obs_x, graph), self.q2_branch(node_x, obs_x, graph)
 
     def q1(self, obs: Tensor, state: Tensor, action: Tensor, others_state: Tensor, others_action: Tensor, others_mask: Tensor) -> Tensor:
         """Global Q1 (B,) only (actor loss, Eq. 12)."""
         graph = self._graph(state, action, others_state, others_action, others_mask)
-        return self.q1_branch(self._q_nodes(obs, state, action, graph), torch.cat([obs, action], -1), graph)
+        return self.q1_branch(self._q_nodes(*self._pairs(obs, state, action, graph), graph), torch.cat([obs, action], -1), graph)
 
     def baseline(self, obs: Tensor, state: Tensor, others_state: Tensor, others_action: Tensor, others_mask: Tensor) -> Tensor:
         """Counterfactual baseline V(o_i, s_i, s_-i, a_-i) (B,), independent of the ego action (Eq. 10)."""
@@ -278,7 +279,7 @@ class CentralCritic(nn.Module):
         if not isinstance(self.local, PairCVAE):
             return obs.new_zeros(()), obs.new_zeros(())
         graph = self._graph(state, action, others_state, others_action, others_mask)
-        recon, kl, _ = self._elbo(obs, state, action, graph, target_y, generator)
+        recon, kl, _ = self._elbo(*self._pairs(obs, state, action, graph), graph, target_y, generator)
         return recon, kl
 
     def forward(
@@ -298,10 +299,11 @@ class CentralCritic(nn.Module):
         ``target_y`` is None or the local module is not "cvae".
         """
         graph = self._graph(state, action, others_state, others_action, others_mask)
+        ego_x, pair_x = self._pairs(obs, state, action, graph)
         recon, kl, mu = obs.new_zeros(()), obs.new_zeros(()), None
         if isinstance(self.local, PairCVAE) and target_y is not None:
-            recon, kl, mu = self._elbo(obs, state, action, graph, target_y, generator)
-        node_x, obs_x = self._q_nodes(obs, state, action, graph, mu), torch.cat([obs, action], -1)
+            recon, kl, mu = self._elbo(ego_x, pair_x, graph, target_y, generator)
+        node_x, obs_x = self._q_nodes(ego_x, pair_x, graph, mu), torch.cat([obs, action], -1)
         q1 = self.q1_branch(node_x, obs_x, graph)
         q2 = self.q2_branch(node_x, obs_x, graph)
         return CriticOutputs(q1, q2, self._v(obs, graph), recon, kl)

@@ -26,6 +26,7 @@ ego), ``P`` valid (b, j) slots, ``F`` node feature width (128).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -38,7 +39,17 @@ from coin_app.algorithms.masked_softmax import masked_softmax
 
 XAVIER_GAIN = 1.414  # pyGAT's gain for W and a (the official COIN code's GAT, docs/decisions.md §2)
 
-__all__ = ["GAT_INITS", "GLOBAL_MODULES", "GATLayer", "Graph", "GraphModule", "MeanAggLayer", "build_graph", "radius_adjacency"]
+__all__ = [
+    "GAT_INITS",
+    "GLOBAL_MODULES",
+    "GATLayer",
+    "Graph",
+    "GraphModule",
+    "MeanAggLayer",
+    "build_graph",
+    "occupied_slots",
+    "radius_adjacency",
+]
 
 
 def radius_adjacency(state_all: Tensor, valid: Tensor, radius: float | None = None, position_scale: float = 1.0) -> Tensor:
@@ -56,6 +67,12 @@ def radius_adjacency(state_all: Tensor, valid: Tensor, radius: float | None = No
             adj = adj & (d2 <= radius * radius)
         eye = torch.eye(valid.shape[1], dtype=torch.bool, device=valid.device)
         return adj | eye
+
+
+def occupied_slots(mask: Tensor) -> int:
+    """How many leading slot columns of ``mask`` (B, N) hold every valid slot of the batch: 1 + the last valid column, 0 if none."""
+    cols = mask.any(0).nonzero()
+    return int(cols[-1]) + 1 if cols.numel() else 0
 
 
 def _check_gat_args(heads: object, init: object) -> None:
@@ -141,26 +158,43 @@ class GATLayer(nn.Module):
         e = F.leaky_relu(s_recv.unsqueeze(-1) + s_nbr.unsqueeze(-2), self.leaky_slope)
         return masked_softmax(e, adj.unsqueeze(1))
 
-    def forward(self, h: Tensor, graph: Graph) -> tuple[Tensor, Tensor]:
-        """Packed h (P, F_in) -> (out (B, M, H*F), alpha (B, H, M, M)); padded receivers' rows are zero."""
+    def head_outputs(self, h: Tensor, graph: Graph) -> tuple[list[Tensor], Tensor]:
+        """Packed h (P, F_in) -> (each head's output (B, M, F), alpha (B, H, M, M)); padded receivers' outputs are zero.
+
+        A padded receiver's alpha row is its self-loop (1 on the diagonal), not masked: its W h is
+        zero, so its output is exactly zero either way (:meth:`forward` masks the rows).
+        """
         hh = self.heads
         # All scores by one thin GEMM, then head-major (B, 2H, M) so that e and alpha are contiguous (B, H, M, M).
         s = graph.packer.unpack(F.linear(h, torch.cat(self._score_vectors()))).transpose(1, 2).contiguous()
-        alpha = self._alpha(s[:, :hh], s[:, hh:], graph.adj).masked_fill(~graph.valid[:, None, :, None], 0.0)
-        wh = graph.packer.unpack(self.W(h))  # (B, M, H*F)
-        if hh == 1:
-            return F.relu(alpha.squeeze(1) @ wh), alpha
-        # Head k: alpha_k (B, M, M) @ W_k h (B, M, F), a strided column block of wh (no copy); concatenated.
-        out = torch.cat([a_k @ wh_k for a_k, wh_k in zip(alpha.unbind(1), wh.split(self.out_dim, -1), strict=True)], -1)
-        return F.relu(out), alpha
+        alpha = self._alpha(s[:, :hh], s[:, hh:], graph.adj)
+        # Head k: alpha_k (B, M, M) @ W_k h (B, M, F), each head on its own contiguous block (no concatenation).
+        outs = [
+            F.relu(a_k @ graph.packer.unpack(F.linear(h, w_k)), inplace=True)
+            for a_k, w_k in zip(alpha.unbind(1), self.W.weight.split(self.out_dim))
+        ]
+        return outs, alpha
 
-    def forward_ego(self, h: Tensor, graph: Graph) -> tuple[Tensor, Tensor]:
-        """Dense h (B, M, F_in) -> (ego output (B, H*F), alpha (B, H, 1, M)), computing receiver node 0 only."""
+    def forward(self, h: Tensor, graph: Graph) -> tuple[Tensor, Tensor]:
+        """Packed h (P, F_in) -> (out (B, M, H*F), alpha (B, H, M, M)); padded receivers' rows are zero."""
+        outs, alpha = self.head_outputs(h, graph)
+        return torch.cat(outs, -1), alpha.masked_fill(~graph.valid[:, None, :, None], 0.0)
+
+    def forward_ego(self, h: Tensor | Sequence[Tensor], graph: Graph) -> tuple[Tensor, Tensor]:
+        """Dense h (B, M, F_in), or column blocks whose concatenation is h -> (ego output (B, H*F), alpha (B, H, 1, M)), receiver 0 only.
+
+        Blocks (e.g. the first layer's heads) are used as they are, never concatenated. The scores
+        are matrix-vector products per block and head, whose gradients are broadcast products (a
+        GEMM with one inner column, as ``h @ u.T`` is, is several times slower on the CPU).
+        """
         # sum_j alpha_0j W_k h_j = W_k (sum_j alpha_0j h_j): W is applied once per row and head, not per node.
-        hh = self.heads
-        u_recv, u_nbr = self._score_vectors()
-        alpha = self._alpha((h[:, :1] @ u_recv.T).transpose(1, 2), (h @ u_nbr.T).transpose(1, 2), graph.adj[:, :1])
-        agg = alpha.squeeze(2) @ h  # (B, H, F_in): sum_j alpha^k_0j h_j
+        blocks = [h] if isinstance(h, Tensor) else list(h)
+        hh, widths = self.heads, [b.shape[-1] for b in blocks]
+        u_recv, u_nbr = (u.split(widths, -1) for u in self._score_vectors())  # per block (H, F_b)
+        s_recv = torch.stack([sum(b[:, 0] @ u[k] for b, u in zip(blocks, u_recv)) for k in range(hh)], 1)  # (B, H)
+        s_nbr = torch.stack([sum(b @ u[k] for b, u in zip(blocks, u_nbr)) for k in range(hh)], 1)  # (B, H, M)
+        alpha = self._alpha(s_recv.unsqueeze(-1), s_nbr, graph.adj[:, :1])
+        agg = torch.cat([alpha.squeeze(2) @ b for b in blocks], -1)  # (B, H, F_in): sum_j alpha^k_0j h_j
         if hh == 1:
             return F.relu(self.W(agg.squeeze(1))), alpha
         w = self.W.weight.view(hh, self.out_dim, -1)  # (H, F, F_in)
@@ -206,7 +240,7 @@ class GraphModule(nn.Module):
             raise ValueError(f"global_module={kind!r} is invalid: allowed {GLOBAL_MODULES}")
         _check_gat_args(heads, init)
         self.kind = kind
-        self.last_attention: list[Tensor] = []
+        self._attention: tuple[Tensor, Tensor, Tensor] | None = None  # (layer 1 alpha, layer 2 alpha, valid) of the last pass
         if kind == "gat":
             # Layer 1: `heads` heads of width F concatenated; layer 2: one head heads*F -> F (official code, docs/decisions.md §2).
             self.layers = nn.ModuleList(
@@ -216,6 +250,17 @@ class GraphModule(nn.Module):
             self.layers = nn.ModuleList([MeanAggLayer(width, kind == "graphsage"), MeanAggLayer(width, kind == "graphsage")])
         else:
             self.pool = nn.Linear(width, width)
+
+    @property
+    def last_attention(self) -> list[Tensor]:
+        """The detached attention of the last "gat" pass ([] before any).
+
+        Layer 1 (B, heads, M, M) with the padded receivers' rows zero, and layer 2's ego row (B, 1, 1, M).
+        """
+        if self._attention is None:
+            return []
+        a1, a2, valid = self._attention
+        return [a1.masked_fill(~valid[:, None, :, None], 0.0), a2]
 
     def forward(self, h: Tensor, graph: Graph) -> Tensor:
         """Packed node features h (P, F) -> the ego node's final feature (B, F).
@@ -228,9 +273,9 @@ class GraphModule(nn.Module):
             pooled = (w @ graph.packer.unpack(h)).squeeze(1) / w.sum(-1)
             return F.relu(self.pool(pooled))
         if self.kind == "gat":
-            h1, a1 = self.layers[0](h, graph)
+            h1, a1 = self.layers[0].head_outputs(h, graph)
             out, a2 = self.layers[1].forward_ego(h1, graph)
-            self.last_attention = [a1.detach(), a2.detach()]
+            self._attention = (a1.detach(), a2.detach(), graph.valid)
             return out
         h1 = self.layers[0](graph.packer.unpack(h), graph)
         return self.layers[1].forward_ego(h1, graph)

@@ -1,76 +1,44 @@
-"""CIG-TD3 losses (COIN paper Eqs. 3, 7-12), readable top to bottom, free of RLlib.
+"""CIG-TD3 losses (COIN paper Eqs. 3, 8-12): what CIG-TD3 adds to the TD3 losses (``td3/losses.py``), free of RLlib.
 
-Notation (one row per sampled agent transition i at env step t):
-    o, s, a, r, r^G         ego observation, local state, action, reward, global reward
-    o', s'                  ego next observation / state
+Notation (one row per sampled agent transition i at env step t; TD3's o, a, r, o', d, a', y^l, L_l, as ``td3/losses.py``):
+    s, r^G, s'              ego local state, global reward, next local state
     S, A, M                 other agents acting at t: states, actions, mask   (B, N, .)
     S', O', M'              agents with an observation at t+1: states, observations, mask
-    d = terminated and not truncated (time-outs bootstrap)
 
-    a'    = clip(mu_targ(o')  + clip(eps, -c, c), -1, 1)          eps ~ N(0, sigma)   (Eq. 8)
-    A'    = clip(mu_targ(O')  + clip(eps, -c, c), -1, 1)          same for every other agent
-    y^l   = r   + gamma (1 - d) min_k Q^l_targ,k(o', a')                              (Eq. 8)
+    A'    = clip(mu_targ(O')  + clip(eps, -c, c), -1, 1)          every other agent's smoothed target action
     y^G   = r^G + gamma (1 - d) min_k Q^g_targ,k(o', a', s', S', A', M')              (Eq. 11)
-    L_l   = sum_k mean (Q^l_k(o, a) - y^l)^2                                          (Eq. 7)
     L_g   = sum_k mean (Q^g_k(o, a, s, S, A, M) - y^G)^2                              (Eq. 9)
     L_V   = mean (V(o, s, S, A, M) - y^G)^2                                           (Eq. 10)
     L_vae = recon([o', s', r]) + kl_beta * KL                                          (Eq. 3)
     L_pi  = -mean[ Q^l_1(o, mu(o)) + w (Q^g_1(o, mu(o), s, S, A, M) - V(o, s, S, A, M)) ]  (Eq. 12)
-            + p mean[ max(|u(o)| - u0, 0)^2 ]     u = the actor's pre-tanh output, mu = tanh(u)
-                                                  (optional guard against saturation; p = 0 in the paper)
+            + p mean[ max(|u(o)| - u0, 0)^2 ]     (TD3's optional pre-tanh guard)
 
 V does not depend on the ego action, so with a deterministic policy it leaves the actor's
 gradient unchanged (``docs/decisions.md`` §2.2); it is still trained and logged, as Eq. 12 is written.
-
-Every network output is widened to fp32 (``full_precision``) before it enters a target, a
-difference or a mean, so under bf16 autocast (``precision="bf16"``) only the networks' own
-layers run in bf16; with fp32 networks this changes nothing.
+Without the centralized critic (``global_critic=False``) every loss is TD3's.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from coin_app.algorithms.cig_td3 import columns as col
-from coin_app.algorithms.cig_td3.individual import full_precision
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.losses import LossConfig, actor_objective_loss, bootstrap, not_done, policy, smoothed_target_action
+from coin_app.algorithms.td3.networks import full_precision
 
 
 @dataclass(frozen=True)
-class LossConfig:
-    """The constants the losses need (a view of ``CigTd3Config``)."""
+class CigTd3LossConfig(LossConfig):
+    """The constants the CIG-TD3 losses need: TD3's and the centralized critic's (a view of ``CigTd3Config``)."""
 
-    gamma: float = 0.99
-    target_noise: float = 0.1
-    target_noise_clip: float = 0.5
     global_critic: bool = True
     counterfactual_baseline: bool = True
     global_weight: float = 1.0
     vae_weight: float = 1.0
     kl_beta: float = 1.0
-    preact_penalty: float = 0.0  # p: weight of the actor's pre-tanh penalty (0 = off, the paper)
-    preact_threshold: float = 0.0  # u0: the pre-tanh magnitude the penalty starts at
-    timeout_bootstrap: bool = True  # a truncated transition (time-out) bootstraps; False: every done is terminal (the paper)
-
-
-SATURATED_PREACT = math.atanh(0.99)  # |u| above this: |tanh(u)| > 0.99, tanh's gradient < 0.02
-
-
-def smoothed_target_action(actor_target: nn.Module, obs: torch.Tensor, noise_std: float, noise_clip: float) -> torch.Tensor:
-    """Target policy smoothing: clip(mu_targ(o) + clip(N(0, std), -c, c), -1, 1), any leading shape."""
-    mu = full_precision(actor_target(obs))
-    eps = (torch.randn_like(mu) * noise_std).clamp(-noise_clip, noise_clip)
-    return (mu + eps).clamp(-1.0, 1.0)
-
-
-def not_done(batch: dict[str, torch.Tensor], timeout_bootstrap: bool = True) -> torch.Tensor:
-    """1 - d: d = terminated and not truncated (a time-out bootstraps), or with ``timeout_bootstrap=False`` terminated or truncated."""
-    terminated, truncated = batch[col.TERMINATEDS].bool(), batch[col.TRUNCATEDS].bool()
-    done = terminated & ~truncated if timeout_bootstrap else terminated | truncated
-    return 1.0 - done.float()
 
 
 @torch.no_grad()
@@ -84,8 +52,7 @@ def td_targets(
     """Individual and global TD targets y^l (Eq. 8) and y^G (Eq. 11); y^G is None without a global critic."""
     nd = not_done(batch, cfg.timeout_bootstrap)
     next_a = smoothed_target_action(actor_target, batch[col.NEXT_OBS], cfg.target_noise, cfg.target_noise_clip)
-    q1_t, q2_t = local_q_target(batch[col.NEXT_OBS], next_a)
-    y_local = batch[col.REWARDS] + cfg.gamma * nd * torch.minimum(full_precision(q1_t), full_precision(q2_t))
+    y_local = bootstrap(batch[col.REWARDS], nd, *local_q_target(batch[col.NEXT_OBS], next_a), cfg.gamma)
     if central_target is None:
         return y_local, None
     mask_next = batch[col.NEXT_OTHERS_MASK].bool()
@@ -94,19 +61,11 @@ def td_targets(
     g1_t, g2_t = central_target.q_values(
         batch[col.NEXT_OBS], batch[col.NEXT_STATE], next_a, batch[col.NEXT_OTHERS_STATE], others_next_a, mask_next
     )
-    y_global = batch[col.GLOBAL_REWARDS] + cfg.gamma * nd * torch.minimum(full_precision(g1_t), full_precision(g2_t))
-    return y_local, y_global
-
-
-def local_critic_loss(local_q: nn.Module, batch: dict[str, torch.Tensor], y_local: torch.Tensor) -> tuple[torch.Tensor, dict]:
-    """Eq. 7: sum over the twin local critics of the mean squared TD error."""
-    q1, q2 = map(full_precision, local_q(batch[col.OBS], batch[col.ACTIONS]))
-    loss = ((q1 - y_local) ** 2).mean() + ((q2 - y_local) ** 2).mean()
-    return loss, {"local_q1_mean": q1.mean().detach(), "local_q_target_mean": y_local.mean()}
+    return y_local, bootstrap(batch[col.GLOBAL_REWARDS], nd, g1_t, g2_t, cfg.gamma)
 
 
 def central_critic_loss(
-    central: nn.Module, batch: dict[str, torch.Tensor], y_global: torch.Tensor, cfg: LossConfig
+    central: nn.Module, batch: dict[str, torch.Tensor], y_global: torch.Tensor, cfg: CigTd3LossConfig
 ) -> tuple[torch.Tensor, dict]:
     """Eqs. 9, 10 and 3: twin global Q losses, the counterfactual baseline loss and the CVAE loss (one critic pass)."""
     mask = batch[col.OTHERS_MASK].bool()
@@ -133,16 +92,14 @@ def actor_loss(
     local_q: nn.Module,
     central: nn.Module | None,
     batch: dict[str, torch.Tensor],
-    cfg: LossConfig,
+    cfg: CigTd3LossConfig,
 ) -> tuple[torch.Tensor, dict]:
-    """Eq. 12 (ITD3: the individual term only), plus the optional pre-tanh penalty.
+    """Eq. 12 (without a centralized critic: TD3's individual term only), plus the optional pre-tanh penalty.
 
-    Gradients reach critic parameters too: take only the actor's. ``actor`` exposes
-    ``preactivation(obs)`` (its output before the tanh); the stats include the share of saturated
-    outputs (``actor_saturation``: |tanh(u)| > 0.99) and the mean |u|.
+    Gradients reach critic parameters too: take only the actor's. The stats include the share of
+    saturated outputs (``actor_saturation``: |tanh(u)| > 0.99) and the mean |u|.
     """
-    pre = full_precision(actor.preactivation(batch[col.OBS]))
-    a = torch.tanh(pre)
+    pre, a = policy(actor, batch[col.OBS])
     q_local = full_precision(local_q.q1_only(batch[col.OBS], a))
     objective = q_local
     stats = {"actor_q_local": q_local.mean().detach()}
@@ -161,28 +118,3 @@ def actor_loss(
         objective = objective + cfg.global_weight * advantage
         stats["actor_q_global"] = q_global.mean().detach()
     return actor_objective_loss(objective, pre, stats, cfg.preact_penalty, cfg.preact_threshold)
-
-
-def actor_objective_loss(
-    objective: torch.Tensor, pre: torch.Tensor, stats: dict, penalty_weight: float, penalty_threshold: float
-) -> tuple[torch.Tensor, dict]:
-    """The actor loss -mean(objective) plus the optional pre-tanh penalty.
-
-    ``stats`` gains the saturation share, the mean |u| and ``actor_action_std``: the std over the
-    batch of the action that varies least (NaN for a one-row batch); near 0, the actor gives that
-    action whatever it observes (a collapsed actor, e.g. always braking).
-    """
-    loss = -objective.mean()
-    u = pre.detach().abs()
-    spread = torch.tanh(pre.detach()).std(0).min() if pre.shape[0] > 1 else torch.full((), float("nan"), device=pre.device)
-    stats.update(actor_saturation=(u > SATURATED_PREACT).float().mean(), actor_preact_abs=u.mean(), actor_action_std=spread)
-    if penalty_weight > 0:
-        penalty = preact_penalty(pre, penalty_weight, penalty_threshold)
-        loss = loss + penalty
-        stats["actor_preact_penalty"] = penalty.detach()
-    return loss, stats
-
-
-def preact_penalty(pre: torch.Tensor, weight: float, threshold: float = 0.0) -> torch.Tensor:
-    """``weight * mean(max(|u| - threshold, 0)^2)`` over pre-tanh outputs u (threshold 0: the plain ``weight * mean(u^2)``)."""
-    return weight * torch.relu(pre.abs() - threshold).square().mean()

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coin_app.algorithms.choices import LOCAL_MODULES  # noqa: F401 (re-exported)
-from coin_app.algorithms.cig_td3.individual import mlp
+from coin_app.algorithms.td3.networks import mlp
 
 __all__ = ["LOCAL_MODULES", "PairAttention", "PairCVAE", "PairLinear", "PairPacker"]
 
@@ -117,8 +117,18 @@ class PairCVAE(nn.Module):
 
     def encode(self, ego_x: Tensor, pair_x: Tensor, packer: PairPacker) -> tuple[Tensor, Tensor]:
         """q(z | ego=[o_i, s_i, a_i], pair=[s_j, a_j]): ego_x (B, O+S+A), pair_x (P, S+A) -> (mu, logvar), each (P, L)."""
-        h = self.enc_body(F.relu(self.enc_in(ego_x, pair_x, packer)))
-        return self.mu_head(h), self.logvar_head(h)
+        h = self._hidden(ego_x, pair_x, packer)
+        # both heads in one GEMM (one pass over h): the same as mu_head(h), logvar_head(h)
+        w = torch.cat([self.mu_head.weight, self.logvar_head.weight])
+        return F.linear(h, w, torch.cat([self.mu_head.bias, self.logvar_head.bias])).chunk(2, -1)
+
+    def encode_mean(self, ego_x: Tensor, pair_x: Tensor, packer: PairPacker) -> Tensor:
+        """mu of :meth:`encode` alone (P, L) (the Q branches' latent; no logvar computed)."""
+        return self.mu_head(self._hidden(ego_x, pair_x, packer))
+
+    def _hidden(self, ego_x: Tensor, pair_x: Tensor, packer: PairPacker) -> Tensor:
+        """The encoder's last hidden layer (P, hidden)."""
+        return self.enc_body(F.relu(self.enc_in(ego_x, pair_x, packer)))
 
     def decode(self, z: Tensor, ego_x: Tensor, pair_x: Tensor, packer: PairPacker) -> Tensor:
         """Mean of p(y | z_ij, o_i, s_i, a_i, s_j, a_j): z (P, L) -> y_hat (P, O+S+1) = [o'_i, s'_i, r_i]."""

@@ -1,6 +1,6 @@
 """TraCo-TD3 losses (TraCo as COIN §5.2 ran it), readable top to bottom, free of RLlib.
 
-Notation (one row per sampled agent transition i at env step t; columns of ``cig_td3/columns.py``):
+Notation (one row per sampled agent transition i at env step t; columns of ``td3/columns.py``):
     o, s, a, r, d           ego observation, local state, action, reward, done (terminated, not truncated)
     S, A, R, M              other agents acting at t: states, actions, rewards, mask      (B, N, .)
     S', O', M'              other agents with an observation at t+1
@@ -15,13 +15,13 @@ Notation (one row per sampled agent transition i at env step t; columns of ``cig
     L_b  = mean (b(o, s, S, A, D) - y^D)^2                                  counterfactual baseline
     A^cf = Q^D_1(o, a, .) - b(o, .)                                        (logged)
     L_pi = -mean[ Q^l_1(o, mu(o)) (individual critic only) + w (Q^D_1(o, mu(o), s, S, A, D) - b(o, .)) ]
-           + p mean[ max(|u(o)| - u0, 0)^2 ]          (optional pre-tanh guard, as CIG-TD3's)
-    with the individual critic: y^l, L_l as CIG-TD3's Eqs. 7-8 on r.
+           + p mean[ max(|u(o)| - u0, 0)^2 ]          (TD3's optional pre-tanh guard)
+    with the individual critic: y^l, L_l as TD3's (``td3/losses.py``, COIN Eqs. 7-8) on r.
 
 mu(o) enters the ego token and hence the attention query, so the actor's gradient flows through
 the attention. b has no ego action, so it carries no actor gradient (as COIN's Eq. 12); it is
 still trained and subtracted as the spec writes it. Every network output is widened to fp32
-before it enters a target, a difference or a mean (bf16 autocast, as CIG-TD3's losses).
+before it enters a target, a difference or a mean (bf16 autocast, as TD3's losses).
 """
 
 from __future__ import annotations
@@ -32,28 +32,22 @@ import torch
 from torch import nn
 
 from coin_app.algorithms.choices import DOMAIN_REWARDS
-from coin_app.algorithms.cig_td3 import columns as col
-from coin_app.algorithms.cig_td3.individual import full_precision
-from coin_app.algorithms.cig_td3.losses import actor_objective_loss, not_done, smoothed_target_action
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.losses import LossConfig, actor_objective_loss, bootstrap, not_done, policy, smoothed_target_action
+from coin_app.algorithms.td3.networks import full_precision
 from coin_app.algorithms.traco.networks import compact_domain, counterfactual_advantage, neighbourhood_mask
 
 
 @dataclass(frozen=True)
-class TracoLossConfig:
-    """The constants the TraCo losses need (a view of ``TracoConfig``)."""
+class TracoLossConfig(LossConfig):
+    """The constants the TraCo losses need: TD3's and the domain critic's (a view of ``TracoConfig``)."""
 
-    gamma: float = 0.99
-    target_noise: float = 0.1
-    target_noise_clip: float = 0.5
     domain_radius: float = 40.0
     position_scale: float = 1.0  # local-state positions x this = metres (the map's scale)
     domain_reward: str = "mean"
     counterfactual_baseline: bool = True
     individual_critic: bool = False
     domain_weight: float = 1.0
-    preact_penalty: float = 0.0
-    preact_threshold: float = 0.0
-    timeout_bootstrap: bool = True
 
 
 def domains(batch: dict[str, torch.Tensor], cfg: TracoLossConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -110,12 +104,10 @@ def td_targets(
     q1_t, q2_t = domain_q_target(
         batch[col.NEXT_OBS], next_a, batch[col.NEXT_STATE], batch[col.NEXT_OTHERS_STATE], others_next_a, next_domain
     )
-    y_domain = domain_reward + cfg.gamma * nd * torch.minimum(full_precision(q1_t), full_precision(q2_t))
+    y_domain = bootstrap(domain_reward, nd, q1_t, q2_t, cfg.gamma)
     if local_q_target is None:
         return y_domain, None
-    l1_t, l2_t = local_q_target(batch[col.NEXT_OBS], next_a)
-    y_local = batch[col.REWARDS] + cfg.gamma * nd * torch.minimum(full_precision(l1_t), full_precision(l2_t))
-    return y_domain, y_local
+    return y_domain, bootstrap(batch[col.REWARDS], nd, *local_q_target(batch[col.NEXT_OBS], next_a), cfg.gamma)
 
 
 def domain_critic_loss(
@@ -157,8 +149,7 @@ def actor_loss(
     cfg: TracoLossConfig,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """L_pi (see the module doc); gradients reach critic parameters too: take only the actor's."""
-    pre = full_precision(actor.preactivation(batch[col.OBS]))
-    a = torch.tanh(pre)
+    pre, a = policy(actor, batch[col.OBS])
     q_domain = full_precision(
         domain_q.q1_only(batch[col.OBS], a, batch[col.STATE], batch[col.OTHERS_STATE], batch[col.OTHERS_ACTIONS], domain)
     )

@@ -19,7 +19,7 @@ marked as such at its constructor argument.
 Plain ``torch.nn``; nothing here imports Ray. Shapes: ``B`` batch rows, ``N`` padded other-agent
 slots, ``O`` observation, ``S`` local state (``schema.STATE_DIM``), ``A`` action
 (``schema.ACT_DIM``), ``H`` heads, ``F`` the model width ``hidden``. The columns are CIG-TD3's
-(``cig_td3/columns.py``): OBS (B, O), ACTIONS (B, A), STATE (B, S), OTHERS_STATE (B, N, S),
+(``td3/columns.py``): OBS (B, O), ACTIONS (B, A), STATE (B, S), OTHERS_STATE (B, N, S),
 OTHERS_ACTIONS (B, N, A), OTHERS_MASK (B, N). Slots outside the domain (padded or far) are zeroed
 (their s_j, a_j) on input and masked with -inf before the softmax, so their contents cannot change any output
 (bit-identical) and their attention weight is exactly 0.
@@ -35,8 +35,9 @@ import torch
 from torch import Tensor, nn
 
 from coin_app.algorithms.choices import NEIGHBOUR_FEATURES
-from coin_app.algorithms.cig_td3.individual import mlp
 from coin_app.algorithms.masked_softmax import masked_softmax
+from coin_app.algorithms.td3.networks import mlp
+from coin_app.algorithms.traco.settings import TracoSettings
 from coin_app.sim import schema
 
 __all__ = [
@@ -51,7 +52,7 @@ __all__ = [
     "neighbourhood_mask",
 ]
 
-DOMAIN_RADIUS = 40.0  # metres: COIN §5.2 ("a neighborhood range of 40 meters"), CoPO's neighbours_distance=40
+DOMAIN_RADIUS: float = TracoSettings.declarations()["domain_radius"].default  # metres: COIN §5.2 (declared in settings.py)
 # Inference: COIN's released code replaces the ego's action by the constant -1 vector in its counterfactual V.
 DEFAULT_ACTION = (-1.0, -1.0)
 

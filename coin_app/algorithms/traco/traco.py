@@ -5,13 +5,13 @@ mechanism to capture crucial information from nearby vehicles" and "a counterfac
 function for credit assignment within a neighborhood range of 40 meters", re-implemented in COIN's
 TD3 framework with COIN's TD3 settings (exploration std 0.05, batch 256, gamma 0.99, tau 0.005,
 actor lr 2e-4, critic lr 3e-4, target noise 0.1 clipped at 0.5, policy delay 5, hidden 256).
-This is that re-implementation on CIG-TD3's machinery: the same joint-step replay (the
+This is that re-implementation on the TD3 family's base (``td3/``): the same joint-step replay (the
 centralized-critic connector, which also gives the others' rewards), sampling, actor, exploration,
-learner order, checkpoints and export; only the critics and losses differ (``networks.py``,
+update order, checkpoints and export; only the critics and losses differ (``networks.py``,
 ``losses.py``). Every choice nobody has published is a documented key below, marked
 "inference"; docs/guides/traco.md lists them.
 
-``TracoConfig`` / ``Traco`` subclass ``CigTd3Config`` / ``CigTd3``; ``TRACO`` is the
+``TracoConfig`` / ``Traco`` subclass ``Td3Config`` / ``Td3``; ``TRACO`` is the
 :class:`~coin_app.algorithms.spec.AlgorithmSpec` entry.
 """
 
@@ -21,86 +21,16 @@ from typing import Any, ClassVar
 
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from coin_app.adapters.rllib_env import env_config_of
-from coin_app.algorithms.cig_td3 import cig_td3
-from coin_app.algorithms.cig_td3.cig_td3 import CigTd3, CigTd3Config
-from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
+from coin_app.algorithms.td3.td3 import Td3, Td3Config, config_builder
 from coin_app.algorithms.traco.learner import TracoTorchLearner
-from coin_app.algorithms.traco.networks import DOMAIN_RADIUS
 from coin_app.algorithms.traco.rl_module import TracoTorchRLModule
-from coin_app.sim.config import ScenarioConfig
-from coin_app.sim.scenarios import scenario_name
-
-TRACO_PRECISION = "fp32"  # as ITD3: fp32 until a learning-curve comparison backs bf16 for this critic
-
-# the TD3 settings TraCo shares with CIG-TD3 (COIN §5.1: "consistent with TD3" for ITD3, TraCo and COIN)
-SHARED_KEYS = (
-    "actor_lr",
-    "critic_lr",
-    "tau",
-    "policy_delay",
-    "exploration_noise",
-    "target_noise",
-    "target_noise_clip",
-    "timeout_bootstrap",
-    "warmup_steps",
-    "replay_capacity",
-    "updates_per_env_step",
-    "hidden",
-    "actor_layers",
-    "update_order",
-    "actor_preact_penalty",
-    "actor_preact_threshold",
-    "critic_feature_norm",  # TraCo's individual critic only; its attention critics stay as they are
-    "actor_start_steps",
-    "exploration_noise_initial",
-    "exploration_noise_decay_steps",
-    "exploration_noise_decay_start",
-    "lr_decay_start",
-    "lr_decay_steps",
-    "lr_final_fraction",
-    "learner_threads",
-    "checkpoint_replay",
-    "eval_every",
-    "eval_episodes",
-)
-
-# name -> (default, meaning); the single source of the documentation and of training() kwargs
-HYPERPARAMETERS: dict[str, tuple[Any, str]] = {
-    **{key: cig_td3.HYPERPARAMETERS[key] for key in SHARED_KEYS},
-    "critic_lr": (3e-4, "Adam learning rate of the twin domain critic (and of the individual critic, if any)"),
-    "tau": (0.005, "soft target update rate of the actor and the domain critic (and of the individual critic, if any)"),
-    "hidden": (256, "width of the actor's layers, of the attention tokens and of the critic heads (COIN's TD3 hidden size)"),
-    "baseline_lr": (3e-4, "Adam learning rate of the counterfactual baseline (inference: COIN's critic rate)"),
-    "precision": (TRACO_PRECISION, "learner update precision: fp32 | bf16 (fp32 until a learning-curve comparison backs bf16)"),
-    # TraCo's own choices; all but the radius are inferences (no TraCo code or full text is public)
-    "domain_radius": (DOMAIN_RADIUS, "metres: the ego's domain, the others strictly within it (COIN §5.2: 40 m)"),
-    "domain_reward": (
-        "mean",
-        "inference: the domain critic's reward, mean over the ego and its domain | neighbours (mean over the domain, "
-        "0 if empty: CoPO's nei_rewards) | own (the ego's reward)",
-    ),
-    "attention_heads": (4, "inference: heads of the cross-attention (the width is hidden, split over the heads)"),
-    "token_layers": (2, "inference: layers of the ego-token MLP([o_i, a_i]) and of the neighbour-token MLP"),
-    "neighbour_features": (
-        "relative+absolute",
-        "inference: neighbour token inputs [s_j - s_i, s_j, a_j] | absolute ([s_j, a_j], COIN style) | relative ([s_j - s_i, a_j])",
-    ),
-    "null_token": (True, "inference: a learned, always attendable null token (False: a fixed zero token) so an empty domain is defined"),
-    "counterfactual_baseline": (
-        True,
-        "inference: train the baseline b (the domain critic with the ego action set to (-1, -1), COIN's released-code "
-        "convention) and subtract it in the actor loss; it carries no actor gradient (logged as the advantage)",
-    ),
-    "individual_critic": (False, "inference: also a twin individual critic on the ego's reward, its Q^l_1 added to the actor objective"),
-    "domain_weight": (1.0, "weight w of the domain term Q^D_1 - b in the actor objective"),
-}
+from coin_app.algorithms.traco.settings import TracoSettings
 
 
-class TracoConfig(CigTd3Config):
-    """Configuration of TraCo-TD3 on RLlib's new API stack (CIG-TD3's, with TraCo's keys)."""
+class TracoConfig(Td3Config):
+    """Configuration of TraCo-TD3 on RLlib's new API stack: TD3's with TraCo's keys."""
 
-    HYPERPARAMETERS: ClassVar[dict[str, tuple[Any, str]]] = HYPERPARAMETERS
+    SETTINGS: ClassVar[type[TracoSettings]] = TracoSettings
     LABEL: ClassVar[str] = "TraCo"
 
     def __init__(self, algo_class: type | None = None):
@@ -115,10 +45,6 @@ class TracoConfig(CigTd3Config):
             errors.append("domain_weight=0 without individual_critic leaves the actor no objective")
         return errors
 
-    def itd3(self) -> CigTd3Config:
-        """Not a TraCo switch: ITD3 is its own algorithm (``CigTd3Config().itd3()``)."""
-        raise ValueError("TraCo has no ITD3 switch; build ITD3 with CigTd3Config().itd3() (train --algo itd3)")
-
     def get_default_rl_module_spec(self) -> RLModuleSpec:
         """The TraCo torch RLModule."""
         return RLModuleSpec(module_class=TracoTorchRLModule)
@@ -129,8 +55,8 @@ class TracoConfig(CigTd3Config):
 
     @property
     def _model_config_auto_includes(self) -> dict[str, Any]:
-        """Hyper-parameters the RLModule needs to build its networks and exploration."""
-        return self.td3_model_config() | {
+        """TD3's model-config entries and the domain critic's."""
+        return super()._model_config_auto_includes | {
             "attention_heads": self.attention_heads,
             "token_layers": self.token_layers,
             "neighbour_features": self.neighbour_features,
@@ -140,8 +66,8 @@ class TracoConfig(CigTd3Config):
         }
 
 
-class Traco(CigTd3):
-    """TraCo-TD3: CIG-TD3's sampling, joint-step replay and update loop with TraCo's module and learner."""
+class Traco(Td3):
+    """TraCo-TD3: TD3's sampling, joint-step replay and update loop with TraCo's module and learner."""
 
     @classmethod
     def get_default_config(cls) -> TracoConfig:
@@ -149,30 +75,4 @@ class Traco(CigTd3):
         return TracoConfig()
 
 
-# ---------------------------------------------------------------------- the spec (algorithm contract)
-# the quick scenario: CIG-TD3's small settings where TraCo has the key (the freeze guard included), the baseline at the critics' rate
-QUICK_TRACO: dict[str, Any] = {k: v for k, v in cig_td3.QUICK_TD3.items() if k in HYPERPARAMETERS or k in cig_td3.RLLIB_KEYS}
-QUICK_TRACO["baseline_lr"] = cig_td3.QUICK_TD3["critic_lr"]
-# the smallest scale: CIG-TD3's tiny settings where TraCo has the key (no CVAE or GAT widths)
-TINY_TRACO: dict[str, Any] = {k: v for k, v in cig_td3.TINY_TD3.items() if k in HYPERPARAMETERS or k in cig_td3.RLLIB_KEYS}
-
-
-def build(scenario: ScenarioConfig, algo_cfg: dict[str, Any], seed: int) -> TracoConfig:
-    """A validated TraCo config on the parsed ``scenario``."""
-    cfg = TracoConfig().environment(f"coin-{scenario_name(scenario)}-v0", env_config=env_config_of(scenario)).debugging(seed=seed)
-    cfg = cfg.env_runners(
-        num_env_runners=algo_cfg.pop("num_env_runners", 0), rollout_fragment_length=algo_cfg.pop("rollout_fragment_length", 1)
-    )
-    cfg = cfg.evaluation(evaluation_interval=None)
-    return cfg.training(**algo_cfg)
-
-
-TRACO = AlgorithmSpec(
-    name="traco",
-    description="TraCo (re-implemented, TD3, per COIN §5.2): cross-attention domain critic, counterfactual advantage within 40 m",
-    hyperparameters={**HYPERPARAMETERS, **cig_td3.RLLIB_KEYS},
-    build=build,
-    capabilities=Capabilities(on_policy=False, centralized_critic=True, joint_replay=True, periodic_evaluation=True),
-    quick=QUICK_TRACO,
-    tiny=TINY_TRACO,
-)
+build_traco_config = config_builder(TracoConfig)  # TraCo's spec (settings.py) names it

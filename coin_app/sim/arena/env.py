@@ -20,7 +20,7 @@ from coin_app.sim import schema
 from coin_app.sim.arena.config import ArenaConfig, make_arena_config
 from coin_app.sim.arena.generator import Layout, generate, training_rng
 from coin_app.sim.arena.simulator import ArenaSimulator
-from coin_app.sim.driving_env import checked_actions
+from coin_app.sim.inputs import checked_actions
 
 
 class ArenaEnv:

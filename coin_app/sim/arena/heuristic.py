@@ -34,11 +34,12 @@ without them and reads only the own numbers and the entity blocks.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from coin_app.sim.arena.config import ENTITY_WIDTH, OWN_WIDTH
 from coin_app.sim.arena.observation import POSITION_SCALE, SIZE_SCALE, SPEED_SCALE, layout_of
-from coin_app.sim.dynamics import friction_bicycle_step
+from coin_app.sim.dynamics import friction_bicycle_tan
 
 OWN_RADIUS = 0.5 * float(np.hypot(2.5, 1.0))  # the bounding radius of the arena's 2.5 x 1.0 m vehicles
 # the planning filter's footprint: two circles at +-OFFSET along the axis, each covering half the 2.5 x 1.0 m box
@@ -71,28 +72,35 @@ def entity_views(obs: np.ndarray) -> list[np.ndarray]:
     return [np.concatenate([own, rows[:, OWN_WIDTH + ENTITY_WIDTH * b : OWN_WIDTH + ENTITY_WIDTH * (b + 1)]], 1) for b in range(k)]
 
 
+@numba.njit(cache=True)
+def _heuristic_actions(obs: np.ndarray, cruise: float, dt: float, friction: float, max_steer: float) -> np.ndarray:
+    out = np.empty((len(obs), 2))
+    for i in range(len(obs)):
+        tx, ty = obs[i, 0] * POSITION_SCALE, obs[i, 1] * POSITION_SCALE  # the target in the vehicle frame
+        rel = np.arctan2(obs[i, 2], obs[i, 3])  # target heading in the vehicle frame
+        speed = obs[i, 4] * SPEED_SCALE
+        c, s = np.cos(rel), np.sin(rel)
+        # the vehicle (origin) in the target frame
+        a = -(c * tx + s * ty)
+        e = -(-s * tx + c * ty)
+        psi = -rel
+        line = a < 1.0 and abs(e) < 0.6 * max(-a, 0.0) + 0.8 and abs(psi) < 1.4
+        bx, by = tx - 10.0 * c, ty - 10.0 * s  # 10 m behind the target on its line
+        pursuit = np.arctan2(by, bx)
+        if line:
+            steer = -psi - np.arctan(1.5 * e / (abs(speed) + 0.5))  # Stanley
+            v_des = min(cruise, 0.8 * np.sqrt(2.0 * 0.8 * max(-a - 0.3, 0.0)))  # stop on the target at 0.8 m/s^2
+        else:
+            steer = 1.5 * pursuit
+            v_des = 1.5 if abs(pursuit) > 1.0 else min(cruise, 0.5 + 0.4 * np.sqrt(bx * bx + by * by))
+        out[i, 0] = min(max(steer / max_steer, -1.0), 1.0)
+        out[i, 1] = min(max((v_des - friction * speed) / dt, -1.0), 1.0)
+    return out
+
+
 def heuristic_actions(obs: np.ndarray, cruise: float = 4.0, dt: float = 0.1, friction: float = 0.99, max_steer: float = 0.8) -> np.ndarray:
     """(steering, pedal) in [-1, 1] for observations (N, 6 + 7 k) (only the target and own numbers are read)."""
-    obs = as_rows(obs)
-    target = obs[:, 0:2] * POSITION_SCALE  # in the vehicle frame
-    rel = np.arctan2(obs[:, 2], obs[:, 3])  # target heading in the vehicle frame
-    speed = obs[:, 4] * SPEED_SCALE
-    c, s = np.cos(rel), np.sin(rel)
-    # the vehicle (origin) in the target frame
-    a = -(c * target[:, 0] + s * target[:, 1])
-    e = -(-s * target[:, 0] + c * target[:, 1])
-    psi = -rel
-    line = (a < 1.0) & (np.abs(e) < 0.6 * np.maximum(-a, 0.0) + 0.8) & (np.abs(psi) < 1.4)
-    stanley = -psi - np.arctan(1.5 * e / (np.abs(speed) + 0.5))
-    behind = target - 10.0 * np.stack([c, s], 1)
-    pursuit = np.arctan2(behind[:, 1], behind[:, 0])
-    steer = np.clip(np.where(line, stanley, 1.5 * pursuit) / max_steer, -1.0, 1.0)
-    stop_dist = np.maximum(-a - 0.3, 0.0)
-    v_line = np.minimum(cruise, 0.8 * np.sqrt(2.0 * 0.8 * stop_dist))
-    v_approach = np.where(np.abs(pursuit) > 1.0, 1.5, np.minimum(cruise, 0.5 + 0.4 * np.linalg.norm(behind, axis=1)))
-    v_des = np.where(line, v_line, v_approach)
-    pedal = np.clip((v_des - friction * speed) / dt, -1.0, 1.0)
-    return np.stack([steer, pedal], 1)
+    return _heuristic_actions(as_rows(obs), float(cruise), float(dt), float(friction), float(max_steer))
 
 
 def avoiding_actions(
@@ -119,6 +127,80 @@ def avoiding_actions(
     return np.stack([np.where(ahead, away, actions[:, 0]), pedal], 1)
 
 
+@numba.njit(cache=True)
+def _least_clearance(
+    speed: float,
+    steer: np.ndarray,
+    pedal: np.ndarray,
+    entity: np.ndarray,
+    horizon: int,
+    dt: float,
+    wheelbase: float,
+    friction: float,
+) -> np.ndarray:
+    """(P, K) least clearance of one vehicle's K constant-action rollouts (Eq. 1 from the origin of its frame at ``speed``;
+    actions ``steer``, ``pedal`` (K,)) over ``horizon`` steps against P entities moving at constant velocity
+    (``entity`` (P, 5): centre x, y, velocity x, y, reach = radius + the footprint circles' radius). Each rollout is
+    stepped once for all entities; the vehicle's footprint is two circles at +-``FOOTPRINT_OFFSET`` along its axis."""
+    # the least clearance min_t sqrt(d_t^2) - reach is sqrt(min_t d_t^2) - reach to the bit (sqrt and "- reach" are
+    # monotonic in floating point), so the steps keep the least squared distance and take one square root at the end
+    nearest = np.full((len(entity), len(steer)), np.inf)
+    other = np.empty((horizon + 1, len(entity), 2))  # the entities' centres at each step
+    for t in range(1, horizon + 1):
+        for p in range(len(entity)):
+            other[t, p, 0], other[t, p, 1] = entity[p, 0] + t * dt * entity[p, 2], entity[p, 1] + t * dt * entity[p, 3]
+    for c in range(len(steer)):
+        x, y, h, sp, tan_steer = 0.0, 0.0, 0.0, speed, np.tan(steer[c])
+        for t in range(1, horizon + 1):
+            x, y, h, sp, cos_h, sin_h = friction_bicycle_tan(x, y, h, sp, pedal[c], tan_steer, dt, wheelbase, friction)
+            ax, ay = FOOTPRINT_OFFSET * cos_h, FOOTPRINT_OFFSET * sin_h
+            for p in range(len(entity)):
+                ox, oy = other[t, p, 0], other[t, p, 1]
+                dx, dy = x + ax - ox, y + ay - oy
+                front = dx * dx + dy * dy
+                dx, dy = x + -1.0 * ax - ox, y + -1.0 * ay - oy
+                nearest[p, c] = min(min(nearest[p, c], front), dx * dx + dy * dy)
+    least = np.empty_like(nearest)
+    for p in range(len(entity)):
+        for c in range(len(steer)):
+            least[p, c] = np.sqrt(nearest[p, c]) - entity[p, 4]
+    return least
+
+
+@numba.njit(cache=True)
+def _entity(row: np.ndarray, col: int) -> tuple[float, float, float, float, float]:
+    """(centre x, y, velocity x, y, reach) of the entity block at column ``col`` of an observation row (``observation.py``)."""
+    speed = row[col + 5] * SPEED_SCALE
+    return (
+        row[col] * POSITION_SCALE, row[col + 1] * POSITION_SCALE, speed * row[col + 3], speed * row[col + 2],
+        row[col + 4] * SIZE_SCALE + FOOTPRINT_RADIUS,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _may_come_near(row: np.ndarray, col: int, horizon: int, margin: float, dt: float, max_pedal: float) -> bool:
+    """``may_come_near`` of the entity block at column ``col`` of an observation row."""
+    t = horizon * dt
+    own = t * (abs(row[4] * SPEED_SCALE) + horizon * max_pedal * dt)
+    other = t * abs(row[col + 5] * SPEED_SCALE)
+    x, y = row[col] * POSITION_SCALE, row[col + 1] * POSITION_SCALE
+    gap = np.sqrt(x * x + y * y) - row[col + 4] * SIZE_SCALE - FOOTPRINT_RADIUS - FOOTPRINT_OFFSET
+    return row[col + 6] > 0.5 and gap - own - other < margin + 1.0
+
+
+@numba.njit(cache=True)
+def _rollout_clearance(
+    obs: np.ndarray, steer: np.ndarray, pedal: np.ndarray, horizon: int, dt: float, wheelbase: float, friction: float
+) -> np.ndarray:
+    out = np.full(steer.shape, np.inf)
+    entity = np.empty((1, 5))
+    for i in range(len(obs)):
+        if obs[i, 12] > 0.5:
+            entity[0, 0], entity[0, 1], entity[0, 2], entity[0, 3], entity[0, 4] = _entity(obs[i], 6)
+            out[i] = _least_clearance(obs[i, 4] * SPEED_SCALE, steer[i], pedal[i], entity, horizon, dt, wheelbase, friction)[0]
+    return out
+
+
 def rollout_clearance(
     obs: np.ndarray,
     actions: np.ndarray,
@@ -132,23 +214,17 @@ def rollout_clearance(
     """(N, K) least clearance over ``horizon`` steps between each vehicle holding action k of ``actions`` (N, K, 2) and its
     closest entity (moving at its observed speed and heading); inf without an entity. ``obs`` (N, 13): the paper's layout."""
     obs = as_rows(obs)
-    n, k = actions.shape[:2]
-    speed = np.repeat(obs[:, 4] * SPEED_SCALE, k)  # the rollouts flat, (n * k), for the dynamics
-    pos, heading = np.zeros((n * k, 2)), np.zeros(n * k)  # in the vehicle's own frame
-    steer = actions[..., 0].reshape(-1) * max_steer
-    pedal = actions[..., 1].reshape(-1) * max_pedal
-    centre = (obs[:, 6:8] * POSITION_SCALE)[:, None, :]  # (n, 1, 2): broadcast over the k rollouts
-    velocity = ((obs[:, 11] * SPEED_SCALE)[:, None] * np.stack([obs[:, 9], obs[:, 8]], 1))[:, None, :]  # (cos, sin)
-    reach = (obs[:, 10] * SIZE_SCALE)[:, None] + FOOTPRINT_RADIUS
-    least = np.full((n, k), np.inf)
-    for t in range(1, horizon + 1):
-        pos, heading, speed = friction_bicycle_step(pos, heading, speed, pedal, steer, dt, wheelbase, friction)
-        other = centre + t * dt * velocity
-        axis = (FOOTPRINT_OFFSET * np.stack([np.cos(heading), np.sin(heading)], 1)).reshape(n, k, 2)
-        at = pos.reshape(n, k, 2)
-        for sign in (1.0, -1.0):
-            least = np.minimum(least, np.linalg.norm(at + sign * axis - other, axis=2) - reach)
-    return np.where((obs[:, 12] > 0.5)[:, None], least, np.inf)
+    actions = np.asarray(actions, float)
+    steer, pedal = (np.ascontiguousarray(actions[..., k] * scale) for k, scale in ((0, max_steer), (1, max_pedal)))
+    return _rollout_clearance(obs, steer, pedal, int(horizon), float(dt), float(wheelbase), float(friction))
+
+
+@numba.njit(cache=True)
+def _may_come_near_all(obs: np.ndarray, horizon: int, margin: float, dt: float, max_pedal: float) -> np.ndarray:
+    out = np.empty(len(obs), np.bool_)
+    for i in range(len(obs)):
+        out[i] = _may_come_near(obs[i], 6, horizon, margin, dt, max_pedal)
+    return out
 
 
 def may_come_near(obs: np.ndarray, horizon: int, margin: float, dt: float = 0.1, max_pedal: float = 1.0) -> np.ndarray:
@@ -158,12 +234,29 @@ def may_come_near(obs: np.ndarray, horizon: int, margin: float, dt: float = 0.1,
     ``T (|v| + horizon max_pedal dt)`` in ``T = horizon dt`` seconds, and the entity at most ``T |v_entity|``; pairs
     farther apart than that (plus 1 m of slack) keep more than ``margin`` under every action. False without an entity.
     """
-    obs = as_rows(obs)
-    t = horizon * dt
-    own = t * (np.abs(obs[:, 4] * SPEED_SCALE) + horizon * max_pedal * dt)
-    other = t * np.abs(obs[:, 11] * SPEED_SCALE)
-    gap = np.linalg.norm(obs[:, 6:8] * POSITION_SCALE, axis=1) - obs[:, 10] * SIZE_SCALE - FOOTPRINT_RADIUS - FOOTPRINT_OFFSET
-    return (obs[:, 12] > 0.5) & (gap - own - other < margin + 1.0)
+    return _may_come_near_all(as_rows(obs), int(horizon), float(margin), float(dt), float(max_pedal))
+
+
+@numba.njit(cache=True)
+def _candidate_clearance(
+    obs: np.ndarray, blocks: int, steer: np.ndarray, pedal: np.ndarray, horizon: int, margin: float, dt: float, physics: tuple
+) -> np.ndarray:
+    wheelbase, friction, max_pedal = physics
+    out = np.full(steer.shape, np.inf)
+    entity = np.empty((blocks, 5))
+    for i in range(len(obs)):
+        near = 0
+        for b in range(blocks):
+            col = OWN_WIDTH + ENTITY_WIDTH * b
+            if _may_come_near(obs[i], col, horizon, margin, dt, max_pedal):
+                entity[near, 0], entity[near, 1], entity[near, 2], entity[near, 3], entity[near, 4] = _entity(obs[i], col)
+                near += 1
+        if near:
+            least = _least_clearance(obs[i, 4] * SPEED_SCALE, steer[i], pedal[i], entity[:near], horizon, dt, wheelbase, friction)
+            for p in range(near):
+                for c in range(steer.shape[1]):
+                    out[i, c] = min(out[i, c], least[p, c])
+    return out
 
 
 def candidate_clearance(
@@ -176,18 +269,16 @@ def candidate_clearance(
     come within ``margin``, so a clearance left at inf stands for one of at least ``margin``.
     ``physics``: the arena's ``wheelbase``, ``max_steer`` and ``max_pedal`` where they are not the defaults.
     """
-    views = entity_views(obs)
-    n = len(views[0])
-    nominal = heuristic_actions(views[0], dt=dt, friction=friction, max_steer=physics.get("max_steer", 0.8))
+    rows = as_rows(obs)
+    blocks, _ = layout_of(rows.shape[1])
+    n = len(rows)
+    physics = {"wheelbase": 2.0, "max_steer": 0.8, "max_pedal": 1.0} | physics
+    nominal = heuristic_actions(rows[:, : OWN_WIDTH + ENTITY_WIDTH], dt=dt, friction=friction, max_steer=physics["max_steer"])
     candidates = np.concatenate([nominal[:, None, :], np.broadcast_to(CANDIDATES, (n, *CANDIDATES.shape))], axis=1)
-    clearance = np.full(candidates.shape[:2], np.inf)
-    pairs = np.concatenate(views)  # (k N, 13): entity block b of vehicle i at row b N + i
-    vehicle = np.tile(np.arange(n), len(views))
-    near = may_come_near(pairs, horizon, margin, dt, physics.get("max_pedal", 1.0))
-    if near.any():
-        least = rollout_clearance(pairs[near], candidates[vehicle[near]], horizon, dt=dt, friction=friction, **physics)
-        np.minimum.at(clearance, vehicle[near], least)
-    return candidates, clearance
+    steer = np.ascontiguousarray(candidates[..., 0] * physics["max_steer"])
+    pedal = np.ascontiguousarray(candidates[..., 1] * physics["max_pedal"])
+    shape = (float(physics["wheelbase"]), float(friction), float(physics["max_pedal"]))
+    return candidates, _candidate_clearance(rows, blocks, steer, pedal, int(horizon), float(margin), float(dt), shape)
 
 
 def planning_actions(

@@ -1,8 +1,9 @@
-"""The individual TD3 networks of CIG-TD3 (COIN §4.2): the actor and the local twin critic, and the MLP builder.
+"""The TD3 family's networks (COIN §4.2's individual networks): the actor, the individual twin critic, and the MLP builder.
 
 * :class:`Actor`: the deterministic shared policy mu_theta(o_i), tanh output in [-1, 1] (Eq. 12).
-* :class:`TwinQ`: the local (individual) twin critic Q^l_1, Q^l_2 on ``[o_i, a_i]`` (Eqs. 7-8).
-* :func:`mlp`: the plain MLP every CIG-TD3 network is built from.
+* :class:`TwinQ`: the individual (local) twin critic Q^l_1, Q^l_2 on ``[o_i, a_i]`` (Eqs. 7-8): ITD3's
+  only critic, CIG-TD3's local critic, TraCo's optional individual critic.
+* :func:`mlp`: the plain MLP every TD3-family network is built from.
 * :func:`full_precision`: a network output widened to fp32 (under bf16 autocast the networks return bf16).
 
 Plain ``torch.nn``; nothing here imports Ray. Shapes: ``B`` batch rows, ``O`` observation,

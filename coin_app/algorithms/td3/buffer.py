@@ -1,4 +1,4 @@
-"""Joint-step replay buffer for CIG-TD3: the "centralized-critic connector" that injects global state at sample time.
+"""Joint-step replay buffer of the TD3 family: the "centralized-critic connector" that injects global state at sample time.
 
 A sample row is one per-agent transition (``transitions.py``) plus the states and actions of the
 other agents that acted at its env step t and the states and observations of every other agent
@@ -96,8 +96,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from coin_app.algorithms.cig_td3 import columns as col
-from coin_app.algorithms.cig_td3.transitions import TransitionBatch
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.transitions import TransitionBatch
 from coin_app.sim import schema
 
 STATE_VERSION = 2  # 2: arrays hold the rows written so far; 1: every array at full capacity (still read)

@@ -1,10 +1,11 @@
-"""RLlib episode chunks -> per-agent CIG-TD3 transitions, stamped with the env step that aligns the agents.
+"""RLlib episode chunks -> per-agent TD3-family transitions, stamped with the env step that aligns the agents.
 
 What a CIG-TD3 transition needs (COIN §4.2, Eqs. 7-12, Algorithm 1 line 16): the ego's
 ``o_i, s_i, a_i, r_i, r^G, d_i, o'_i, s'_i``, the states and actions ``s_{-i}, a_{-i}`` of the
 other agents that acted at the same env step t, and the states and observations
 ``s'_{-i}, o'_{-i}`` of every other agent with an observation at t+1 (the learner computes
-``a'_{-i}`` from ``o'_{-i}`` with the target actor).
+``a'_{-i}`` from ``o'_{-i}`` with the target actor). TraCo reads the others too (and their
+rewards); ITD3 reads only the ego's columns.
 
 This module produces the per-agent part, one row per (episode, agent, env step), keyed by the
 env's own ``infos[schema.ENV_STEP]`` stamp (never RLlib's env/agent time mapping, which is wrong
@@ -23,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from coin_app.algorithms.cig_td3 import columns as col
+from coin_app.algorithms.td3 import columns as col
 from coin_app.sim import schema
 
 _I64_MASK = (1 << 63) - 1

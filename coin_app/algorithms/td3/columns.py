@@ -1,4 +1,4 @@
-"""Column names of a CIG-TD3 transition: the replay buffer's sample keys, the learner's batch keys.
+"""Column names of a TD3-family transition: the replay buffer's sample keys, the learner's batch keys.
 
 One row is one ego agent i at env step t (COIN §4.2, Eqs. 7-12). The ego's columns use RLlib's
 ``Columns`` values (``Columns.NEXT_OBS == "new_obs"``; ``tests/test_cig_td3_replay.py`` checks they

@@ -1,0 +1,30 @@
+"""The bounds and waits that commands check their inputs against, in one Ray-free module (the parser shows them).
+
+A count or size above its bound is refused in one line that names the bound, before any work;
+a wait has a stated default and refuses a value that is not a positive number of seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+CONNECT_TIMEOUT_S = 5.0  # seconds train and sweep wait for a cluster at --address before refusing it
+MAX_EPISODES = 1000  # evaluate: seeds in one call (the paper: 20); all of them run at once in one batched simulator
+MAX_CASE_VEHICLES = 64  # evaluate-arena: vehicles in one case (the paper's largest: 20); scenes are drawn point by point
+MAX_CASE_OBSTACLES = 64  # evaluate-arena: obstacles in one case (the paper's largest: 12)
+MAX_SCENARIOS_PER_CASE = 10_000  # evaluate-arena: test scenarios per case (the paper: 4062)
+
+
+def check_timeout(value: Any, flag: str) -> float:
+    """``value`` as seconds if it is a finite number > 0; otherwise a ValueError naming ``flag``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"bad {flag} {value!r}; allowed: a finite number of seconds > 0")
+    return float(value)
+
+
+def check_count(value: Any, flag: str, limit: int, low: int = 1) -> int:
+    """``value`` if it is an integer in [low, limit]; otherwise a ValueError naming ``flag`` and the bound."""
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= limit:
+        raise ValueError(f"bad {flag} {value!r}; allowed: an integer from {low} to {limit}")
+    return value
