@@ -33,6 +33,7 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
+from coin_app.algorithms import registry
 from coin_app.algorithms.choices import PRECISIONS
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.cig_td3.losses import actor_loss, central_critic_loss, td_targets
@@ -146,7 +147,7 @@ def time_loop(cfg: Td3Config, steps: int) -> float:
     return float(r["env_runners"]["num_env_steps_sampled"]) / dt
 
 
-SIZES = ("paper", "quick")
+SIZES = ("paper", "quick", "reduced-dense")
 
 
 def base_config(size: str, threads: int) -> tuple[CigTd3Config, int]:
@@ -155,6 +156,10 @@ def base_config(size: str, threads: int) -> tuple[CigTd3Config, int]:
         env_config = {"scenario": "intersection"}
         cfg = CigTd3Config().environment(env_id("intersection"), env_config=env_config).debugging(seed=0)
         return cfg.training(learner_threads=threads), 29
+    if size == "reduced-dense":  # the reduced protocol's networks and batch at the paper's density (issue 56's pilots)
+        settings = {**registry.get("cig_td3").presets["reduced"].changes(), "learner_threads": threads}
+        cfg = build_config("cig_td3", "intersection", settings, 0)
+        return cfg, cfg.scenario_config().num_agents - 1
     settings = {**quick_settings("cig_td3"), "learner_threads": threads}
     cfg = build_config("cig_td3", "intersection", settings, 0)
     return cfg, cfg.scenario_config().num_agents - 1
@@ -170,7 +175,12 @@ def itd3_config(cig: CigTd3Config) -> Td3Config:
 def main() -> None:
     """Print the update times per precision, their ratio, the breakdown and the loop throughput."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--size", choices=SIZES, default="paper", help="paper: 30 agents, paper sizes; quick: the reduced-scale settings")
+    ap.add_argument(
+        "--size",
+        choices=SIZES,
+        default="paper",
+        help="paper: 30 agents, paper sizes; quick: the reduced-scale settings; reduced-dense: those settings at 30 agents",
+    )
     ap.add_argument("--updates", type=int, default=10)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--precision", choices=(*PRECISIONS, "both"), default="both", help="learner precision(s) to time")
