@@ -1,12 +1,15 @@
 """Where the TD3 family's training step spends its time, per env step: CIG-TD3, ITD3 and TraCo at 4 and 30 vehicles.
 
 Usage: python benchmarks/offpolicy_step.py [--tree PATH] [--algos cig_td3 itd3 traco] [--agents 4 30]
-                                           [--steps4 40] [--steps30 5] [--precision fp32|bf16]
+                                           [--steps4 40] [--steps30 5] [--precision auto|fp32|bf16]
+                                           [--fragment K] [--other-fragment K]
 
 Each case builds the algorithm as training does (``coin_app.training.build_config``): at 4 vehicles
 the reduced protocol's trial (``sweep seeds --scale reduced``, seed 0), at 30 the intersection at
 the paper's density with the algorithm's defaults; ``--precision`` overrides the learner precision
-of both (default: the settings' own). The warm-up is cut to what fills one batch, so the updates
+of both (default: the settings' own; the table names the precision it resolved to), ``--fragment``
+the env steps per training step (``rollout_fragment_length``, K) of this tree and ``--other-fragment``
+of the ``--tree`` one (default 1 each). The warm-up is cut to what fills one batch, so the updates
 start at once (the time of a step after the warm-up does not depend on its length). After the
 first update it times blocks of ``algo.training_step()`` calls, the loop ``algo.train()`` runs
 (the iteration's end, one per 500 env steps, is not timed), and attributes every second to one
@@ -253,7 +256,7 @@ class Worker:
         if not ray.is_initialized():
             ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
         if req["op"] == "build":
-            return self.build(req["algo"], req["agents"], req.get("precision"))
+            return self.build(req["algo"], req["agents"], req.get("precision"), req.get("fragment", 1))
         if req["op"] == "time":
             return self.time(req["steps"])
         if req["op"] == "stop":
@@ -263,7 +266,7 @@ class Worker:
             return {}
         raise ValueError(f"unknown op {req['op']!r}")
 
-    def build(self, algo_name: str, agents: int, precision: str | None) -> dict[str, Any]:
+    def build(self, algo_name: str, agents: int, precision: str | None, fragment: int) -> dict[str, Any]:
         """Build and instrument the case's algorithm and run it until its first update; what was found and the settings."""
         from coin_app.training import build_config  # noqa: I001  (the worker's tree)
 
@@ -279,6 +282,8 @@ class Worker:
             overrides["num_agents"] = agents
         if precision is not None:
             overrides["precision"] = precision
+        if fragment != 1:
+            overrides["rollout_fragment_length"] = fragment
         probe = build_config(algo_name, "intersection", overrides, 0)
         batch = probe.train_batch_size_per_learner
         overrides["warmup_steps"] = 2 * -(-batch // max(1, agents - 1)) + 10  # a batch of sampleable transitions, then updates
@@ -289,10 +294,19 @@ class Worker:
         t0 = time.perf_counter()
         while self.clock.calls["_update"] == 0:  # warm-up: until the first gradient step has run
             self.algo.training_step()
+        precision = getattr(cfg, "precision", "fp32")
+        try:  # the precision "auto" resolves to on the learner's device (a tree without it has no "auto")
+            from coin_app.algorithms.td3.learner import resolve_precision  # noqa: I001  (the worker's tree)
+
+            learner = self.algo.learner_group._learner
+            precision = resolve_precision(precision, next(learner.module["shared"].parameters()).device)
+        except (ImportError, AttributeError, ValueError):
+            pass
         return {
             "found": found,
             "warmup_s": time.perf_counter() - t0,
-            "precision": getattr(cfg, "precision", "fp32"),
+            "precision": precision,
+            "fragment": fragment,
             "batch": batch,
             "num_agents": cfg.scenario_config().num_agents,
         }
@@ -333,9 +347,11 @@ def main() -> None:
     ap.add_argument("--steps4", type=int, default=40, help="timed env steps per tree at 4 vehicles (default 40)")
     ap.add_argument("--steps30", type=int, default=5, help="timed env steps per tree at 30 vehicles (default 5: one policy-delay cycle)")
     ap.add_argument("--blocks", type=int, default=1, help="timed blocks per tree, the trees alternating (default 1)")
-    ap.add_argument("--precision", choices=("fp32", "bf16"), help="learner precision of every case (default: the settings' own)")
+    ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), help="learner precision of every case (default: the settings' own)")
+    ap.add_argument("--fragment", type=int, default=1, help="env steps per training step (K) in this tree (default 1)")
+    ap.add_argument("--other-fragment", type=int, default=1, help="env steps per training step (K) in the --tree one (default 1)")
     args = ap.parse_args()
-    for name in ("steps4", "steps30", "blocks"):
+    for name in ("steps4", "steps30", "blocks", "fragment", "other_fragment"):
         if getattr(args, name) < 1:
             raise SystemExit(f"bad --{name} {getattr(args, name)}; allowed: an integer >= 1")
     trees = {"this": THIS_TREE}
@@ -348,7 +364,11 @@ def main() -> None:
         for agents in args.agents:
             for algo in args.algos:
                 steps = args.steps4 if agents == REDUCED_AGENTS else args.steps30
-                built = {n: w.call(op="build", algo=algo, agents=agents, precision=args.precision) for n, w in workers.items()}
+                fragments = {"this": args.fragment, "other": args.other_fragment}
+                built = {
+                    n: w.call(op="build", algo=algo, agents=agents, precision=args.precision, fragment=fragments[n])
+                    for n, w in workers.items()
+                }
                 runs: dict[str, list[dict[str, Any]]] = {n: [] for n in workers}
                 for block in range(args.blocks):
                     for n, w in list(workers.items())[:: 1 if block % 2 == 0 else -1]:  # each tree first in every other block
@@ -378,7 +398,8 @@ def report(algo: str, agents: int, built: dict[str, dict], runs: dict[str, list[
     """Print one case's breakdown (ms per env step, wall and CPU, per tree); return per tree the wall and CPU totals and updates."""
     first = next(iter(built.values()))
     scale = "reduced protocol" if agents == REDUCED_AGENTS else "paper density"
-    print(f"\n{algo}, intersection, {first['num_agents']} vehicles ({scale}), B={first['batch']}, precision {first['precision']}")
+    how = "; ".join(f"{n}: precision {b['precision']}, K={b.get('fragment', 1)}" for n, b in built.items())
+    print(f"\n{algo}, intersection, {first['num_agents']} vehicles ({scale}), B={first['batch']}, {how}")
     per_step: dict[tuple[str, str], dict[str, float]] = {}  # (tree, clock) -> piece -> ms per env step
     for n, blocks in runs.items():
         env_steps = sum(b["env_steps"] for b in blocks)

@@ -178,6 +178,8 @@ TEST_CLASS: dict[str, str] = {
             "test_simulator.py::test_observations_are_in_unit_box_under_random_driving",
             "test_simulator.py::test_same_seed_same_episode_and_different_seed_differs",
             "test_sweeps.py::test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings",
+            "test_td3_chunked_loop.py::test_a_chunk_across_the_warmup_switches_to_the_policy_at_its_step",
+            "test_td3_chunked_loop.py::test_a_training_step_samples_k_env_steps_then_their_updates",
             "test_td3_family_trace.py::test_cig_td3_updates_reproduce_the_recorded_trace",
             "test_traco_learner.py::test_actor_step_does_not_touch_critics",
             "test_traco_learner.py::test_each_switch_builds_and_trains",

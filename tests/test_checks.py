@@ -51,7 +51,7 @@ def test_allowed_text_names_the_range():
     assert cig.rule("exploration_noise_initial").allowed() == "None or a finite number >= 0"
     assert cig.rule("graph").allowed() == "'full' or a finite number > 0"
     assert cig.rule("global_critic").allowed() == "True or False"
-    assert cig.rule("precision").allowed() == "'fp32', 'bf16'"
+    assert cig.rule("precision").allowed() == "'auto', 'fp32', 'bf16'"
 
 
 def test_edges_of_ranges():

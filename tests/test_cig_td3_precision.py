@@ -1,5 +1,8 @@
 """CIG-TD3 bf16 learner updates: the losses' forward passes really run in bf16, and agree with fp32."""
 
+import contextlib
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -8,7 +11,8 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3Config
 from coin_app.algorithms.td3 import columns as col
-from coin_app.algorithms.td3.learner import autocast
+from coin_app.algorithms.td3 import learner as td3_learner
+from coin_app.algorithms.td3.learner import autocast, native_bf16, resolve_precision
 from coin_app.sim import schema
 
 torch.set_num_threads(1)
@@ -135,5 +139,49 @@ def test_a_bf16_update_trains():
 
 @pytest.mark.parametrize("bad", ["fp16", "bfloat16", None])
 def test_unknown_precision_is_refused(bad):
-    with pytest.raises(ValueError, match=rf"'precision': {bad!r}; allowed: 'fp32', 'bf16'"):
+    with pytest.raises(ValueError, match=rf"'precision': {bad!r}; allowed: 'auto', 'fp32', 'bf16'"):
         make_config(precision=bad).validate()
+
+
+@pytest.fixture
+def fresh_capability_cache():
+    native_bf16.cache_clear()
+    yield
+    native_bf16.cache_clear()
+
+
+@pytest.mark.usefixtures("fresh_capability_cache")
+@pytest.mark.parametrize("mkldnn_bf16", [True, False])
+def test_auto_is_bf16_exactly_on_a_cpu_with_native_bf16(monkeypatch, mkldnn_bf16):
+    monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: mkldnn_bf16)
+    cpu = torch.device("cpu")
+    assert resolve_precision("auto", cpu) == ("bf16" if mkldnn_bf16 else "fp32")
+    assert (resolve_precision("fp32", cpu), resolve_precision("bf16", cpu)) == ("fp32", "bf16")  # explicit values win
+    _, learner = build_learner(precision="auto")
+    module = learner.module["shared"].unwrapped()
+    with autocast(module, "auto"):
+        out = module.actor(torch.ones(2, module.actor.net[0].in_features))
+    assert out.dtype == (torch.bfloat16 if mkldnn_bf16 else torch.float32)
+
+
+@pytest.mark.usefixtures("fresh_capability_cache")
+@pytest.mark.parametrize("cuda_bf16", [True, False])
+def test_auto_on_cuda_asks_that_gpu_for_native_bf16(monkeypatch, cuda_bf16):
+    asked = []
+    monkeypatch.setattr(torch.cuda, "device", lambda device: asked.append(device) or contextlib.nullcontext())
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda including_emulation=True: cuda_bf16 and not including_emulation)
+    monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: not cuda_bf16)  # the host CPU is not asked
+    gpu = torch.device("cuda", 1)
+    assert resolve_precision("auto", gpu) == ("bf16" if cuda_bf16 else "fp32")
+    assert asked == [gpu]
+    assert resolve_precision("auto", torch.device("meta")) == "fp32"  # no other device counts as native
+
+
+def test_cig_td3_defaults_to_auto_and_the_reduced_protocol_to_fp32():
+    from coin_app.algorithms import registry
+
+    spec = registry.get("cig_td3")
+    assert spec.presets["paper"].precision == "auto" and spec.presets["reduced"].precision == "fp32"
+    assert registry.get("itd3").presets["paper"].precision == "fp32"
+    with pytest.raises(ValueError, match=re.escape("precision='fp16'; allowed: auto | fp32 | bf16")):
+        td3_learner.resolve_precision("fp16", torch.device("cpu"))

@@ -25,10 +25,12 @@ class CigTd3Settings(Td3Settings):
     precision: str = redeclare(
         Td3Settings,
         "precision",
-        "bf16",
-        "learner update precision: bf16 | fp32 (bf16: every loss forward pass under torch.autocast bfloat16; parameters, "
+        "auto",
+        "learner update precision: auto | bf16 | fp32 (bf16: every loss forward pass under torch.autocast bfloat16; parameters, "
         "optimizer state, TD targets, loss reductions and soft updates stay fp32; 0.37x the fp32 update time at the paper's "
-        "sizes on this CPU, no loss of success at equal env steps: docs/studies/learning_curves_precision)",
+        "sizes on a CPU with bf16, 10x on one without, no loss of success at equal env steps: "
+        "docs/studies/learning_curves_precision; auto: bf16 where the learner's device multiplies bf16 natively, a CUDA GPU "
+        "with bf16 or a CPU with oneDNN bf16, else fp32)",
     )
     central_critic_lr: float = setting(
         3e-4,

@@ -13,7 +13,8 @@ nothing leaks into another network; an optimizer whose network got no gradient l
 env runners a changed actor.
 
 ``precision="bf16"`` runs every loss's forward pass under ``torch.autocast(bfloat16)`` on the
-module's device; the losses widen the network outputs to fp32 (``losses.py``), so parameters,
+module's device (``"auto"``: bf16 where that device multiplies bf16 natively, else fp32:
+:func:`resolve_precision`); the losses widen the network outputs to fp32 (``losses.py``), so parameters,
 gradients, Adam state, TD targets, loss reductions and soft updates stay fp32. Nothing here
 creates a tensor on a fixed device, so the learner runs where RLlib puts its module
 (``num_gpus_per_learner``), in the algorithm process or as one remote learner (``num_learners=1``).
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 from typing import Any
 
 import torch
@@ -30,7 +32,7 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import TargetNetworkAPI
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from coin_app.algorithms.choices import PRECISIONS
+from coin_app.algorithms.choices import TD3_PRECISIONS
 from coin_app.algorithms.td3.losses import LossConfig, actor_loss, local_critic_loss, td_target
 
 STATE_KEY = "cig_td3"  # the learner-state key of the counter, targets and RNG (the name checkpoints have carried from the start)
@@ -39,13 +41,34 @@ STATE_KEY = "cig_td3"  # the learner-state key of the counter, targets and RNG (
 Losses = dict[str, tuple[torch.Tensor, torch.nn.Module]]
 
 
+@functools.cache
+def native_bf16(device: torch.device) -> bool:
+    """Whether ``device`` multiplies bfloat16 matrices natively: a CUDA GPU with bf16 (compute capability 8.0 on), a CPU
+    with oneDNN's bf16 kernels (AVX-512 or AMX); elsewhere bf16 runs on slow fallback kernels (docs/reference/speed.md)."""
+    if device.type == "cuda":
+        with torch.cuda.device(device):
+            return torch.cuda.is_bf16_supported(including_emulation=False)
+    if device.type == "cpu":
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    return False
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """The precision an update on ``device`` runs in: ``precision`` itself, or for "auto" "bf16" if :func:`native_bf16`, else "fp32"."""
+    if precision not in TD3_PRECISIONS:
+        raise ValueError(f"precision={precision!r}; allowed: {' | '.join(TD3_PRECISIONS)}")
+    if precision == "auto":
+        return "bf16" if native_bf16(device) else "fp32"
+    return precision
+
+
 def autocast(module: torch.nn.Module, precision: str) -> contextlib.AbstractContextManager:
-    """The context the loss forward passes of ``module`` run in: bfloat16 autocast on its device for "bf16", else nothing."""
-    if precision == "fp32":
+    """The context the loss forward passes of ``module`` run in: bfloat16 autocast on its device for "bf16" (or "auto"
+    resolved to it, :func:`resolve_precision`), else nothing."""
+    device = next(module.parameters()).device
+    if resolve_precision(precision, device) == "fp32":
         return contextlib.nullcontext()
-    if precision != "bf16":
-        raise ValueError(f"precision={precision!r}; allowed: {' | '.join(PRECISIONS)}")
-    return torch.autocast(device_type=next(module.parameters()).device.type, dtype=torch.bfloat16)
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
 
 
 def loss_config(config: Any) -> LossConfig:

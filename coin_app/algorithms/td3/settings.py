@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from coin_app.algorithms.checks import BOOL, INF, choice, non_negative, positive, unit
-from coin_app.algorithms.choices import PRECISIONS, UPDATE_ORDERS
+from coin_app.algorithms.choices import TD3_PRECISIONS, UPDATE_ORDERS
 from coin_app.algorithms.settings import Settings, setting
 from coin_app.algorithms.spec import AlgorithmSpec, Capabilities
 
@@ -33,7 +33,11 @@ class Td3Settings(Settings):
     gamma: float = setting(0.99, unit(), "discount", reads=RLLIB)
     train_batch_size_per_learner: int = setting(256, positive("int"), "agent transitions per gradient update (paper: 256)", reads=RLLIB)
     rollout_fragment_length: int | str = setting(
-        1, positive("int", INF, "auto"), "env steps each env runner samples per training step", reads=RLLIB
+        1,
+        positive("int", INF, "auto"),
+        "env steps each env runner samples per training step, K: the step's updates (updates_per_env_step per env step past "
+        "the warm-up, each on that env step's clock) run after the K steps; 1: one env step, then its updates",
+        reads=RLLIB,
     )
     num_env_runners: int = setting(0, non_negative("int"), "remote env runners (0 = sample in the algorithm process)", reads=RLLIB)
     grad_clip: float | None = setting(
@@ -128,9 +132,10 @@ class Td3Settings(Settings):
     )
     precision: str = setting(
         "fp32",
-        choice(*PRECISIONS),
-        "learner update precision: fp32 | bf16 (bf16: every loss forward pass under torch.autocast bfloat16; ITD3: fp32 until "
-        "a learning-curve comparison backs bf16)",
+        choice(*TD3_PRECISIONS),
+        "learner update precision: fp32 | bf16 | auto (bf16: every loss forward pass under torch.autocast bfloat16; auto: bf16 "
+        "where the learner's device multiplies bf16 natively, a CUDA GPU with bf16 or a CPU with oneDNN bf16, else fp32; "
+        "ITD3: fp32 until a learning-curve comparison backs bf16)",
         reads=UPDATE,
     )
     checkpoint_replay: bool = setting(

@@ -8,12 +8,14 @@ CIG-TD3 (``cig_td3/``) and TraCo (``traco/``) subclass the config, the module an
 their critics, as RLlib's TQC extends SAC.
 
 ``Td3`` runs sample -> joint-step replay -> learner updates -> weight sync. Each
-``training_step``: the env runners sample ``rollout_fragment_length`` env steps (uniform random
-actions during the warm-up, from the module's seeded exploration), the episodes are turned into
+``training_step``: the env runners sample ``rollout_fragment_length`` env steps, a chunk of K
+(uniform random actions during the warm-up, from the module's seeded exploration), the episodes are turned into
 per-agent transitions and added to the joint-step replay buffer (the centralized-critic
 connector: it attaches the other agents' states, actions and next observations by env step at
-sample time), then ``updates_per_env_step`` gradient updates per sampled env step run on
-batches of ``train_batch_size_per_learner`` transitions, and, when an update moved the actor (the
+sample time), then ``updates_per_env_step`` gradient updates per sampled env step past the warm-up
+run on batches of ``train_batch_size_per_learner`` transitions (:func:`update_schedule`: the updates,
+their env-step clocks and the credit of K single steps; a local learner's metrics reduced once per
+training step), and, when an update moved the actor (the
 learner's update counter crossed a multiple of ``policy_delay``), the actor weights go back to the
 env runners. The buffer, its RNG and the update credit are part of the algorithm's checkpoint
 state, so a resumed run continues exactly. The replay stays in the algorithm process; the learner
@@ -183,7 +185,7 @@ class Td3(ProgressReporting, Algorithm):
         self._update_credit = 0.0
 
     def training_step(self) -> None:
-        """One sample -> replay -> update(s) -> sync cycle."""
+        """One sample -> replay -> update(s) -> sync cycle: ``rollout_fragment_length`` env steps, then their updates."""
         cfg = self.config
         self._sync_env_steps()
         self.report_progress("sampling", 0, 0)
@@ -199,29 +201,30 @@ class Td3(ProgressReporting, Algorithm):
         with self.metrics.log_time((TIMERS, REPLAY_BUFFER_ADD_DATA_TIMER)):
             self.replay.add(episodes_to_transitions(episodes))
         env_steps = sum(len(e) for e in episodes)
-        lifetime = self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0)
+        lifetime = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
         batch_size = cfg.train_batch_size_per_learner
-        if lifetime < cfg.warmup_steps or len(self.replay) < batch_size:
+        if lifetime < cfg.warmup_steps or len(self.replay) < batch_size:  # the chunk is all warm-up, or no batch yet
             return
-        self._update_credit += env_steps * cfg.updates_per_env_step
-        n_updates = int(self._update_credit)
-        self._update_credit -= n_updates
-        for i in range(n_updates):
+        schedule, self._update_credit = update_schedule(
+            lifetime - env_steps, env_steps, cfg.warmup_steps, cfg.updates_per_env_step, self._update_credit
+        )
+        n_updates = len(schedule)
+        agent_steps = self.metrics.peek((ENV_RUNNER_RESULTS, NUM_AGENT_STEPS_SAMPLED_LIFETIME), default=0)
+        local = self.learner_group.is_local
+        for i, env_step in enumerate(schedule):
             self.report_progress("updates", i, n_updates)
             with self.metrics.log_time((TIMERS, REPLAY_BUFFER_SAMPLE_TIMER)):
                 sample = self.replay.sample(batch_size)
             batch = MultiAgentBatch({SHARED_MODULE_ID: SampleBatch(sample)}, env_steps=batch_size)
+            last = i == n_updates - 1  # a local learner reduces its metrics once, after the step's last update
             with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
                 results = self.learner_group.update(
                     batch=batch,
-                    timesteps={
-                        NUM_ENV_STEPS_SAMPLED_LIFETIME: lifetime,
-                        NUM_AGENT_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
-                            (ENV_RUNNER_RESULTS, NUM_AGENT_STEPS_SAMPLED_LIFETIME), default=0
-                        ),
-                    },
+                    timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: env_step, NUM_AGENT_STEPS_SAMPLED_LIFETIME: agent_steps},
+                    **({} if last or not local else {"_no_metrics_reduce": True}),
                 )
-            self.metrics.aggregate(results, key=LEARNER_RESULTS)
+            if last or not local:
+                self.metrics.aggregate(results, key=LEARNER_RESULTS)
         self.report_progress("updates", n_updates, n_updates)
         if n_updates:
             updates = self.learner_updates()
@@ -288,6 +291,23 @@ class Td3(ProgressReporting, Algorithm):
             if extra["buffer"] is not None:  # None: saved with checkpoint_replay=False, the buffer starts empty
                 self.replay.set_state(extra["buffer"])
             self._update_credit = float(extra["update_credit"])
+
+
+def update_schedule(lifetime: int, env_steps: int, warmup_steps: int, ratio: float, credit: float) -> tuple[list[int], float]:
+    """The updates ``env_steps`` new env steps earn after ``lifetime`` earlier ones, and the credit left.
+
+    Env step ``t`` (1-based lifetime count) earns ``ratio`` updates once ``t >= warmup_steps``, the
+    fractions carried in ``credit``; each update is labelled with the count ``t`` of the env step
+    that earned it (its learner's env-step clock). Step by step as one env step per training step
+    would: a chunk of K steps gets the updates, the labels and the credit of K single steps.
+    """
+    schedule: list[int] = []
+    for t in range(max(lifetime + 1, warmup_steps), lifetime + env_steps + 1):
+        credit += ratio
+        n = int(credit)
+        credit -= n
+        schedule += [t] * n
+    return schedule, credit
 
 
 def copy_weights(source: torch.nn.Module, dest: torch.nn.Module) -> None:
