@@ -198,12 +198,14 @@ class Td3TorchLearner(TorchLearner):
     def _make_batch_if_necessary(self, training_data: Any) -> Any:
         """The replay's batch through the learner connector pipeline (``JointState``), then RLlib's tensor conversion.
 
-        RLlib runs the pipeline only on episodes; the family's learner gets replay batches.
+        RLlib runs the pipeline only on episodes; the family's learner gets replay batches. Without
+        RLlib's per-piece timers (``metrics=None``): per update they cost more than the gather itself
+        (``docs/decisions.md`` §6.4; ``benchmarks/offpolicy_step.py`` times the pipeline).
         """
         batch = training_data.batch
         if isinstance(batch, MultiAgentBatch) and self._learner_connector is not None:
             out = self._learner_connector(
-                rl_module=self.module, batch=dict(batch.policy_batches), episodes=[], shared_data={}, metrics=self.metrics
+                rl_module=self.module, batch=dict(batch.policy_batches), episodes=[], shared_data={}, metrics=None
             )
             rows = {mid: b if isinstance(b, SampleBatch) else SampleBatch(b) for mid, b in out.items()}
             training_data.batch = MultiAgentBatch(rows, env_steps=batch.env_steps())
