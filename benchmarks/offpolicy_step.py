@@ -22,8 +22,8 @@ piece only):
   and of the vector env's step;
 * replay add: ``episodes_to_transitions`` and the replay buffer's ``add``;
 * replay sample + connector: the buffer's ``sample``, ``SampleBatch`` construction, the learner's
-  batch preparation (``Learner._make_batch_if_necessary``: learner connector pipeline, numpy -> torch)
-  and any ``ConnectorV2`` piece's call;
+  batch preparation (``_make_batch_if_necessary``, RLlib's and the learner's own: learner connector
+  pipeline, numpy -> torch) and any ``ConnectorV2`` piece's call (the TD3 family's ``JointState``);
 * update: the learner's gradient step (``Learner._update``, ``before/after_gradient_based_update``);
 * weight sync: the algorithm's ``_sync_actor`` (RLlib's ``sync_weights`` where it has none);
 * metrics: ``MetricsLogger`` calls and the learner's step-count metrics;
@@ -200,11 +200,12 @@ def instrument(clock: Clock, algo: Any) -> list[str]:
     step_module = importlib.import_module(_defining_class(type(algo), "training_step").__module__)
     patch(step_module, "episodes_to_transitions", "replay add")
     patch(SampleBatch, "__init__", "replay sample + connector")
+    learner = getattr(algo.learner_group, "_learner", None)
     patch(Learner, "_make_batch_if_necessary", "replay sample + connector")
+    patch(type(learner) if learner is not None else None, "_make_batch_if_necessary", "replay sample + connector")  # a tree's own
     for cls in _subclasses(ConnectorV2):
         if "__call__" in cls.__dict__:
             patch(cls, "__call__", "replay sample + connector")
-    learner = getattr(algo.learner_group, "_learner", None)
     for name in ("_update", "before_gradient_based_update", "after_gradient_based_update"):
         patch(type(learner) if learner is not None else Learner, name, "update")
     if not patch_sync(algo, patch):

@@ -8,7 +8,9 @@ probability 1/150 (2/3 terminated, 1/3 truncated; its terminal observation is at
 a replacement with a fresh id has its first observation one step later (so at most ``--agents``
 observations per step); episodes last ``--horizon`` steps; chunks of ``--fragment`` env steps are
 added at a time (as ``MultiAgentEnvRunner.sample()`` would return them). Then prints the median
-time of ``sample(B)`` with every global column, per ``max_others``, and the time per ``add`` of
+time of ``sample(B)`` and of the learner connector's gather of every global column from it
+(``connector.inject_global_state``), and what a remote learner gets per update (the sampled rows
+with their lookups) against the same rows with every global column, per ``max_others``, and the time per ``add`` of
 one-step chunks. The buffer's capacity is ``--capacity`` (default: the stream's length, so it is
 full); its arrays grow with what is stored (module doc of ``coin_app/algorithms/td3/buffer.py``),
 so each line also prints the bytes allocated, the bytes at full capacity and the size of the arrays
@@ -29,6 +31,7 @@ import numpy as np  # noqa: E402
 
 from coin_app.algorithms.td3 import columns as col  # noqa: E402
 from coin_app.algorithms.td3.buffer import JointStepReplayBuffer  # noqa: E402
+from coin_app.algorithms.td3.connector import inject_global_state  # noqa: E402
 from coin_app.algorithms.td3.transitions import TransitionBatch  # noqa: E402
 from coin_app.sim import schema  # noqa: E402
 
@@ -139,18 +142,27 @@ def main() -> None:
         add_s = time.perf_counter() - t0
         for _ in range(10):
             buf.sample(args.batch)
-        times = []
+        times, gather = [], []
+        records = buf.joint_columns()
         for _ in range(args.repeats):
             t0 = time.perf_counter()
-            out = buf.sample(args.batch)
-            times.append(time.perf_counter() - t0)
-        times_ms = 1000 * np.array(times)
+            rows = buf.sample(args.batch)
+            t1 = time.perf_counter()
+            sent = sum(v.nbytes for v in rows.values())
+            out = inject_global_state(records, rows)
+            gather.append(time.perf_counter() - t1)
+            times.append(t1 - t0)
+        times_ms, gather_ms = 1000 * np.array(times), 1000 * np.array(gather)
+        full = sum(v.nbytes for v in out.values())
         others, next_others = out[col.OTHERS_MASK].sum(1).mean(), out[col.NEXT_OTHERS_MASK].sum(1).mean()
         held = min(n, capacity)
         state_bytes = sum(v.nbytes for v in buf.get_state().values() if isinstance(v, np.ndarray))
         print(
             f"max_others={max_others:>3}: sample(B={args.batch}) median {np.median(times_ms):.2f} ms "
-            f"(p90 {np.percentile(times_ms, 90):.2f} ms); add {n / add_s:,.0f} transitions/s; sampleable {len(buf):,}; "
+            f"(p90 {np.percentile(times_ms, 90):.2f} ms), connector gather median {np.median(gather_ms):.2f} ms "
+            f"(sum of medians {np.median(times_ms) + np.median(gather_ms):.2f} ms); "
+            f"per update a remote learner gets {sent / 2**10:,.0f} KiB (rows and lookups) instead of {full / 2**10:,.0f} KiB; "
+            f"add {n / add_s:,.0f} transitions/s; sampleable {len(buf):,}; "
             f"mean others at t {others:.1f}, at t+1 {next_others:.1f}; "
             f"buffer arrays {buf.nbytes / 2**20:,.0f} MiB allocated ({buf.nbytes / held:,.0f} B/transition held) "
             f"of {buf.capacity_nbytes / 2**20:,.0f} MiB at capacity; checkpoint arrays {state_bytes / 2**20:,.0f} MiB",

@@ -8,6 +8,7 @@ import pytest
 import torch
 from device_audit import CreationAudit
 from ray.rllib.core.columns import Columns
+from ray.rllib.core.learner.training_data import TrainingData
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 import coin_app.algorithms.cig_td3 as cig_td3_package
@@ -15,6 +16,8 @@ import coin_app.algorithms.td3 as td3_package
 from coin_app.adapters.rllib_env import CoinMultiAgentEnv, register_envs
 from coin_app.algorithms.cig_td3.cig_td3 import CigTd3, CigTd3Config
 from coin_app.algorithms.registry import quick_settings
+from coin_app.algorithms.td3 import columns as col
+from coin_app.algorithms.td3.connector import JointRecordsCopy, inject_global_state
 from coin_app.training import build_config
 
 torch.set_num_threads(1)
@@ -141,6 +144,30 @@ def _facts(algo):
     return next(iter(algo.learner_group.foreach_learner(facts))).get()
 
 
+def assert_remote_connector_matches_the_replay(algo, n=64):
+    """The remote learner's train batch of a replay sample (its connector on its copy of the joint records) is the one
+    the connector gives on the replay's own records, bit for bit; its copy is current with every update sent so far."""
+    sample = algo.replay.sample(n)
+    written = algo._joint_written
+    delta = algo.joint_delta()["joint_delta"]  # what the next update would carry: the rows added since the last one
+
+    def remote(learner):  # defined here: a closure travels to the learner actor by value
+        records = learner.joint_state.records
+        before = records.written
+        records.apply(delta)
+        td = TrainingData(batch=MultiAgentBatch({"shared": SampleBatch(dict(sample))}, n))
+        out = learner._make_batch_if_necessary(td).policy_batches["shared"]
+        return type(records), before, {k: v.cpu().numpy() for k, v in out.items()}
+
+    kind, before, got = next(iter(algo.learner_group.foreach_learner(remote))).get()
+    assert kind is JointRecordsCopy and before == written is not None
+    want = inject_global_state(algo.replay.joint_columns(), dict(sample))
+    assert sorted(got) == sorted(want) == sorted(col.EGO + col.OTHERS + col.ORIGIN)
+    for k in want:
+        assert got[k].dtype == want[k].dtype and got[k].tobytes() == want[k].tobytes(), k
+    assert want[col.NEXT_OTHERS_MASK].any() and want[col.OTHERS_MASK].any()  # the others are there to compare
+
+
 def test_one_remote_learner_trains_syncs_evaluates_and_checkpoints(ray_session, tmp_path):
     settings = {**quick_settings("cig_td3"), "warmup_steps": 50, "train_batch_size_per_learner": 16, "eval_every": 3, "eval_episodes": 1}
     settings |= {"updates_per_env_step": 0.2}  # each update is a remote call: 10 per iteration keep the test short
@@ -159,11 +186,13 @@ def test_one_remote_learner_trains_syncs_evaluates_and_checkpoints(ray_session, 
     runner = algo.env_runner.module["shared"].actor.state_dict()
     assert all(torch.equal(runner[k], actor[k]) for k in actor)  # ... and the env runner acts with it
     assert 0.0 <= results[-1]["coin_eval"]["success_rate"] <= 1.0  # the periodic evaluation reads the remote learner
+    assert_remote_connector_matches_the_replay(algo)
     algo.save_to_path(str(tmp_path / "ckpt"))
     restored = CigTd3.from_checkpoint(str(tmp_path / "ckpt"))
     _, restored_updates, restored_actor = _facts(restored)
     assert restored_updates == updates and all(torch.equal(restored_actor[k], actor[k]) for k in actor)
     assert len(restored.replay) == len(algo.replay)
     restored.train()
+    assert_remote_connector_matches_the_replay(restored)  # the restored replay's records reached the new remote learner in full
     algo.stop()
     restored.stop()

@@ -22,6 +22,7 @@ from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 from coin_app.algorithms.td3 import buffer as buffer_module
 from coin_app.algorithms.td3 import columns as col
 from coin_app.algorithms.td3.buffer import JointStepReplayBuffer
+from coin_app.algorithms.td3.connector import inject_global_state
 from coin_app.algorithms.td3.transitions import TransitionBatch, agent_key, episode_key, episodes_to_transitions
 
 OBS_DIM, STATE_DIM, ACT_DIM = 6, 10, 2
@@ -293,11 +294,16 @@ def check_rows(out: dict[str, np.ndarray], truth: Truth, buf: JointStepReplayBuf
         assert not out["next_others_obs"][i][~m1].any()
 
 
+def sample_full(buf: JointStepReplayBuffer, n: int) -> dict[str, np.ndarray]:
+    """``n`` sampled rows with their global columns, gathered as the learner connector gathers them."""
+    return inject_global_state(buf.joint_columns(), buf.sample(n))
+
+
 def sample_many(buf: JointStepReplayBuffer, total: int) -> dict[str, np.ndarray]:
     """``total`` draws in calls of at most len(buf) (sample() refuses more than the sampleable count)."""
     parts = []
     while total > 0:
-        parts.append(buf.sample(min(total, len(buf))))
+        parts.append(sample_full(buf, min(total, len(buf))))
         total -= parts[-1]["obs"].shape[0]
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
@@ -349,7 +355,8 @@ def test_column_names_are_rllib_columns_and_the_sample_keys():
     assert {f.name for f in fields(TransitionBatch)} == set(col.EGO + col.ORIGIN) | {"ended_episodes"}
     buf = JointStepReplayBuffer(1000, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=0)
     fill(buf, CALLS[:6])
-    assert set(buf.sample(4)) == set(col.EGO + col.OTHERS + col.ORIGIN)
+    assert set(buf.sample(4)) == set(col.SAMPLED)
+    assert set(sample_full(buf, 4)) == set(col.EGO + col.OTHERS + col.ORIGIN)
 
 
 def test_transition_is_held_back_until_late_spawns_arrive():
@@ -419,20 +426,20 @@ def test_seeded_sampling_and_state_round_trip():
 
     a, b, c = build(7), build(7), build(8)  # same data, but each build has its own random RLlib episode ids
     for _ in range(3):
-        sa, sb = a.sample(64), b.sample(64)
+        sa, sb = sample_full(a, 64), sample_full(b, 64)
         for k in sa:
             if k != "episode":  # the episode column is a hash of RLlib's random episode uuid
                 np.testing.assert_array_equal(sa[k], sb[k])
-    assert not np.array_equal(a.sample(64)["env_step"], c.sample(64)["env_step"])
+    assert not np.array_equal(sample_full(a, 64)["env_step"], sample_full(c, 64)["env_step"])
 
     state = pickle.loads(pickle.dumps(a.get_state()))
-    expected = [a.sample(32) for _ in range(3)]
-    a.sample(5)  # mutating the original afterwards must not touch the saved state
+    expected = [sample_full(a, 32) for _ in range(3)]
+    sample_full(a, 5)  # mutating the original afterwards must not touch the saved state
     restored = JointStepReplayBuffer(10_000, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS, seed=123)
     restored.set_state(state)
     assert len(restored) == len(b)
     for want in expected:
-        got = restored.sample(32)
+        got = sample_full(restored, 32)
         for k in want:
             np.testing.assert_array_equal(got[k], want[k])
     # adding the same data after a restore keeps both in lockstep
@@ -447,7 +454,7 @@ def test_seeded_sampling_and_state_round_trip():
         batch = episodes_to_transitions(chunks)
         x.add(batch)
         y.add(batch)
-        sx, sy = x.sample(16), y.sample(16)
+        sx, sy = sample_full(x, 16), sample_full(y, 16)
         for k in sx:
             np.testing.assert_array_equal(sx[k], sy[k])
     other_cfg = JointStepReplayBuffer(10_000, OBS_DIM, STATE_DIM, ACT_DIM, max_others=MAX_OTHERS + 1, seed=0)
@@ -552,7 +559,7 @@ def assert_same_samples(x: JointStepReplayBuffer, y: JointStepReplayBuffer, draw
     """``x`` and ``y`` return the same samples, column by column."""
     assert len(x) == len(y)
     for _ in range(draws):
-        sx, sy = x.sample(batch_size), y.sample(batch_size)
+        sx, sy = sample_full(x, batch_size), sample_full(y, batch_size)
         assert sx.keys() == sy.keys()
         for k in sx:
             np.testing.assert_array_equal(sx[k], sy[k])

@@ -1,8 +1,12 @@
-"""Joint-step replay buffer of the TD3 family: the "centralized-critic connector" that injects global state at sample time.
+"""Joint-step replay buffer of the TD3 family: storage by env step and sampling; the learner connector gathers the global state.
 
-A sample row is one per-agent transition (``transitions.py``) plus the states and actions of the
-other agents that acted at its env step t and the states and observations of every other agent
-with an observation at t+1 (COIN §4.2, Eqs. 9-11; the columns are named in ``columns.py``).
+A sample row is one per-agent transition (``transitions.py``) plus its lookups: the rows of the
+buffer's joint records (``joint_columns``) that hold the states and actions of the other agents that
+acted at its env step t, the states and observations of every other agent with an observation at
+t+1, and its global reward (COIN §4.2, Eqs. 9-11; the columns are named in ``columns.py``). The
+centralized-critic connector, ``connector.JointState`` in the learner's connector pipeline, turns
+the lookups into those columns; a remote learner reads a copy of the joint records kept current by
+``joint_delta`` (``docs/decisions.md`` §6.4).
 
 Why a custom buffer (``docs/decisions.md`` §6.2 and §6.4)
 ---------------------------------------------------------
@@ -102,6 +106,15 @@ from coin_app.sim import schema
 
 STATE_VERSION = 2  # 2: arrays hold the rows written so far; 1: every array at full capacity (still read)
 INITIAL_ROWS = 4096  # rows each ring allocates first (capped at its capacity); it doubles from there on demand
+
+# the joint records the sample's lookups index (name -> storage array), see joint_columns
+JOINT_RECORDS = {
+    "pool_obs": "_pool_obs",
+    "pool_state": "_pool_state",
+    "actions": "_tr_action",
+    "rewards": "_tr_reward",
+    "global_rewards": "_tr_greward",
+}
 
 # ring -> (attribute holding its capacity, attribute counting its writes)
 _RINGS: dict[str, tuple[str, str]] = {
@@ -294,7 +307,12 @@ class JointStepReplayBuffer:
         self._update_pending(np.arange(self._tr_written - n, self._tr_written, dtype=np.int64))
 
     def sample(self, batch_size: int) -> dict[str, np.ndarray]:
-        """Uniformly sample ``batch_size`` transitions (with replacement) with the other agents at t and t+1 gathered."""
+        """Uniformly sample ``batch_size`` transitions (with replacement): their own columns and their lookups (``columns.SAMPLED``).
+
+        The lookups name the rows of :meth:`joint_columns` that hold the other agents at t and t+1
+        and the global reward; the learner connector (``connector.py``) gathers them into the
+        global columns (``columns.GLOBAL``).
+        """
         if not isinstance(batch_size, (int, np.integer)) or isinstance(batch_size, bool) or batch_size < 1:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         if batch_size > self._num_ok:
@@ -304,6 +322,37 @@ class JointStepReplayBuffer:
             )
         slots = self._draw(int(batch_size))
         return self._gather(slots)
+
+    def joint_columns(self) -> dict[str, np.ndarray]:
+        """The joint records the lookups of :meth:`sample` index, by name (``JOINT_RECORDS``): the live arrays, not copies.
+
+        A masked lookup (-1) reads the last row with ``np.take(..., mode="wrap")``: the padding row
+        (zero) of the pool and of the actions; the rewards' is masked by the reader.
+        """
+        return {name: getattr(self, attr) for name, attr in JOINT_RECORDS.items()}
+
+    def joint_delta(self, since: tuple[int, int] | None = None) -> dict[str, Any]:
+        """The joint records written after ``since`` (an earlier delta's ``"written"``; None: every stored row), to copy elsewhere.
+
+        Applied in order to a copy (``connector.JointRecordsCopy``) that started empty, the deltas make
+        that copy's rows equal to :meth:`joint_columns` at every row a later :meth:`sample` can look up.
+        Returns ``{"written": (pool rows, transitions) written so far, "rows": {record: rows
+        allocated}, "index": {record: physical rows}, "values": {record: their values}}``.
+        """
+        written = (self._pool_written, self._tr_written)
+        rings = {"pool": (self._pool_written, self.obs_capacity, None if since is None else since[0])}
+        rings["transitions"] = (self._tr_written, self.capacity, None if since is None else since[1])
+        index = {}
+        for ring, (n, cap, start) in rings.items():
+            lo = max(0, n - cap) if start is None else max(int(start), n - cap)
+            index[ring] = np.arange(lo, n, dtype=np.int64) % cap
+        delta: dict[str, Any] = {"written": written, "rows": {}, "index": {}, "values": {}}
+        for name, attr in JOINT_RECORDS.items():
+            arr, ring = getattr(self, attr), self._spec[attr].ring
+            delta["rows"][name] = arr.shape[0]
+            delta["index"][name] = index[ring]
+            delta["values"][name] = arr[index[ring]]
+        return delta
 
     def get_state(self) -> dict[str, Any]:
         """State for checkpointing: copies of the rows written so far (not the capacity), index maps, counters, RNG state."""
@@ -722,7 +771,7 @@ class JointStepReplayBuffer:
         return ok[self._rng.integers(0, ok.shape[0], size=B)]
 
     def _gather(self, slots: np.ndarray) -> dict[str, np.ndarray]:
-        """Columns of the transitions in ``slots`` with the others at t and t+1 (padded to max_others, masked)."""
+        """The transitions in ``slots`` and where the joint records hold the others at t and t+1 (``columns.LOOKUP``, -1: masked out)."""
         C, P, K, N, M = self.capacity, self.obs_capacity, self.step_capacity, self.max_others, self.max_others + 1
         tw = self._tr_written - 1 - (self._tr_written - 1 - slots) % C  # write index held by each slot
         if not self._valid(tw).all():  # cheap guard against internal inconsistencies
@@ -737,31 +786,26 @@ class JointStepReplayBuffer:
             col.STATE: self._pool_state[r0],
             col.ACTIONS: self._tr_action[slots],
             col.REWARDS: self._tr_reward[slots],
-            col.GLOBAL_REWARDS: self._tr_greward[slots],
             col.TERMINATEDS: self._tr_term[slots],
             col.TRUNCATEDS: self._tr_trunc[slots],
             col.NEXT_OBS: self._pool_obs[r1],
             col.NEXT_STATE: self._pool_state[r1],
         }
-        # others acting at t: rows of entry (episode, t) without the ego's column
+        # others acting at t: rows of entry (episode, t) without the ego's column, and the transitions acting from them
         cols0 = shift + (shift >= (self._pool_owner[r0] % M)[:, None])
         rows0 = np.take_along_axis(self._step_rows[e0 % K], cols0, axis=1)
         ok0 = np.take(self._pool_owner, rows0, mode="clip") == e0[:, None] * M + cols0
         tr0 = np.take(self._pool_tr_obs, rows0, mode="clip")
         ok0 &= tr0 >= self._tr_wm
         ok0 &= tr0 >= 0
-        out[col.OTHERS_STATE] = np.take(self._pool_state, np.where(ok0, rows0, P), axis=0, mode="clip")
-        out[col.OTHERS_ACTIONS] = np.take(self._tr_action, np.where(ok0, tr0 % C, C), axis=0, mode="clip")
-        out[col.OTHERS_MASK] = ok0
-        out[col.OTHERS_REWARDS] = np.where(ok0, np.take(self._tr_reward, tr0 % C, mode="clip"), np.float32(0.0))
+        out[col.OTHERS_ROWS] = np.where(ok0, rows0, -1).astype(np.int32)
+        out[col.OTHERS_TRANSITIONS] = np.where(ok0, tr0 % C, -1).astype(np.int32)
         # every other agent with an observation at t+1
         cols1 = shift + (shift >= (self._pool_owner[r1] % M)[:, None])
         rows1 = np.take_along_axis(self._step_rows[e1 % K], cols1, axis=1)
         ok1 = np.take(self._pool_owner, rows1, mode="clip") == e1[:, None] * M + cols1
-        rows1 = np.where(ok1, rows1, P)
-        out[col.NEXT_OTHERS_STATE] = np.take(self._pool_state, rows1, axis=0, mode="clip")
-        out[col.NEXT_OTHERS_OBS] = np.take(self._pool_obs, rows1, axis=0, mode="clip")
-        out[col.NEXT_OTHERS_MASK] = ok1
+        out[col.NEXT_OTHERS_ROWS] = np.where(ok1, rows1, -1).astype(np.int32)
+        out[col.TRANSITION] = slots.astype(np.int32)
         out[col.ENV_STEP] = self._tr_step[slots].copy()
         out[col.EPISODE] = self._tr_episode[slots].copy()
         out[col.AGENT] = self._tr_agent[slots].copy()

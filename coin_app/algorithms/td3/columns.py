@@ -36,6 +36,16 @@ ENV_STEP = "env_step"  # env step t of o_t, (B,) int64
 EPISODE = "episode"  # episode key, (B,) int64 (transitions.episode_key)
 AGENT = "agent"  # agent key, (B,) int64 (transitions.agent_key)
 
+# what the replay's sample carries to look up the global columns (the learner connector's input, ``connector.py``):
+# ring rows of the replay's joint records, int32, -1 where the other agent is masked out
+OTHERS_ROWS = "others_rows"  # (B, N) observation-pool row of each other agent acting at t (its state)
+OTHERS_TRANSITIONS = "others_transitions"  # (B, N) transition slot of each other agent acting at t (its action, reward)
+NEXT_OTHERS_ROWS = "next_others_rows"  # (B, N) observation-pool row of each other agent at t+1 (its state, observation)
+TRANSITION = "transition"  # (B,) the ego's transition slot (the global reward of its env step)
+
 EGO = (OBS, STATE, ACTIONS, REWARDS, GLOBAL_REWARDS, TERMINATEDS, TRUNCATEDS, NEXT_OBS, NEXT_STATE)
 OTHERS = (OTHERS_STATE, OTHERS_ACTIONS, OTHERS_MASK, OTHERS_REWARDS, NEXT_OTHERS_STATE, NEXT_OTHERS_OBS, NEXT_OTHERS_MASK)
 ORIGIN = (ENV_STEP, EPISODE, AGENT)
+LOOKUP = (OTHERS_ROWS, OTHERS_TRANSITIONS, NEXT_OTHERS_ROWS, TRANSITION)
+SAMPLED = tuple(c for c in EGO if c != GLOBAL_REWARDS) + ORIGIN + LOOKUP  # the replay's sample
+GLOBAL = (GLOBAL_REWARDS, *OTHERS)  # what the learner connector injects

@@ -30,9 +30,11 @@ from typing import Any
 import torch
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import TargetNetworkAPI
+from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from coin_app.algorithms.choices import TD3_PRECISIONS
+from coin_app.algorithms.td3.connector import JointState
 from coin_app.algorithms.td3.losses import LossConfig, actor_loss, local_critic_loss, td_target
 
 STATE_KEY = "cig_td3"  # the learner-state key of the counter, targets and RNG (the name checkpoints have carried from the start)
@@ -129,9 +131,11 @@ class Td3TorchLearner(TorchLearner):
     """Torch learner of TD3 with parameter sharing (ITD3); CIG-TD3's and TraCo's extend its networks and losses."""
 
     def build(self) -> None:
-        """Build module and optimizers, then the target networks (with ``learner_threads`` torch threads)."""
+        """Build module, optimizers and the connector pipeline (``JointState``), then the target networks (``learner_threads`` threads)."""
         torch.set_num_threads(self.config.learner_threads)  # also in a remote learner's own process
         super().build()
+        self.joint_state = JointState()  # reads a copy of the replay's joint records until the algorithm gives it the replay
+        self._learner_connector.append(self.joint_state)
         self.module.foreach_module(lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None)
         self.num_updates = 0
         self.env_steps = 0  # the lifetime env-step count of the current update (before_gradient_based_update)
@@ -208,6 +212,28 @@ class Td3TorchLearner(TorchLearner):
             self.metrics.log_value((module_id, key), value, window=1)
 
     # ------------------------------------------------------------------ RLlib's hooks
+    def update(self, *args: Any, joint_delta: Any = None, **kwargs: Any) -> Any:
+        """RLlib's update; a remote learner's copy of the replay's joint records first takes ``joint_delta`` (new rows)."""
+        if joint_delta is not None:
+            self.joint_state.records.apply(joint_delta)
+        return super().update(*args, **kwargs)
+
+    def _make_batch_if_necessary(self, training_data: Any) -> Any:
+        """The replay's batch through the learner connector pipeline (``JointState``), then RLlib's tensor conversion.
+
+        RLlib runs the pipeline only on episodes; the family's learner gets replay batches. Without
+        RLlib's per-piece timers (``metrics=None``): per update they cost more than the gather itself
+        (``docs/decisions.md`` §6.4; ``benchmarks/offpolicy_step.py`` times the pipeline).
+        """
+        batch = training_data.batch
+        if isinstance(batch, MultiAgentBatch) and self._learner_connector is not None:
+            out = self._learner_connector(
+                rl_module=self.module, batch=dict(batch.policy_batches), episodes=[], shared_data={}, metrics=None
+            )
+            rows = {mid: b if isinstance(b, SampleBatch) else SampleBatch(b) for mid, b in out.items()}
+            training_data.batch = MultiAgentBatch(rows, env_steps=batch.env_steps())
+        return super()._make_batch_if_necessary(training_data)
+
     def _uncompiled_update(self, batch: dict[str, Any], **kwargs: Any) -> tuple[Any, Any, dict[str, Any]]:
         """RLlib's step on one minibatch: count the update, then one TD3 update of each module (:meth:`update_module`)."""
         self._compute_off_policyness(batch)

@@ -10,17 +10,18 @@ their critics, as RLlib's TQC extends SAC.
 ``Td3`` runs sample -> joint-step replay -> learner updates -> weight sync. Each
 ``training_step``: the env runners sample ``rollout_fragment_length`` env steps, a chunk of K
 (uniform random actions during the warm-up, from the module's seeded exploration), the episodes are turned into
-per-agent transitions and added to the joint-step replay buffer (the centralized-critic
-connector: it attaches the other agents' states, actions and next observations by env step at
-sample time), then ``updates_per_env_step`` gradient updates per sampled env step past the warm-up
-run on batches of ``train_batch_size_per_learner`` transitions (:func:`update_schedule`: the updates,
-their env-step clocks and the credit of K single steps; a local learner's metrics reduced once per
-training step), and, when an update moved the actor (the
+per-agent transitions and added to the joint-step replay buffer, then ``updates_per_env_step`` gradient updates
+per sampled env step past the warm-up run on batches of ``train_batch_size_per_learner`` transitions
+(:func:`update_schedule`: the updates, their env-step clocks and the credit of K single steps; a local learner's
+metrics reduced once per training step; the learner's connector, ``connector.JointState``, gathers the other
+agents' states, actions and next observations and the global reward from the replay's joint records by env
+step), and, when an update moved the actor (the
 learner's update counter crossed a multiple of ``policy_delay``), the actor weights go back to the
 env runners. The buffer, its RNG and the update credit are part of the algorithm's checkpoint
 state, so a resumed run continues exactly. The replay stays in the algorithm process; the learner
 runs there too (``num_learners=0``) or as one remote learner actor that each sampled batch is
-sent to (``num_learners=1``; more would need more than one replay), on a GPU with
+sent to with the joint records' rows written since the previous update (``num_learners=1``; more
+would need more than one replay), on a GPU with
 ``num_gpus_per_learner=1``. ``precision="bf16"`` runs the learner's loss forward passes in
 bfloat16 (``learner.py``).
 
@@ -84,6 +85,8 @@ class Td3Config(AlgorithmConfig):
         self.min_sample_timesteps_per_iteration = 500
         self.lr = None  # one optimizer per network; see actor_lr, critic_lr (and the children's rates)
         self.multi_agent(policies={SHARED_MODULE_ID}, policy_mapping_fn=policy_mapping_fn)  # parameter sharing
+        # the learner gets replay batches, never episodes: its connector pipeline is JointState alone (learner.py)
+        self.add_default_connectors_to_learner_pipeline = False
 
     def training(self, **kwargs: Any) -> Td3Config:
         """Set training options; this algorithm's keys are its ``SETTINGS``' own (not RLlib's), the rest go to RLlib."""
@@ -183,6 +186,10 @@ class Td3(ProgressReporting, Algorithm):
             step_capacity=max(self.config.replay_capacity // 2 + 64, self.config.replay_capacity // max(1, scen.num_agents - 1)),
         )
         self._update_credit = 0.0
+        learner = getattr(self.learner_group, "_learner", None)  # None when the learner is a remote actor
+        if learner is not None:  # the learner connector reads the replay's joint records in place
+            learner.joint_state.records = self.replay
+        self._joint_written: tuple[int, int] | None = None  # the replay's write counts a remote learner's copy is current with
 
     def training_step(self) -> None:
         """One sample -> replay -> update(s) -> sync cycle: ``rollout_fragment_length`` env steps, then their updates."""
@@ -222,6 +229,7 @@ class Td3(ProgressReporting, Algorithm):
                     batch=batch,
                     timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: env_step, NUM_AGENT_STEPS_SAMPLED_LIFETIME: agent_steps},
                     **({} if last or not local else {"_no_metrics_reduce": True}),
+                    **self.joint_delta(),
                 )
             if last or not local:
                 self.metrics.aggregate(results, key=LEARNER_RESULTS)
@@ -231,6 +239,14 @@ class Td3(ProgressReporting, Algorithm):
             if (updates - n_updates) // cfg.policy_delay != updates // cfg.policy_delay:  # a policy step: the actor changed
                 with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
                     self._sync_actor()
+
+    def joint_delta(self) -> dict[str, Any]:
+        """The learner update's keyword for a remote learner: the replay's joint records written since the last update ({} if local)."""
+        if self.learner_group.is_local:
+            return {}
+        delta = self.replay.joint_delta(self._joint_written)
+        self._joint_written = delta["written"]
+        return {"joint_delta": delta}
 
     def learner_updates(self) -> int:
         """The learner's update counter (``Td3TorchLearner.num_updates``, checkpointed with the learner), local or remote."""
@@ -290,6 +306,7 @@ class Td3(ProgressReporting, Algorithm):
         if extra is not None:
             if extra["buffer"] is not None:  # None: saved with checkpoint_replay=False, the buffer starts empty
                 self.replay.set_state(extra["buffer"])
+                self._joint_written = None  # a remote learner's copy of the joint records is sent again in full
             self._update_credit = float(extra["update_credit"])
 
 

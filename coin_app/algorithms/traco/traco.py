@@ -5,8 +5,8 @@ mechanism to capture crucial information from nearby vehicles" and "a counterfac
 function for credit assignment within a neighborhood range of 40 meters", re-implemented in COIN's
 TD3 framework with COIN's TD3 settings (exploration std 0.05, batch 256, gamma 0.99, tau 0.005,
 actor lr 2e-4, critic lr 3e-4, target noise 0.1 clipped at 0.5, policy delay 5, hidden 256).
-This is that re-implementation on the TD3 family's base (``td3/``): the same joint-step replay (the
-centralized-critic connector, which also gives the others' rewards), sampling, actor, exploration,
+This is that re-implementation on the TD3 family's base (``td3/``): the same joint-step replay and
+centralized-critic connector (which also gives the others' rewards), sampling, actor, exploration,
 update order, checkpoints and export; only the critics and losses differ (``networks.py``,
 ``losses.py``). Every choice nobody has published is a documented key below, marked
 "inference"; docs/guides/traco.md lists them.
