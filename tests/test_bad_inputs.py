@@ -48,6 +48,14 @@ CASES = [
     # issue 60: conflicting values for one key, outputs over inputs, bounds, waits
     (["train", "--num-agents", "4", "--set", "num_agents=8"], "--num-agents 4 and --set num_agents=8 set one key to two values"),
     (["train", "--set", "horizon=40", "horizon=50"], "--set gives horizon twice (40 and 50)"),
+    # repeated --set groups add up, so one key across two groups is one key twice (every command that takes --set)
+    (["train", "--set", "horizon=40", "--set", "horizon=50"], "--set gives horizon twice (40 and 50); allowed: one value per key"),
+    (["evaluate", "{good_npz}", "--set", "horizon=40", "--set", "horizon=50"], "--set gives horizon twice (40 and 50)"),
+    (["demo", "--out", "{tmp}/run", "--set", "horizon=40", "--set", "horizon=50"], "--set gives horizon twice (40 and 50)"),
+    (["sweep", "seeds", "--smoke", "--set", "tau=0.1", "--set", "tau=0.2"], "--set gives tau twice (0.1 and 0.2)"),
+    (["config", "--set", "tau=0.1", "--set", "tau=0.2"], "--set gives tau twice (0.1 and 0.2)"),
+    (["demo", "--out", "{tmp}/run", "--num-agents", "4", "--set", "num_agents=8"], "--num-agents 4 and --set num_agents=8 set one"),
+    (["config", "--num-agents", "4", "--set", "num_agents=8"], "--num-agents 4 and --set num_agents=8 set one key to two values"),
     (["train", "--connect-timeout", "-1"], "bad --connect-timeout -1.0; allowed: a finite number of seconds > 0"),
     (
         ["train", "--address", "127.0.0.1:1", "--connect-timeout", "2"],
@@ -393,3 +401,18 @@ def _results_table(path):
                 rows.append(row)
     pd.DataFrame(rows).to_csv(path, index=False)
     return path
+
+
+@pytest.mark.parametrize("command", [["demo"], ["train"], ["evaluate", "p.npz"], ["sweep", "seeds"], ["config"]])
+def test_repeated_set_groups_add_up(command):
+    from coin_app.cli.parser import build_parser
+
+    args = build_parser().parse_args([*command, "--set", "a=1", "b=2", "--set", "c=3"])
+    assert args.set == ["a=1", "b=2", "c=3"]  # argparse's default for a repeated option kept only the last group
+    assert build_parser().parse_args(command).set == []
+
+
+def test_config_merges_every_set_group(capsys):
+    assert main(["config", "--algo", "itd3", "--set", "tau=0.01", "--set", "warmup_steps=300", "horizon=60"]) == 0
+    rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.splitlines() if line.startswith("  ")}
+    assert rows["tau"] == ["0.01", "--set"] and rows["warmup_steps"] == ["300", "--set"] and rows["horizon"] == ["60", "--set"]

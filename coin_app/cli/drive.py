@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from coin_app.algorithms.checks import parse_overrides
+from coin_app.cli.flags import overrides_of
 from coin_app.cli.output import CONSOLE_ROWS, format_metrics, shown
 from coin_app.cli.policy_settings import driving_config
 from coin_app.evaluation.evaluate import record
@@ -117,9 +117,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise ValueError(f"bad --steps {args.steps}; allowed: an integer >= 1")
     if args.gif_every < 1:
         raise ValueError(f"bad --gif-every {args.gif_every}; allowed: an integer >= 1")
-    overrides = parse_overrides(args.set)
-    if args.num_agents is not None:
-        overrides["num_agents"] = args.num_agents
+    overrides = overrides_of(args.set, {"num_agents": ("--num-agents", args.num_agents)})
     source = default_policy(args.scenario) if args.policy == AUTO else args.policy
     compare = None if args.compare in ("none", source) else args.compare
     for s in (source, compare):
