@@ -137,6 +137,7 @@ TEST_CLASS: dict[str, str] = {
             "test_cli.py::test_demo_compares_two_policies_on_one_seed",
             "test_cli.py::test_demo_writes_metrics_gif_and_plot",
             "test_cli.py::test_parsing_and_refusals_import_neither_ray_nor_torch",
+            "test_cli.py::test_train_and_config_check_their_settings_before_importing_ray_or_torch",
             "test_compiled_parity.py::test_a_long_seeded_episode_equals_the_numpy_step",
             "test_critic_probe.py::test_probe_weighs_the_global_critic_as_the_actor_does",
             "test_evaluate.py::test_batched_evaluation_equals_sequential_runs",
