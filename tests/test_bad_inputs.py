@@ -416,3 +416,38 @@ def test_config_merges_every_set_group(capsys):
     assert main(["config", "--algo", "itd3", "--set", "tau=0.01", "--set", "warmup_steps=300", "horizon=60"]) == 0
     rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.splitlines() if line.startswith("  ")}
     assert rows["tau"] == ["0.01", "--set"] and rows["warmup_steps"] == ["300", "--set"] and rows["horizon"] == ["60", "--set"]
+
+
+def test_demo_checks_every_policys_layout_before_any_work(tmp_path, capsys):
+    import torch
+
+    def npz(name, inputs, outputs, meta):
+        actor = torch.nn.Sequential(torch.nn.Linear(inputs, outputs), torch.nn.Tanh())
+        return str(export_policy(actor, tmp_path / name, "numpy", meta=meta))
+
+    native = npz("native.npz", 91, 2, {"scenario": "bottleneck", "env_config": {}})  # 91: the native observation
+    narrow = npz("narrow.npz", 60, 2, {"scenario": "intersection"})  # no env_config: judged by its weights
+    three = npz("three.npz", 91, 3, {"scenario": "intersection"})
+    arena = npz("arena.npz", 91, 2, {"scenario": "arena"})
+    out = tmp_path / "demo"
+    cases = [
+        (["--policy", native, "--set", "backend=metadrive"], f"{native} reads 91 observation numbers (bottleneck, native backend"),
+        (["--policy", native, "--set", "lidar_beams=36"], "this env gives 55 (bottleneck, native backend, 36 lidar beams)"),
+        # the second policy is checked before the first drives (it used to fail after the first policy's whole episode)
+        (["--policy", "heuristic", "--compare", narrow], f"{narrow} reads 60 observation numbers; this env gives 91 (intersection"),
+        (["--policy", native, "--compare", three], f"{three} gives actions of shape (1, 3) for one vehicle; bottleneck takes (1, 2)"),
+        (["--policy", "heuristic", "--compare", arena], f"{arena} is an arena policy; allowed: a driving policy"),
+    ]
+    for argv, phrase in cases:
+        assert main(["demo", *argv, "--steps", "5", "--out", str(out)]) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1 and phrase in err, (argv, err)
+        assert not out.exists()  # refused before any work
+    # a scene it was not trained for runs, warned before the run and again under the figures
+    assert main(["demo", "--policy", native, "--scenario", "intersection", "--steps", "2", "--no-gif", "--no-html", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    warnings = [
+        f"warning: {native} was trained on bottleneck, not intersection: a scene it was not trained for",
+        f"warning: {native} was trained with 20 vehicles, here 30: a count it was not trained for",  # the scenes' defaults
+    ]
+    assert captured.err.splitlines() == warnings and all(f"  {w}" in captured.out for w in warnings)
