@@ -327,6 +327,67 @@ def test_a_locked_output_is_refused_naming_its_writer_and_a_dead_writers_lock_is
     assert not lock_path(out).exists()  # the last release removes it
 
 
+def _snapshot(directory):
+    """Every file under ``directory`` (relative path -> bytes)."""
+    return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def test_sweep_refuses_a_live_writer_of_its_directory_and_takes_a_dead_ones_lock_over(tmp_path, capsys):
+    from coin_app.evaluation.outputs import lock_path
+
+    storage, name = tmp_path / "sweeps", "s"
+    path = storage / name
+    holder = _hold(path)
+    argv = ["sweep", "seeds", "--smoke", "--storage", str(storage), "--name", name]
+    try:
+        assert main(argv) == 2
+        captured = capsys.readouterr()
+        assert captured.err.count("\n") == 1 and captured.out == ""
+        assert captured.err.startswith(f"error: {path} is being written by PID {holder.pid} on ")
+        assert (
+            "(the holder command, since " in captured.err and "allowed: wait until it ends, or another --name or --storage" in captured.err
+        )
+        assert not path.exists()  # refused before Ray or Tune touched it
+    finally:
+        holder.kill()  # SIGKILL: its record stays in the lock file, the kernel drops its lock
+        holder.wait()
+    assert json.loads(lock_path(path).read_text())["pid"] == holder.pid
+    # the next driver takes the dead one's lock over (and says so); here it goes on to refuse an empty --resume, Ray-free
+    assert main([*argv, "--resume"]) == 2
+    captured = capsys.readouterr()
+    assert f"lock of PID {holder.pid} (the holder command) was stale (that writer is gone); taken over" in captured.out
+    assert captured.err.startswith(f"error: nothing to resume at {path}") and captured.err.count("\n") == 1
+    assert not lock_path(path).exists() and not path.exists()  # released on the way out; nothing written
+
+
+def test_report_refuses_a_live_writer_of_its_directory_and_takes_a_dead_ones_lock_over(tmp_path, capsys):
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX, lock_path
+
+    table = _results_table(tmp_path / "results.csv")
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "report.html").write_text("an earlier report's page")
+    (out / OUTPUTS_INDEX).write_text(json.dumps(["report.html"]))
+    argv = ["report", str(table), "--out", str(out), "--tsne-samples", "40", "--tsne-episodes", "1"]
+    holder = _hold(out)
+    before = _snapshot(tmp_path)  # the table, the earlier report and the holder's lock file
+    try:
+        assert main(argv) == 2
+        captured = capsys.readouterr()
+        assert captured.err.count("\n") == 1 and captured.out == ""
+        assert captured.err.startswith(f"error: {out} is being written by PID {holder.pid} on ")
+        assert "(the holder command, since " in captured.err and "allowed: wait until it ends, or another --out" in captured.err
+        assert _snapshot(tmp_path) == before  # the earlier report as it was, nothing staged beside it
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(argv) in (0, 1)  # 1: the made-up checkpoints have no learning curves (listed as unreadable)
+    text = capsys.readouterr().out
+    assert f"lock of PID {holder.pid} (the holder command) was stale (that writer is gone); taken over" in text
+    assert (out / "report.html").read_text() != "an earlier report's page" and (out / "results.csv").is_file()
+    assert not lock_path(out).exists()
+
+
 def test_a_report_is_replaced_as_one_set_and_an_interrupted_one_leaves_the_old_as_it_was(tmp_path, monkeypatch, capsys):
     from coin_app.evaluation import report
     from coin_app.evaluation.outputs import OUTPUTS_INDEX
