@@ -418,6 +418,73 @@ def test_a_report_is_replaced_as_one_set_and_an_interrupted_one_leaves_the_old_a
     assert (out / "notes.md").read_text() == "the user's own file"
 
 
+# a real `report` that SIGKILLs itself after the k-th rename of its swap (an old entry aside, or a new one in): a kill -9
+# at a known point of the swap, with the process, its lock and the disk as a kill leaves them
+KILLED_REPORT = """
+import os, signal, sys
+from pathlib import Path
+from coin_app.cli import main
+out, at, real, moved = Path(sys.argv[1]).absolute(), int(sys.argv[2]), os.replace, [0]
+def replace(src, dst):
+    real(src, dst)
+    src, dst = Path(src), Path(dst)
+    if (src.parent == out and '.old-' in dst.parent.name) or ('.staged-' in src.parent.name and dst.parent == out):
+        moved[0] += 1
+        if moved[0] == at:
+            os.kill(os.getpid(), signal.SIGKILL)
+os.replace = replace
+main(sys.argv[3:])
+"""
+
+
+def test_report_killed_with_sigkill_in_its_swap_leaves_the_old_report_whole_and_the_next_report_a_whole_new_one(tmp_path, capsys):
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX, lock_path, recover_swaps
+
+    work = tmp_path / "work"
+    work.mkdir()
+    table = _results_table(work / "results.csv")
+    out = work / "report"
+    out.mkdir()
+    old = {"report.html": b"the old page", "results.csv": b"the old table", "old_figure.png": b"a figure only the old one drew"}
+    for name, data in old.items():
+        (out / name).write_bytes(data)
+    (out / OUTPUTS_INDEX).write_text(json.dumps(sorted(old)))
+    (out / "notes.md").write_text("the user's own file")
+    before = _snapshot(out)
+    argv = ["report", str(table), "--out", str(out), "--tsne-samples", "40", "--tsne-episodes", "1"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    at = len(old) + 2  # every old entry aside, two new ones in: the middle of the swap
+    proc = subprocess.Popen([sys.executable, "-c", KILLED_REPORT, str(out), str(at), *argv], env=env, stderr=subprocess.PIPE, text=True)
+    err = proc.communicate(timeout=600)[1]
+    assert proc.returncode == -9, err[-2000:]
+    aside = work / f".report.old-{proc.pid}"
+    assert _snapshot(out) != before  # killed inside the swap: the report directory is half-swapped
+    assert {n: (aside / n).read_bytes() for n in old} == old  # the old report whole, beside it, until the next report
+    assert json.loads(lock_path(out).read_text())["pid"] == proc.pid  # its lock record stays; the kernel dropped the lock
+    # what a recovery makes of exactly this disk state (on a copy): the old report, byte for byte, and nothing staged
+    copy = tmp_path / "copy"
+    shutil.copytree(work, copy)
+    assert recover_swaps(copy / "report") == [aside.name]
+    assert _snapshot(copy / "report") == before and sorted(p.name for p in copy.iterdir() if p.name.startswith(".report.")) == [
+        ".report.lock"
+    ]
+    # the next report takes the dead one's lock over, rolls its swap back, and swaps a whole new report in
+    assert main(argv) in (0, 1)  # 1: the made-up checkpoints have no learning curves (listed as unreadable)
+    note = f"report's lock of PID {proc.pid} (python -m coin_app {' '.join(argv)}) was stale (that writer is gone); taken over"
+    assert note in capsys.readouterr().out
+    written = json.loads((out / OUTPUTS_INDEX).read_text())
+    assert sorted(p.name for p in out.iterdir()) == sorted([*written, OUTPUTS_INDEX, "notes.md"])
+    assert "report.html" in written and "old_figure.png" not in written and (out / "notes.md").read_text() == "the user's own file"
+    assert (out / "results.csv").read_bytes() != old["results.csv"] and (out / "report.html").read_bytes() != old["report.html"]
+    assert [p.name for p in work.iterdir() if p.name.startswith(".report.")] == []  # no staging, no aside, no lock left
+
+
 def test_a_swap_killed_half_way_is_rolled_back_to_the_old_outputs_whole(tmp_path):
     """A kill between the renames of a swap (``staged_outputs``), crafted as it leaves the disk: the next build's recovery
     puts every old entry back and takes every new one out, whatever the point of the kill."""
