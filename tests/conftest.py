@@ -116,6 +116,7 @@ TEST_CLASS: dict[str, str] = {
             "test_bad_inputs.py::test_sweep_refuses_a_live_writer_of_its_directory_and_takes_a_dead_ones_lock_over",
             "test_bad_inputs.py::test_report_refuses_a_live_writer_of_its_directory_and_takes_a_dead_ones_lock_over",
             "test_bad_inputs.py::test_demo_checks_every_policys_layout_before_any_work",
+            "test_bad_inputs.py::test_evaluate_warns_on_a_scene_and_a_count_the_policy_was_not_trained_for",
             "test_batched_runner.py::test_arena_transitions_equal_rllib_runner",
             "test_batched_runner.py::test_driving_batch_of_envs_equals_single_env_runners",
             "test_batched_runner.py::test_driving_transitions_equal_rllib_runner",

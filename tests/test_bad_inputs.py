@@ -559,7 +559,8 @@ def test_demo_checks_every_policys_layout_before_any_work(tmp_path, capsys):
     arena = npz("arena.npz", 91, 2, {"scenario": "arena"})
     out = tmp_path / "demo"
     cases = [
-        (["--policy", native, "--set", "backend=metadrive"], f"{native} reads 91 observation numbers (bottleneck, native backend"),
+        (["--policy", native, "--set", "backend=metadrive"], "demo drives the native simulator, not backend 'metadrive'"),
+        (["--policy", "heuristic", "--set", "backend=metadrive"], "allowed: backend native, or python -m coin_app evaluate POLICY"),
         (["--policy", native, "--set", "lidar_beams=36"], "this env gives 55 (bottleneck, native backend, 36 lidar beams)"),
         # the second policy is checked before the first drives (it used to fail after the first policy's whole episode)
         (["--policy", "heuristic", "--compare", narrow], f"{narrow} reads 60 observation numbers; this env gives 91 (intersection"),
@@ -579,3 +580,21 @@ def test_demo_checks_every_policys_layout_before_any_work(tmp_path, capsys):
         f"warning: {native} was trained with 20 vehicles, here 30: a count it was not trained for",  # the scenes' defaults
     ]
     assert captured.err.splitlines() == warnings and all(f"  {w}" in captured.out for w in warnings)
+
+
+def test_evaluate_warns_on_a_scene_and_a_count_the_policy_was_not_trained_for(tmp_path, capsys):
+    policy = export_policy(_tiny_actor(), tmp_path / "p.npz", "numpy", meta={"scenario": "bottleneck", "env_config": {"num_agents": 3}})
+    out = tmp_path / "r.json"
+    argv = ["evaluate", str(policy), "--scenario", "intersection", "--num-agents", "2", "--set", "horizon=5", "--seeds", "200000"]
+    assert main([*argv, "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    warnings = [
+        f"warning: {policy} was trained on bottleneck, not intersection: a scene it was not trained for",
+        f"warning: {policy} was trained with 3 vehicles, here 2: a count it was not trained for",
+    ]
+    assert captured.err.splitlines() == warnings  # before the run
+    metrics_at = captured.out.index("success rate")
+    assert all(captured.out.index(f"  {w}") > metrics_at for w in warnings)  # again under the figures
+    assert json.loads(out.read_text())["warnings"] == warnings  # and with the results
+    assert main(["evaluate", str(policy), "--num-agents", "3", "--set", "horizon=5", "--seeds", "200000"]) == 0
+    assert "warning" not in capsys.readouterr().err  # its own scene and count: nothing to say

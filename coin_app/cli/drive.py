@@ -147,6 +147,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
             names = ", ".join(shipped_policies())
             raise ValueError(f"bad policy {s!r}; allowed: {HEURISTIC}, a shipped policy ({names}) or an exported policy file")
     config = demo_config(source, args.scenario, args.preset, overrides)
+    if config.backend != "native":
+        raise ValueError(
+            f"demo drives the native simulator, not backend {config.backend!r} (from --set or the policy's training config); "
+            f"allowed: backend native, or python -m coin_app evaluate POLICY --backend {config.backend}"
+        )
     sources = [source] + ([compare] if compare else [])
     loaded, warnings = {}, []
     for s in sources:  # every learned policy checked against the episode's env before anything is written
