@@ -27,6 +27,9 @@ CASES = {
     "refusal: demo --steps 0": ["demo", "--steps", "0"],
     "refusal: demo --policy nope": ["demo", "--policy", "nope"],
     "refusal: sweep --scenario x": ["sweep", "seeds", "--scenario", "x"],
+    "refusal: train --set tau=2": ["train", "--set", "tau=2"],
+    "refusal: train --set horizon twice": ["train", "--set", "horizon=40", "--set", "horizon=50"],
+    "refusal: config --scale reduced tau=2": ["config", "--scale", "reduced", "--set", "tau=2"],
     "refusal: unknown command": ["fly"],
     "policies": ["policies"],
 }

@@ -580,6 +580,11 @@ def test_demo_checks_every_policys_layout_before_any_work(tmp_path, capsys):
         f"warning: {native} was trained with 20 vehicles, here 30: a count it was not trained for",  # the scenes' defaults
     ]
     assert captured.err.splitlines() == warnings and all(f"  {w}" in captured.out for w in warnings)
+    # a CoPO actor reads the observation and its vehicle's LCF (92 numbers): driven with its per-vehicle draws, as evaluate
+    # drives it (the check above counts the LCF; demo used to refuse it: "takes 92 observation numbers ... gives 91")
+    copo = npz("copo.npz", 92, 2, {"scenario": "bottleneck", "env_config": {}, "lcf": {"mean": 0.2, "std": 0.1}})
+    assert main(["demo", "--policy", copo, "--steps", "3", "--no-gif", "--no-html", "--out", str(tmp_path / "copo")]) == 0
+    assert json.loads((tmp_path / "copo" / "metrics.json").read_text())[copo]["env_steps"] == 3
 
 
 def test_evaluate_warns_on_a_scene_and_a_count_the_policy_was_not_trained_for(tmp_path, capsys):

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
+from coin_app.adapters.lcf import with_lcf
 from coin_app.cli.flags import overrides_of
 from coin_app.cli.output import CONSOLE_ROWS, format_metrics, shown
 from coin_app.cli.policy_settings import driving_config
@@ -63,21 +64,22 @@ def demo_config(source: str, scenario: str | None, preset: str | None, overrides
 
 
 def fitted_policy(source: str, config: ScenarioConfig) -> tuple[Any, list[str]]:
-    """``source`` (a shipped name or an exported file) loaded, and the warnings of driving it on ``config``; a ValueError
-    in one line, before any work, if it cannot drive there: an arena policy, another observation layout (``policy_fit``),
-    or not one action of ``ACT_DIM`` numbers per vehicle."""
+    """``source`` (a shipped name or an exported file) loaded as evaluation runs it (a CoPO actor with its per-vehicle
+    LCF draws), and the warnings of driving it on ``config``; a ValueError in one line, before any work, if it cannot
+    drive there: an arena policy, another observation layout (``policy_fit``), or not ``ACT_DIM`` action numbers."""
     policy = load_policy(source)
     meta = getattr(policy, "meta", {})
     if meta.get("scenario") == ARENA:
         raise ValueError(f"{source} is an arena policy; allowed: a driving policy (arena policies: python -m coin_app evaluate-arena)")
-    warnings = policy_fit(meta, config, source, getattr(policy, "obs_dim", None))
-    actions = np.shape(policy(np.full((1, config.obs_dim), 0.5, np.float32)))  # a mid-range observation (they lie in [0, 1])
+    obs_dim = getattr(policy, "obs_dim", config.obs_dim)  # its own input: the env's observation (and a CoPO actor's LCF)
+    warnings = policy_fit(meta, config, source, obs_dim)
+    actions = np.shape(policy(np.full((1, obs_dim), 0.5, np.float32)))  # a mid-range input (observations lie in [0, 1])
     if actions != (1, schema.ACT_DIM):
         raise ValueError(
             f"{source} gives actions of shape {actions} for one vehicle; {config.scenario} takes (1, {schema.ACT_DIM}) "
             "(steering, throttle); allowed: a driving policy"
         )
-    return policy, warnings
+    return with_lcf(policy), warnings
 
 
 def drive(policy: Any, label: str, config: ScenarioConfig, seed: int, steps: int, gif_every: int | None, log: bool) -> Drive:
