@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+# every case must end at once in an older checkout too (--tree runs it there): a refusal there, never a run
 CASES = {
     "--help": ["--help"],
     "train --help": ["train", "--help"],
@@ -27,6 +28,8 @@ CASES = {
     "refusal: demo --steps 0": ["demo", "--steps", "0"],
     "refusal: demo --policy nope": ["demo", "--policy", "nope"],
     "refusal: sweep --scenario x": ["sweep", "seeds", "--scenario", "x"],
+    "refusal: train --set tau=2": ["train", "--set", "tau=2"],
+    "refusal: config --scale reduced tau=2": ["config", "--scale", "reduced", "--set", "tau=2"],
     "refusal: unknown command": ["fly"],
     "policies": ["policies"],
 }

@@ -48,6 +48,14 @@ CASES = [
     # issue 60: conflicting values for one key, outputs over inputs, bounds, waits
     (["train", "--num-agents", "4", "--set", "num_agents=8"], "--num-agents 4 and --set num_agents=8 set one key to two values"),
     (["train", "--set", "horizon=40", "horizon=50"], "--set gives horizon twice (40 and 50)"),
+    # repeated --set groups add up, so one key across two groups is one key twice (every command that takes --set)
+    (["train", "--set", "horizon=40", "--set", "horizon=50"], "--set gives horizon twice (40 and 50); allowed: one value per key"),
+    (["evaluate", "{good_npz}", "--set", "horizon=40", "--set", "horizon=50"], "--set gives horizon twice (40 and 50)"),
+    (["demo", "--out", "{tmp}/run", "--set", "horizon=40", "--set", "horizon=50"], "--set gives horizon twice (40 and 50)"),
+    (["sweep", "seeds", "--smoke", "--set", "tau=0.1", "--set", "tau=0.2"], "--set gives tau twice (0.1 and 0.2)"),
+    (["config", "--set", "tau=0.1", "--set", "tau=0.2"], "--set gives tau twice (0.1 and 0.2)"),
+    (["demo", "--out", "{tmp}/run", "--num-agents", "4", "--set", "num_agents=8"], "--num-agents 4 and --set num_agents=8 set one"),
+    (["config", "--num-agents", "4", "--set", "num_agents=8"], "--num-agents 4 and --set num_agents=8 set one key to two values"),
     (["train", "--connect-timeout", "-1"], "bad --connect-timeout -1.0; allowed: a finite number of seconds > 0"),
     (
         ["train", "--address", "127.0.0.1:1", "--connect-timeout", "2"],
@@ -319,6 +327,67 @@ def test_a_locked_output_is_refused_naming_its_writer_and_a_dead_writers_lock_is
     assert not lock_path(out).exists()  # the last release removes it
 
 
+def _snapshot(directory):
+    """Every file under ``directory`` (relative path -> bytes)."""
+    return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def test_sweep_refuses_a_live_writer_of_its_directory_and_takes_a_dead_ones_lock_over(tmp_path, capsys):
+    from coin_app.evaluation.outputs import lock_path
+
+    storage, name = tmp_path / "sweeps", "s"
+    path = storage / name
+    holder = _hold(path)
+    argv = ["sweep", "seeds", "--smoke", "--storage", str(storage), "--name", name]
+    try:
+        assert main(argv) == 2
+        captured = capsys.readouterr()
+        assert captured.err.count("\n") == 1 and captured.out == ""
+        assert captured.err.startswith(f"error: {path} is being written by PID {holder.pid} on ")
+        assert (
+            "(the holder command, since " in captured.err and "allowed: wait until it ends, or another --name or --storage" in captured.err
+        )
+        assert not path.exists()  # refused before Ray or Tune touched it
+    finally:
+        holder.kill()  # SIGKILL: its record stays in the lock file, the kernel drops its lock
+        holder.wait()
+    assert json.loads(lock_path(path).read_text())["pid"] == holder.pid
+    # the next driver takes the dead one's lock over (and says so); here it goes on to refuse an empty --resume, Ray-free
+    assert main([*argv, "--resume"]) == 2
+    captured = capsys.readouterr()
+    assert f"lock of PID {holder.pid} (the holder command) was stale (that writer is gone); taken over" in captured.out
+    assert captured.err.startswith(f"error: nothing to resume at {path}") and captured.err.count("\n") == 1
+    assert not lock_path(path).exists() and not path.exists()  # released on the way out; nothing written
+
+
+def test_report_refuses_a_live_writer_of_its_directory_and_takes_a_dead_ones_lock_over(tmp_path, capsys):
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX, lock_path
+
+    table = _results_table(tmp_path / "results.csv")
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "report.html").write_text("an earlier report's page")
+    (out / OUTPUTS_INDEX).write_text(json.dumps(["report.html"]))
+    argv = ["report", str(table), "--out", str(out), "--tsne-samples", "40", "--tsne-episodes", "1"]
+    holder = _hold(out)
+    before = _snapshot(tmp_path)  # the table, the earlier report and the holder's lock file
+    try:
+        assert main(argv) == 2
+        captured = capsys.readouterr()
+        assert captured.err.count("\n") == 1 and captured.out == ""
+        assert captured.err.startswith(f"error: {out} is being written by PID {holder.pid} on ")
+        assert "(the holder command, since " in captured.err and "allowed: wait until it ends, or another --out" in captured.err
+        assert _snapshot(tmp_path) == before  # the earlier report as it was, nothing staged beside it
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(argv) in (0, 1)  # 1: the made-up checkpoints have no learning curves (listed as unreadable)
+    text = capsys.readouterr().out
+    assert f"lock of PID {holder.pid} (the holder command) was stale (that writer is gone); taken over" in text
+    assert (out / "report.html").read_text() != "an earlier report's page" and (out / "results.csv").is_file()
+    assert not lock_path(out).exists()
+
+
 def test_a_report_is_replaced_as_one_set_and_an_interrupted_one_leaves_the_old_as_it_was(tmp_path, monkeypatch, capsys):
     from coin_app.evaluation import report
     from coin_app.evaluation.outputs import OUTPUTS_INDEX
@@ -347,6 +416,73 @@ def test_a_report_is_replaced_as_one_set_and_an_interrupted_one_leaves_the_old_a
     assert main(argv) in (0, 1)
     assert not (out / "old_figure.png").exists() and (out / "report.html").is_file()  # none of the old report's files left
     assert (out / "notes.md").read_text() == "the user's own file"
+
+
+# a real `report` that SIGKILLs itself after the k-th rename of its swap (an old entry aside, or a new one in): a kill -9
+# at a known point of the swap, with the process, its lock and the disk as a kill leaves them
+KILLED_REPORT = """
+import os, signal, sys
+from pathlib import Path
+from coin_app.cli import main
+out, at, real, moved = Path(sys.argv[1]).absolute(), int(sys.argv[2]), os.replace, [0]
+def replace(src, dst):
+    real(src, dst)
+    src, dst = Path(src), Path(dst)
+    if (src.parent == out and '.old-' in dst.parent.name) or ('.staged-' in src.parent.name and dst.parent == out):
+        moved[0] += 1
+        if moved[0] == at:
+            os.kill(os.getpid(), signal.SIGKILL)
+os.replace = replace
+main(sys.argv[3:])
+"""
+
+
+def test_report_killed_with_sigkill_in_its_swap_leaves_the_old_report_whole_and_the_next_report_a_whole_new_one(tmp_path, capsys):
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from coin_app.evaluation.outputs import OUTPUTS_INDEX, lock_path, recover_swaps
+
+    work = tmp_path / "work"
+    work.mkdir()
+    table = _results_table(work / "results.csv")
+    out = work / "report"
+    out.mkdir()
+    old = {"report.html": b"the old page", "results.csv": b"the old table", "old_figure.png": b"a figure only the old one drew"}
+    for name, data in old.items():
+        (out / name).write_bytes(data)
+    (out / OUTPUTS_INDEX).write_text(json.dumps(sorted(old)))
+    (out / "notes.md").write_text("the user's own file")
+    before = _snapshot(out)
+    argv = ["report", str(table), "--out", str(out), "--tsne-samples", "40", "--tsne-episodes", "1"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    at = len(old) + 2  # every old entry aside, two new ones in: the middle of the swap
+    proc = subprocess.Popen([sys.executable, "-c", KILLED_REPORT, str(out), str(at), *argv], env=env, stderr=subprocess.PIPE, text=True)
+    err = proc.communicate(timeout=600)[1]
+    assert proc.returncode == -9, err[-2000:]
+    aside = work / f".report.old-{proc.pid}"
+    assert _snapshot(out) != before  # killed inside the swap: the report directory is half-swapped
+    assert {n: (aside / n).read_bytes() for n in old} == old  # the old report whole, beside it, until the next report
+    assert json.loads(lock_path(out).read_text())["pid"] == proc.pid  # its lock record stays; the kernel dropped the lock
+    # what a recovery makes of exactly this disk state (on a copy): the old report, byte for byte, and nothing staged
+    copy = tmp_path / "copy"
+    shutil.copytree(work, copy)
+    assert recover_swaps(copy / "report") == [aside.name]
+    assert _snapshot(copy / "report") == before and sorted(p.name for p in copy.iterdir() if p.name.startswith(".report.")) == [
+        ".report.lock"
+    ]
+    # the next report takes the dead one's lock over, rolls its swap back, and swaps a whole new report in
+    assert main(argv) in (0, 1)  # 1: the made-up checkpoints have no learning curves (listed as unreadable)
+    note = f"report's lock of PID {proc.pid} (python -m coin_app {' '.join(argv)}) was stale (that writer is gone); taken over"
+    assert note in capsys.readouterr().out
+    written = json.loads((out / OUTPUTS_INDEX).read_text())
+    assert sorted(p.name for p in out.iterdir()) == sorted([*written, OUTPUTS_INDEX, "notes.md"])
+    assert "report.html" in written and "old_figure.png" not in written and (out / "notes.md").read_text() == "the user's own file"
+    assert (out / "results.csv").read_bytes() != old["results.csv"] and (out / "report.html").read_bytes() != old["report.html"]
+    assert [p.name for p in work.iterdir() if p.name.startswith(".report.")] == []  # no staging, no aside, no lock left
 
 
 def test_a_swap_killed_half_way_is_rolled_back_to_the_old_outputs_whole(tmp_path):
@@ -393,3 +529,77 @@ def _results_table(path):
                 rows.append(row)
     pd.DataFrame(rows).to_csv(path, index=False)
     return path
+
+
+@pytest.mark.parametrize("command", [["demo"], ["train"], ["evaluate", "p.npz"], ["sweep", "seeds"], ["config"]])
+def test_repeated_set_groups_add_up(command):
+    from coin_app.cli.parser import build_parser
+
+    args = build_parser().parse_args([*command, "--set", "a=1", "b=2", "--set", "c=3"])
+    assert args.set == ["a=1", "b=2", "c=3"]  # argparse's default for a repeated option kept only the last group
+    assert build_parser().parse_args(command).set == []
+
+
+def test_config_merges_every_set_group(capsys):
+    assert main(["config", "--algo", "itd3", "--set", "tau=0.01", "--set", "warmup_steps=300", "horizon=60"]) == 0
+    rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.splitlines() if line.startswith("  ")}
+    assert rows["tau"] == ["0.01", "--set"] and rows["warmup_steps"] == ["300", "--set"] and rows["horizon"] == ["60", "--set"]
+
+
+def test_demo_checks_every_policys_layout_before_any_work(tmp_path, capsys):
+    import torch
+
+    def npz(name, inputs, outputs, meta):
+        actor = torch.nn.Sequential(torch.nn.Linear(inputs, outputs), torch.nn.Tanh())
+        return str(export_policy(actor, tmp_path / name, "numpy", meta=meta))
+
+    native = npz("native.npz", 91, 2, {"scenario": "bottleneck", "env_config": {}})  # 91: the native observation
+    narrow = npz("narrow.npz", 60, 2, {"scenario": "intersection"})  # no env_config: judged by its weights
+    three = npz("three.npz", 91, 3, {"scenario": "intersection"})
+    arena = npz("arena.npz", 91, 2, {"scenario": "arena"})
+    out = tmp_path / "demo"
+    cases = [
+        (["--policy", native, "--set", "backend=metadrive"], "demo drives the native simulator, not backend 'metadrive'"),
+        (["--policy", "heuristic", "--set", "backend=metadrive"], "allowed: backend native, or python -m coin_app evaluate POLICY"),
+        (["--policy", native, "--set", "lidar_beams=36"], "this env gives 55 (bottleneck, native backend, 36 lidar beams)"),
+        # the second policy is checked before the first drives (it used to fail after the first policy's whole episode)
+        (["--policy", "heuristic", "--compare", narrow], f"{narrow} reads 60 observation numbers; this env gives 91 (intersection"),
+        (["--policy", native, "--compare", three], f"{three} gives actions of shape (1, 3) for one vehicle; bottleneck takes (1, 2)"),
+        (["--policy", "heuristic", "--compare", arena], f"{arena} is an arena policy; allowed: a driving policy"),
+    ]
+    for argv, phrase in cases:
+        assert main(["demo", *argv, "--steps", "5", "--out", str(out)]) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1 and phrase in err, (argv, err)
+        assert not out.exists()  # refused before any work
+    # a scene it was not trained for runs, warned before the run and again under the figures
+    assert main(["demo", "--policy", native, "--scenario", "intersection", "--steps", "2", "--no-gif", "--no-html", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    warnings = [
+        f"warning: {native} was trained on bottleneck, not intersection: a scene it was not trained for",
+        f"warning: {native} was trained with 20 vehicles, here 30: a count it was not trained for",  # the scenes' defaults
+    ]
+    assert captured.err.splitlines() == warnings and all(f"  {w}" in captured.out for w in warnings)
+    # a CoPO actor reads the observation and its vehicle's LCF (92 numbers): driven with its per-vehicle draws, as evaluate
+    # drives it (the check above counts the LCF; demo used to refuse it: "takes 92 observation numbers ... gives 91")
+    copo = npz("copo.npz", 92, 2, {"scenario": "bottleneck", "env_config": {}, "lcf": {"mean": 0.2, "std": 0.1}})
+    assert main(["demo", "--policy", copo, "--steps", "3", "--no-gif", "--no-html", "--out", str(tmp_path / "copo")]) == 0
+    assert json.loads((tmp_path / "copo" / "metrics.json").read_text())[copo]["env_steps"] == 3
+
+
+def test_evaluate_warns_on_a_scene_and_a_count_the_policy_was_not_trained_for(tmp_path, capsys):
+    policy = export_policy(_tiny_actor(), tmp_path / "p.npz", "numpy", meta={"scenario": "bottleneck", "env_config": {"num_agents": 3}})
+    out = tmp_path / "r.json"
+    argv = ["evaluate", str(policy), "--scenario", "intersection", "--num-agents", "2", "--set", "horizon=5", "--seeds", "200000"]
+    assert main([*argv, "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    warnings = [
+        f"warning: {policy} was trained on bottleneck, not intersection: a scene it was not trained for",
+        f"warning: {policy} was trained with 3 vehicles, here 2: a count it was not trained for",
+    ]
+    assert captured.err.splitlines() == warnings  # before the run
+    metrics_at = captured.out.index("success rate")
+    assert all(captured.out.index(f"  {w}") > metrics_at for w in warnings)  # again under the figures
+    assert json.loads(out.read_text())["warnings"] == warnings  # and with the results
+    assert main(["evaluate", str(policy), "--num-agents", "3", "--set", "horizon=5", "--seeds", "200000"]) == 0
+    assert "warning" not in capsys.readouterr().err  # its own scene and count: nothing to say

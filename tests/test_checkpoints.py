@@ -317,19 +317,28 @@ def test_resume_into_another_run_is_refused_and_overwrite_replaces_the_old_run_w
     old_events = {p.name for p in (other / "tensorboard").iterdir()}
     threads = usable_cores() + 1
     try:
-        assert main([*argv, "--steps", "100", "--out", str(other), "--overwrite", "--threads", str(threads)]) == 0
+        assert main([*argv, "--steps", "60", "--out", str(other), "--overwrite", "--threads", str(threads)]) == 0
     finally:
         ray.shutdown()
     out = capsys.readouterr().out
     assert "--overwrite: the earlier run's checkpoint, summary.json, config.json, tensorboard, ray.log deleted" in out
     assert f"warning: --threads {threads} > the {usable_cores()} CPU cores this process may use" in out
+    assert "warning: --steps 60 <= warmup_steps 60: every action is uniform random and the networks are never updated" in out
     events = {p.name for p in (other / "tensorboard").iterdir()}
     assert len(events) == 1 and not events & old_events  # the old run's TensorBoard events went with it
     summary = json.loads((other / "summary.json").read_text())
-    per_iteration = summary["env_steps"]  # one iteration: the budget of 100 is below one batch
-    assert summary["iterations"] == 1 and per_iteration > 100
-    note = f"trained {per_iteration} env steps, more than the 100 asked for: an iteration samples {per_iteration} env steps at once"
+    per_iteration = summary["env_steps"]  # one iteration: the budget of 60 (TINY's warm-up) is below one batch
+    assert summary["iterations"] == 1 and per_iteration > 60
+    note = f"trained {per_iteration} env steps, more than the 60 asked for: an iteration samples {per_iteration} env steps at once"
     assert summary["note"].startswith(note) and f"note: {note}" in out
+
+
+def test_a_checkpoint_on_another_scene_is_evaluated_with_the_warning(trained, capsys):
+    ckpt = trained / "checkpoint"
+    assert main(["evaluate", str(ckpt), "--scenario", "intersection", "--num-agents", "3", "--set", "horizon=5", "--episodes", "1"]) == 0
+    captured = capsys.readouterr()
+    warning = f"warning: {ckpt} was trained on bottleneck, not intersection: a scene it was not trained for"
+    assert captured.err.splitlines() == [warning] and f"  {warning}" in captured.out
 
 
 def test_a_checkpoint_is_checked_against_its_manifest_version_and_its_recorded_shapes(trained, tmp_path, capsys):

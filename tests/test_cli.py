@@ -1,8 +1,10 @@
 """The command line: the demo writes its outputs; bad input exits 2 with a clear message."""
 
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 from fixtures import tiny_cli
 from PIL import Image
@@ -73,6 +75,36 @@ def test_parsing_and_refusals_import_neither_ray_nor_torch():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "[2, 2, 2] []"
     assert "invalid choice: 'sac'" in out.stderr and "bad --steps 0" in out.stderr and "invalid choice: 'x'" in out.stderr
+
+
+def test_train_and_config_check_their_settings_before_importing_ray_or_torch(tmp_path):
+    # the registry and the scenario configs are Ray-free: a bad --set, seed, scenario or budget costs no training machinery
+    repo = Path(__file__).resolve().parent.parent
+    cases = [
+        (["train", "--set", "tau=2"], "error: bad value for 'tau': 2; allowed: a finite number in (0, 1]"),
+        (
+            ["train", "--set", "horizon=40", "--set", "horizon=50"],
+            "error: --set gives horizon twice (40 and 50); allowed: one value per key",
+        ),
+        (["train", "--algo", "itd3", "--scenario", "arena"], "error: itd3 does not train on scenario 'arena'; allowed: intersection"),
+        (["train", "--seed", "200003"], "error: bad seed 200003; allowed: an integer in [0, 90000)"),
+        (["train", "--checkpoint-every", "0"], "error: bad checkpoint_every 0; allowed: an integer >= 1"),
+        (["train", "--connect-timeout", "-1"], "error: bad --connect-timeout -1.0; allowed: a finite number of seconds > 0"),
+        (["config", "--scale", "reduced", "--set", "tau=2"], "error: bad value for 'tau': 2; allowed: a finite number in (0, 1]"),
+    ]
+    code = (
+        "import sys\nfrom coin_app.cli import main\n"
+        f"codes = [main(a) for a in {[argv for argv, _ in cases]!r}]\n"
+        "print(codes, sorted(m for m in ('ray', 'torch') if m in sys.modules))"
+    )
+    env = {**os.environ, "PYTHONPATH": str(repo)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path, env=env)
+    assert out.stdout.strip() == f"{[2] * len(cases)} []"  # no banner on stdout either: refused before it
+    lines = out.stderr.splitlines()
+    assert len(lines) == len(cases)  # one line each
+    for line, (_, phrase) in zip(lines, cases):
+        assert line.startswith(phrase), (line, phrase)
+    assert list(tmp_path.iterdir()) == []  # nothing written (train's default --out is runs/...)
 
 
 def test_bad_input_is_refused(capsys):

@@ -90,3 +90,14 @@ def test_no_absolute_machine_path_in_the_docs():
             if pattern.search(line):
                 hits.append(f"{page.relative_to(ROOT)}:{n}: {line.strip()[:80]}")
     assert not hits, hits
+
+
+def test_every_test_the_reliability_page_names_exists():
+    # docs/reliability.md states what a test checks: each test and test file it names must be there (renames go stale)
+    text = (DOCS / "reliability.md").read_text()
+    tests = {p.name: p.read_text() for p in (ROOT / "tests").glob("test_*.py")}
+    named = set(re.findall(r"\b(test_\w+)\b", text))
+    files = {n for n in named if f"{n}.py" in tests}
+    missing = sorted(n for n in named - files if not any(re.search(rf"^def {n}\(", src, re.M) for src in tests.values()))
+    assert len(named) > 40 and missing == []
+    assert not [f for f in re.findall(r"tests/(\w+\.py)", text) if f not in tests]

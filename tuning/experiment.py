@@ -4,7 +4,7 @@ An :class:`Experiment` names the methods (registry algorithms), the variants (na
 sets: ablations) and, per scale, the seeds, the env-step budget per trial, the checkpoint
 cadence and, for generalization, the agent counts and test seeds to evaluate the final
 checkpoints at. :meth:`Experiment.param_space` turns it into the dict Tune expands with
-``tune.grid_search``; :func:`expand_grid` expands the same grid in plain Python so every
+``grid_search``; :func:`expand_grid` expands the same grid in plain Python so every
 trial's config is validated (``training.build_config``) before any work starts.
 """
 
@@ -13,8 +13,6 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 from typing import Any
-
-from ray import tune
 
 from coin_app.algorithms import registry
 
@@ -116,10 +114,16 @@ class Experiment:
         methods = tuple(methods or self.methods)
         self.check(scenario, methods, seeds)
         return self.base_config(scenario, scale, steps or sc.steps, overrides or {}) | {
-            "algo": tune.grid_search(list(methods)),
-            "variant": tune.grid_search(list(self.variant_names(scale))),
-            "seed": tune.grid_search(list(seeds or sc.seeds)),
+            "algo": grid_search(methods),
+            "variant": grid_search(self.variant_names(scale)),
+            "seed": grid_search(seeds or sc.seeds),
         }
+
+
+def grid_search(values: Any) -> dict[str, list[Any]]:
+    """Tune's grid axis, ``{"grid_search": [...]}``, what ``tune.grid_search`` returns: written here so that an experiment,
+    and ``config --scale``, need no Ray."""
+    return {"grid_search": list(values)}
 
 
 def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:

@@ -107,7 +107,7 @@ def run_sweep(experiment: str, scenario: str = "intersection", scale: str = "pap
     if "://" in root:  # a remote store: Tune's own
         return _run_sweep(experiment, scenario, scale, **kwargs)
     path = experiment_path(root, sweep_name(kwargs.get("name"), experiment, scenario, scale))
-    with OutputLock(path, kwargs.get("command"), what="sweep directory (--name)") as lock:
+    with OutputLock(path, kwargs.get("command"), "the sweep directory", "--name or --storage") as lock:
         if lock.stale_note():
             kwargs.get("log", print)(str(lock.stale_note()))
         return _run_sweep(experiment, scenario, scale, **kwargs)

@@ -130,3 +130,11 @@ class SampledLCFPolicy:
 
     def __repr__(self) -> str:
         return f"SampledLCFPolicy(mean={self.mean:.4f}, std={self.std:.4f}, seed={self.seed})"
+
+
+def with_lcf(policy: Any) -> Any:
+    """An exported policy as evaluation runs it: wrapped in per-vehicle LCF draws if its metadata holds CoPO's ``lcf``."""
+    lcf = getattr(policy, "meta", {}).get("lcf")
+    if lcf is None:
+        return policy
+    return SampledLCFPolicy(policy, lcf["mean"], lcf["std"], lcf.get("seed", 0), meta=policy.meta)

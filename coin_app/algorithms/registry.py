@@ -22,8 +22,9 @@ from coin_app.algorithms.traco.settings import TRACO
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import PRESETS, ScenarioConfig
 from coin_app.sim.road_map import load_map
-from coin_app.sim.scenarios import config_from_dict
+from coin_app.sim.scenarios import AnyScenarioConfig, config_from_dict
 from coin_app.sim.scenes import DRIVING_SCENARIOS
+from coin_app.sim.seeds import check_training_seed
 
 ALGORITHMS: dict[str, AlgorithmSpec] = {spec.name: spec for spec in (CIG_TD3, ITD3, TRACO, IPPO, CPPO, MFPO, COPO, NAV_PPO)}
 if tuple(ALGORITHMS) != ALGORITHM_NAMES:  # the CLI parses --algo from the Ray-free name list
@@ -160,6 +161,23 @@ def split_overrides(name: str, overrides: dict[str, Any], scenario: str = "inter
     if errors:
         raise ValueError(errors[0])
     return env_cfg, algo_cfg
+
+
+def resolve_run(
+    name: str, scenario: str, overrides: dict[str, Any], seed: int = 0
+) -> tuple[AnyScenarioConfig, dict[str, Any], RunSettings]:
+    """A training run's scenario config, algorithm settings and sampling / learner settings from its ``--set`` values,
+    every value checked (Ray-free: ``train`` refuses bad input with it before importing the training machinery).
+
+    A ValueError names the first bad one: the algorithm, the seed, a scenario it does not train on, a key or a value.
+    """
+    spec = get(name)
+    check_training_seed(seed)
+    if scenario not in spec.scenarios:
+        raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(spec.scenarios)}")
+    env_cfg, algo_cfg = split_overrides(name, overrides, scenario)
+    run = split_run_settings(algo_cfg)
+    return config_from_dict(scenario, {**spec.scenario_defaults(algo_cfg), **env_cfg}), algo_cfg, run
 
 
 @dataclass(frozen=True)

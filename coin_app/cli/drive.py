@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,19 +13,23 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from coin_app.algorithms.checks import parse_overrides
+from coin_app.adapters.lcf import with_lcf
+from coin_app.cli.flags import overrides_of
 from coin_app.cli.output import CONSOLE_ROWS, format_metrics, shown
 from coin_app.cli.policy_settings import driving_config
 from coin_app.evaluation.evaluate import record
+from coin_app.evaluation.fit import policy_fit
 from coin_app.evaluation.metrics import EpisodeRecorder
 from coin_app.inference import load_policy, shipped_policies
 from coin_app.inference.shipped import is_shipped_name
+from coin_app.sim import schema
 from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.heuristic import HeuristicDriver
 from coin_app.sim.rendering import EpisodeTrace, plot_trajectories, render_frame, write_gif
 from coin_app.sim.replay import write_replay
 from coin_app.sim.rollout import DictEnvs, rollout
+from coin_app.sim.scenes import ARENA
 
 HEURISTIC = "heuristic"
 AUTO = "auto"
@@ -56,6 +61,25 @@ def demo_config(source: str, scenario: str | None, preset: str | None, overrides
     if source == HEURISTIC:
         return make_config(scenario or "intersection", preset or "paper", **overrides)
     return driving_config(load_policy(source).meta, source, scenario, overrides, preset)  # refuses an arena policy
+
+
+def fitted_policy(source: str, config: ScenarioConfig) -> tuple[Any, list[str]]:
+    """``source`` (a shipped name or an exported file) loaded as evaluation runs it (a CoPO actor with its per-vehicle
+    LCF draws), and the warnings of driving it on ``config``; a ValueError in one line, before any work, if it cannot
+    drive there: an arena policy, another observation layout (``policy_fit``), or not ``ACT_DIM`` action numbers."""
+    policy = load_policy(source)
+    meta = getattr(policy, "meta", {})
+    if meta.get("scenario") == ARENA:
+        raise ValueError(f"{source} is an arena policy; allowed: a driving policy (arena policies: python -m coin_app evaluate-arena)")
+    obs_dim = getattr(policy, "obs_dim", config.obs_dim)  # its own input: the env's observation (and a CoPO actor's LCF)
+    warnings = policy_fit(meta, config, source, obs_dim)
+    actions = np.shape(policy(np.full((1, obs_dim), 0.5, np.float32)))  # a mid-range input (observations lie in [0, 1])
+    if actions != (1, schema.ACT_DIM):
+        raise ValueError(
+            f"{source} gives actions of shape {actions} for one vehicle; {config.scenario} takes (1, {schema.ACT_DIM}) "
+            "(steering, throttle); allowed: a driving policy"
+        )
+    return with_lcf(policy), warnings
 
 
 def drive(policy: Any, label: str, config: ScenarioConfig, seed: int, steps: int, gif_every: int | None, log: bool) -> Drive:
@@ -117,9 +141,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise ValueError(f"bad --steps {args.steps}; allowed: an integer >= 1")
     if args.gif_every < 1:
         raise ValueError(f"bad --gif-every {args.gif_every}; allowed: an integer >= 1")
-    overrides = parse_overrides(args.set)
-    if args.num_agents is not None:
-        overrides["num_agents"] = args.num_agents
+    overrides = overrides_of(args.set, {"num_agents": ("--num-agents", args.num_agents)})
     source = default_policy(args.scenario) if args.policy == AUTO else args.policy
     compare = None if args.compare in ("none", source) else args.compare
     for s in (source, compare):
@@ -127,9 +149,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
             names = ", ".join(shipped_policies())
             raise ValueError(f"bad policy {s!r}; allowed: {HEURISTIC}, a shipped policy ({names}) or an exported policy file")
     config = demo_config(source, args.scenario, args.preset, overrides)
+    if config.backend != "native":
+        raise ValueError(
+            f"demo drives the native simulator, not backend {config.backend!r} (from --set or the policy's training config); "
+            f"allowed: backend native, or python -m coin_app evaluate POLICY --backend {config.backend}"
+        )
+    sources = [source] + ([compare] if compare else [])
+    loaded, warnings = {}, []
+    for s in sources:  # every learned policy checked against the episode's env before anything is written
+        if s != HEURISTIC:
+            loaded[s], fit = fitted_policy(s, config)
+            warnings += fit
+    for line in warnings:
+        print(line, file=sys.stderr)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sources = [source] + ([compare] if compare else [])
     print(f"demo: {config.scenario}, {config.num_agents} vehicles at reset, seed {args.seed}, up to {args.steps} steps -> {out}")
     print(
         f"  driving: {' | '.join(sources)}"
@@ -137,7 +171,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     t0 = time.perf_counter()
     gif_every = None if args.no_gif else args.gif_every
-    runs = [drive(s, s, config, args.seed, args.steps, gif_every, log=True) for s in sources]
+    runs = [drive(loaded.get(s, s), s, config, args.seed, args.steps, gif_every, log=True) for s in sources]
     title = f"{config.scenario}, {config.num_agents} vehicles, seed {args.seed}"
     traj = plot_trajectories(runs[0].trace, runs[0].env.sim.map, out / "trajectories.png", title=f"{title}: {runs[0].label}")
     gif = (
@@ -165,6 +199,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     for page, run in zip(pages, runs):
         print(f"  replay page:     {page} ({run.label}; open it in a browser)")
     print(f"  metrics:         {out / 'metrics.json'}")
+    for line in warnings:  # in the summary too, beside the figures
+        print(f"  {line}")
     return 0
 
 

@@ -39,6 +39,13 @@ class DefaultsParser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog.removeprefix('python -m coin_app').strip() or 'coin_app'}: {message} (see --help)")
 
 
+def add_set(parser: argparse.ArgumentParser, text: str) -> None:
+    """The ``--set KEY=VALUE ...`` option; repeated ``--set`` groups add up (one key with two values is refused later)."""
+    parser.add_argument(
+        "--set", nargs="*", action="extend", default=[], metavar="KEY=VALUE", help=f"{text}; --set may be repeated (--set a=1 --set b=2)"
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every command."""
     parser = DefaultsParser(
@@ -70,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--html", action=argparse.BooleanOptionalAction, default=True, help="write replay.html: the episode to scrub in a browser"
     )
-    demo.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
+    add_set(demo, "scenario config overrides")
     demo.set_defaults(run="drive.cmd_demo")
 
     tr = sub.add_parser("train", help=f"train an algorithm ({', '.join(ALGORITHM_NAMES)}) with checkpoints and --resume")
@@ -80,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--backend", default="native", help="native | metadrive (needs requirements-metadrive.txt)")
     tr.add_argument("--steps", type=int, default=1_000_000, help="env steps to train for")
     tr.add_argument("--seed", type=int, default=0, help="training seed, an integer in [0, 90000) (higher ones are evaluation seeds)")
-    tr.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario or algorithm overrides (see docs)")
+    add_set(tr, "scenario or algorithm overrides (see docs)")
     tr.add_argument("--out", default=None, help="run directory (default runs/<algo>_<scenario>_s<seed>)")
     tr.add_argument("--checkpoint-every", type=int, default=10, help="checkpoint every K training iterations")
     tr.add_argument("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this much wall time")
@@ -120,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"{' | '.join(PRESETS)}: evaluate with this preset's settings in place of the training config's preset and the keys "
         "presets set (e.g. metadrive_compat: lidar_range 40); --set still wins (default: the policy's own training config)",
     )
-    ev.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="scenario config overrides")
+    add_set(ev, "scenario config overrides")
     ev.add_argument("--episodes", type=int, default=20, help=f"number of test seeds (paper: 20; at most {MAX_EPISODES})")
     ev.add_argument("--seeds", type=int, nargs="*", default=None, help="explicit seeds (default: the fixed test seeds)")
     ev.add_argument("--num-agents", type=int, default=None, help="evaluate at another agent count (generalization)")
@@ -228,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--algos", nargs="*", default=None, help="methods to sweep (default: the experiment's, cig_td3)")
     sw.add_argument("--seeds", type=int, nargs="*", default=None, help="training seeds (default: the scale's; paper: 0..7)")
     sw.add_argument("--steps", type=int, default=None, help="env steps per trial (default: the scale's; paper: 1,000,000)")
-    sw.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides for every trial")
+    add_set(sw, "overrides for every trial")
     sw.add_argument(
         "--scale",
         default=None,
@@ -316,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     cf.add_argument("--steps", type=int, default=None, help="env steps per trial, with --scale (default: the scale's)")
     cf.add_argument("--quick", action="store_true", help="train --quick's small settings (without --scale)")
     cf.add_argument("--num-agents", type=int, default=None, help="vehicles (default: the scenario's or the scale's)")
-    cf.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides, as train and sweep take them")
+    add_set(cf, "overrides, as train and sweep take them")
     cf.set_defaults(run="settings.cmd_config")
 
     pol = sub.add_parser("policies", help="list the shipped trained policies (load one by name, drive one with demo --policy)")

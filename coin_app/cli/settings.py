@@ -4,17 +4,15 @@ from __future__ import annotations
 
 import argparse
 
-from coin_app.algorithms.checks import parse_overrides
 from coin_app.algorithms.registry import Setting, merged_settings, quick_settings
+from coin_app.cli.flags import overrides_of
 from tuning import get_experiment
 from tuning.experiment import trial_layers
 
 
 def run_layers(args: argparse.Namespace) -> tuple[str, list[tuple[str, dict]]]:
     """What the settings are of (a line) and their override layers, lowest first: train's (--quick, --set) or a sweep trial's."""
-    overrides = parse_overrides(args.set)
-    if args.num_agents is not None:
-        overrides["num_agents"] = args.num_agents
+    overrides = overrides_of(args.set, {"num_agents": ("--num-agents", args.num_agents)})
     if args.scale is None:
         layers = [("--quick", quick_settings(args.algo, args.scenario))] if args.quick else []
         return f"train --algo {args.algo} --scenario {args.scenario}", [*layers, ("--set", overrides)]

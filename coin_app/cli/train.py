@@ -1,4 +1,7 @@
-"""``train`` and ``probe``: RLlib training runs and a TD3-family checkpoint's critics (imports Ray and torch)."""
+"""``train`` and ``probe``: RLlib training runs and a TD3-family checkpoint's critics.
+
+Both import Ray and torch only once their arguments are checked: a refusal costs the parse, not the training machinery.
+"""
 
 from __future__ import annotations
 
@@ -6,11 +9,10 @@ import argparse
 import time
 from pathlib import Path
 
-from coin_app.algorithms.registry import quick_settings
+from coin_app.algorithms.registry import quick_settings, resolve_run
 from coin_app.cli.flags import overrides_of
 from coin_app.cli.output import format_metrics
-from coin_app.evaluation.critic_probe import probe_checkpoint
-from coin_app.training import STOPPED_AT_BUDGET, train
+from coin_app.evaluation.limits import check_timeout, check_train_budget
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -20,6 +22,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides = overrides_of(args.set, flags)
     if args.quick:  # the small settings that learn within minutes, beneath the user's --set
         overrides = {**quick_settings(args.algo, args.scenario), **overrides}
+    check_train_budget(args.steps, args.max_minutes, args.checkpoint_every, args.threads)
+    check_timeout(args.connect_timeout, "--connect-timeout")
+    resolve_run(args.algo, args.scenario, overrides, args.seed)  # every --set value, the seed and the scenario: Ray-free
+    # optional: the training machinery (Ray, RLlib, torch: seconds) only for arguments that passed the checks above
+    from coin_app.training import STOPPED_AT_BUDGET, train
+
     out = Path(args.out or f"runs/{args.algo}_{args.scenario}_s{args.seed}")
     resume = Path(args.resume) if args.resume else None
     print(f"train: {args.algo} on {args.scenario}, {args.steps} env steps, seed {args.seed} -> {out}")
@@ -57,6 +65,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_probe(args: argparse.Namespace) -> int:
     """Print what a TD3-family checkpoint's critics say at its deterministic policy's stopped vehicles."""
+    # optional: the probe loads an RLlib module (Ray, torch) only once the command line parsed
+    from coin_app.evaluation.critic_probe import probe_checkpoint
+
     t0 = time.perf_counter()
     probe = probe_checkpoint(Path(args.checkpoint), args.episodes, args.speed_below)
     share = probe.stopped_steps / max(1, probe.vehicle_steps)

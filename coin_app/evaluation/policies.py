@@ -13,20 +13,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from coin_app.adapters.lcf import SampledLCFPolicy
+from coin_app.adapters.lcf import with_lcf
 from coin_app.algorithms.checkpoints import load_checkpoint_policy
 from coin_app.inference import load_policy as load_exported_policy
 from coin_app.inference.shipped import resolve
 from coin_app.inference.switching import load_pair
 from coin_app.sim.rollout import AgentPolicy, Policy
-
-
-def with_lcf(policy: Any) -> Any:
-    """An exported policy as evaluation runs it: wrapped in per-vehicle LCF draws if its metadata holds CoPO's ``lcf``."""
-    lcf = getattr(policy, "meta", {}).get("lcf")
-    if lcf is None:
-        return policy
-    return SampledLCFPolicy(policy, lcf["mean"], lcf["std"], lcf.get("seed", 0), meta=policy.meta)
 
 
 def as_policy(source: Any) -> Policy | AgentPolicy:

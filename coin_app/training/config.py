@@ -15,20 +15,13 @@ from coin_app.algorithms import registry
 from coin_app.algorithms.common import SHARED_MODULE_ID, AgentOutcomes
 from coin_app.sim.arena.config import ArenaConfig
 from coin_app.sim.config import ScenarioConfig
-from coin_app.sim.scenarios import config_from_dict
-from coin_app.sim.seeds import check_training_seed
 from coin_app.training.monitor import PeriodicEvaluation
 
 
 def build_config(name: str, scenario: str, overrides: dict[str, Any], seed: int) -> AlgorithmConfig:
     """A validated RLlib config of algorithm ``name`` on ``scenario`` (the scenario config parsed once)."""
     spec = registry.get(name)
-    check_training_seed(seed)
-    if scenario not in spec.scenarios:
-        raise ValueError(f"{name} does not train on scenario {scenario!r}; allowed: {', '.join(spec.scenarios)}")
-    env_cfg, algo_cfg = registry.split_overrides(name, overrides, scenario)
-    run = registry.split_run_settings(algo_cfg)
-    scenario_config = config_from_dict(scenario, {**spec.scenario_defaults(algo_cfg), **env_cfg})  # refuses bad values before any work
+    scenario_config, algo_cfg, run = registry.resolve_run(name, scenario, overrides, seed)  # refuses bad values before any work
     callbacks: list[type[RLlibCallback]] = [AgentOutcomes]
     if spec.capabilities.periodic_evaluation:
         callbacks.append(PeriodicEvaluation)

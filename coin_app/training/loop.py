@@ -22,7 +22,7 @@ from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.algorithms import registry
 from coin_app.algorithms.checkpoint_files import latest_complete
 from coin_app.algorithms.common import ProgressReporting, scenario_config_of
-from coin_app.evaluation.limits import CONNECT_TIMEOUT_S
+from coin_app.evaluation.limits import CONNECT_TIMEOUT_S, check_train_budget
 from coin_app.evaluation.outputs import OutputLock, write_text_atomic
 from coin_app.training.address import check_address
 from coin_app.training.checkpoints import check_resume, check_run_dir, checkpoint_meta, clear_run, save
@@ -134,14 +134,7 @@ def train(
     Everything is checked before any work starts. SIGINT / SIGTERM: see :func:`stop_on_signal`.
     ``progress``: the progress bar (``None``: on a terminal only; see ``RunProgress``).
     """
-    if steps < 1:
-        raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
-    if max_minutes is not None and not max_minutes > 0:
-        raise ValueError(f"bad max_minutes {max_minutes}; allowed: a number > 0 or None")
-    if checkpoint_every < 1:
-        raise ValueError(f"bad checkpoint_every {checkpoint_every}; allowed: an integer >= 1")
-    if not (isinstance(threads, int) and threads >= 1):
-        raise ValueError(f"bad threads {threads!r}; allowed: an integer >= 1")
+    check_train_budget(steps, max_minutes, checkpoint_every, threads)
     check_address(address, connect_timeout)  # an unreachable cluster ends here, in one line, after connect_timeout (Ray running or not)
     out = Path(out)
     with stop_on_signal() as stop:
