@@ -199,6 +199,13 @@ TEST_CLASS: dict[str, str] = {
 }
 
 
+def pytest_sessionstart(session):
+    """Compile the simulator's Numba kernels once, before any test: the subprocesses the e2e tests start then load the cache."""
+    from coin_app.sim.warm import warm_kernels
+
+    warm_kernels()
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m selects on the markers
 def pytest_collection_modifyitems(config, items):
     """Mark every test with exactly one speed class, from ``FILE_CLASS`` and ``TEST_CLASS``; stale entries are errors."""
