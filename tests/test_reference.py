@@ -1,6 +1,7 @@
 """The COIN authors' actors as a reference: the torch-free reader, the finder, the protocol's plan, the table, resuming."""
 
 import math
+import os
 import pickle
 import zipfile
 from pathlib import Path
@@ -214,3 +215,19 @@ def test_the_readme_shows_the_committed_reference_table():
     rows = [line for line in committed.read_text().splitlines() if line.startswith("|")]
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text().splitlines()
     assert rows and all(row in readme for row in rows)
+
+
+def test_tables_are_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """A disk that fills while the tables are rewritten leaves the previous tables as they were (no torn file)."""
+    row = {"scene": "intersection", "backend": "native", "train_seed": 1000, "episode_seed": 1000, "success_rate": 1.0}
+    row |= {"collision_rate": 0.0, "out_of_road_rate": 0.0, "timeout_rate": 0.0, "num_timeout": 0, "actor": "a"}
+    reference.write_tables(pd.DataFrame([row]), tmp_path, {"command": "first"})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def full(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError, match="No space left"):
+        reference.write_tables(pd.DataFrame([row | {"success_rate": 0.0}]), tmp_path, {"command": "second"})
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no partial file left, nothing changed

@@ -20,6 +20,7 @@ from coin_app.cli.policy_settings import driving_config
 from coin_app.evaluation.evaluate import record
 from coin_app.evaluation.fit import policy_fit
 from coin_app.evaluation.metrics import EpisodeRecorder
+from coin_app.evaluation.outputs import write_text_atomic
 from coin_app.inference import load_policy, shipped_policies
 from coin_app.inference.shipped import is_shipped_name
 from coin_app.sim import schema
@@ -190,7 +191,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         else []
     )
     metrics = {r.label: r.recorder.metrics() for r in runs}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
+    write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=2, default=float))
     print(f"\nsummary: {max(r.steps for r in runs)} env steps per policy, {time.perf_counter() - t0:.1f} s")
     print(metric_table(runs) if compare else format_metrics(metrics[source]))
     print(f"  trajectory plot: {traj}")

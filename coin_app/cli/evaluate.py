@@ -213,9 +213,9 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
         )
         where = out / folders[label]
         where.mkdir(parents=True, exist_ok=True)
-        pd.DataFrame(rows).to_csv(where / "arena_scenarios.csv", index=False)
+        write_text_atomic(where / "arena_scenarios.csv", pd.DataFrame(rows).to_csv(index=False))
         summaries[label] = summary = summarize(rows)
-        summary.to_csv(where / "arena_cases.csv", index=False)
+        write_text_atomic(where / "arena_cases.csv", summary.to_csv(index=False))
         header = f"Policy: `{source}`; {args.scenarios_per_case} test scenarios per case; {args.protocol} protocol.\n\n"
         if observes[source].observed_entities != 1:
             k = observes[source].observed_entities
@@ -227,7 +227,7 @@ def cmd_evaluate_arena(args: argparse.Namespace) -> int:
             )
         if args.generator != "agnn":
             header += f"Scenarios of the `{args.generator}` generator, not the paper's suite: the paper's columns do not apply.\n\n"
-        (where / "arena_table.md").write_text(header + markdown_table(summary))
+        write_text_atomic(where / "arena_table.md", header + markdown_table(summary))
         if args.plots:
             plots = plot_scenarios(
                 source, cases, args.plots, where / "plots", args.max_steps, args.protocol, args.generator, args.observed_entities, True

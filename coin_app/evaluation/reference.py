@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -29,6 +28,7 @@ import pandas as pd
 
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation.evaluate import evaluate_policy
+from coin_app.evaluation.outputs import write_text_atomic
 from coin_app.inference.coin_actors import SOURCE, find_coin_actors, load_coin_actor
 from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.scenes import SCENES
@@ -125,9 +125,7 @@ def _done(results: pd.DataFrame, task: Task) -> bool:
 
 def _write_csv(frame: pd.DataFrame, path: Path) -> None:
     """``frame`` to ``path`` atomically (a hidden sibling renamed over it)."""
-    partial = path.with_name(f".{path.name}.partial")
-    frame.to_csv(partial, index=False)
-    os.replace(partial, path)
+    write_text_atomic(path, frame.to_csv(index=False))
 
 
 def load_results(out: Path) -> pd.DataFrame:
@@ -249,6 +247,6 @@ def write_tables(results: pd.DataFrame, out: Path, settings: dict[str, Any]) -> 
         "episodes' wall time on the machine that ran them; paper: COIN's Table 5.1 success.\n\n"
         f"Actors: {SOURCE}.\n\nCommand: `{settings.get('command', '')}`\n"
     )
-    (out / TABLE_MD).write_text(text)
-    (out / SETTINGS).write_text(json.dumps(settings, indent=2) + "\n")
+    write_text_atomic(out / TABLE_MD, text)
+    write_text_atomic(out / SETTINGS, json.dumps(settings, indent=2) + "\n")
     return [out / TABLE_CSV, out / TABLE_MD, out / SETTINGS]

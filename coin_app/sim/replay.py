@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import html
 import json
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -261,7 +262,12 @@ def write_replay(
     data = replay_data(trace, road_map, title=title, fps=fps, vehicle_size=vehicle_size)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(replay_html(data), encoding="utf-8")
+    partial = path.with_name(f".{path.name}.partial-{os.getpid()}")  # whole or not at all: a sibling renamed over it
+    try:
+        partial.write_text(replay_html(data), encoding="utf-8")
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
     return path
 
 
