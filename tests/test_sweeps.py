@@ -204,7 +204,7 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     cfg = build_trial_config(by_algo["cig_td3"])
     assert (cfg.updates_per_env_step, cfg.train_batch_size_per_learner, cfg.env_config["scenario_config"].num_agents) == (1.0, 256, 4)
     assert registry.quick_settings("cig_td3")["train_batch_size_per_learner"] == 128
-    assert cfg.precision == "fp32" and registry.get("cig_td3").hyperparameters["precision"][0] == "bf16"
+    assert cfg.precision == "fp32" and registry.get("cig_td3").hyperparameters["precision"][0] == "auto"
     assert (cfg.actor_preact_penalty, cfg.actor_preact_threshold) == (0.01, 1.0)  # the built config carries the stronger guard
     assert (cfg.exploration_noise_initial, cfg.exploration_noise) == (0.1, 0.02)
     assert registry.get("cig_td3").hyperparameters["exploration_noise"][0] == 0.05
