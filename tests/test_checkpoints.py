@@ -196,16 +196,18 @@ def test_train_refuses_an_existing_run_and_a_mismatched_resume(trained, tmp_path
     assert main([*argv, "--out", str(trained)]) == 2
     assert "holds an earlier run" in capsys.readouterr().err
     cases = [
-        (["--algo", "cig_td3"], "was trained by 'itd3', not 'cig_td3'"),
-        (["--algo", "ippo", "--set", "horizon=40", "max_agent_steps=40"], "was trained by 'itd3', not 'ippo'"),  # the last --set wins
-        (["--scenario", "intersection"], "was trained on scenario 'bottleneck', not 'intersection'"),
+        (["--algo", "cig_td3", *TINY], "was trained by 'itd3', not 'cig_td3'"),
+        ([*TINY, "--scenario", "intersection"], "was trained on scenario 'bottleneck', not 'intersection'"),
         ([a.replace("horizon=40", "horizon=50") for a in TINY], "another bottleneck config (horizon=40 there, 50 here)"),
         ([a.replace("hidden=16", "hidden=32") for a in TINY], "another network shape"),
     ]
-    for extra, message in cases:
-        assert main([*argv, *extra, "--out", str(tmp_path / "new"), "--resume", str(ckpt)]) == 2, extra
+    runs = [([*argv[: -len(TINY)], *extra], message) for extra, message in cases]  # each case's own settings in place of TINY
+    # another algorithm with its own valid settings (TINY's --set keys are ITD3's: --set groups add up, unknown keys are refused first)
+    runs.append((["train", "--algo", "ippo", "--steps", "200", *tiny_cli("ippo", "bottleneck")], "was trained by 'itd3', not 'ippo'"))
+    for run_argv, message in runs:
+        assert main([*run_argv, "--out", str(tmp_path / "new"), "--resume", str(ckpt)]) == 2, run_argv
         err = capsys.readouterr().err
-        assert message in err and err.count("\n") == 1, (extra, err)
+        assert message in err and err.count("\n") == 1, (run_argv, err)
     assert not (tmp_path / "new").exists()
 
 
