@@ -128,22 +128,42 @@ TINY_TRAIN = [*tiny_cli("itd3", "bottleneck"), "--checkpoint-every", "1"]
 
 
 def test_train_evaluate_and_resume(no_ray, tmp_path, capsys):
+    import resource
+
     import ray
 
     out = tmp_path / "run"
+
+    def own_cpu():  # this process's CPU seconds, read without the code under test
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        return usage.ru_utime + usage.ru_stime
+
     try:
+        start = own_cpu()
         assert main(["train", "--algo", "itd3", "--steps", "150", "--out", str(out), *TINY_TRAIN]) == 0
+        first_own = own_cpu() - start
         ckpt = out / "checkpoint"
         text = capsys.readouterr().out
         assert "iter" in text and str(ckpt) in text and (ckpt / "coin_app.json").exists()
+        assert " h" in text.split("cpu ")[1]  # each iteration's line shows the run's CPU time
+        # the run's CPU time counts this process (and its Ray session's) from the start of train(): at least what it used here
+        first = json.loads((out / "summary.json").read_text())
+        saved = json.loads((ckpt / "coin_app.json").read_text())
+        assert first_own - 0.1 <= first["run_cpu_s"] and 0 < saved["cpu_s"] <= first["run_cpu_s"]
+        assert 0 < saved["wall_s"] <= first["run_wall_s"]
         assert main(["evaluate", str(ckpt), "--episodes", "2", "--out", str(tmp_path / "eval.json")]) == 0
         text = capsys.readouterr().out
         assert "success rate" in text and "(" in text and json.loads((tmp_path / "eval.json").read_text())["seeds"] == [200000, 200001]
-        first = json.loads((out / "summary.json").read_text())["env_steps"]
-        assert main(["train", "--algo", "itd3", "--steps", str(first + 100), "--out", str(out), "--resume", str(ckpt), *TINY_TRAIN]) == 0
+        steps = first["env_steps"]
+        start = own_cpu()
+        assert main(["train", "--algo", "itd3", "--steps", str(steps + 100), "--out", str(out), "--resume", str(ckpt), *TINY_TRAIN]) == 0
+        second_own = own_cpu() - start
         text = capsys.readouterr().out
         assert "resumed from" in text
-        assert json.loads((out / "summary.json").read_text())["env_steps"] >= first + 100
+        second = json.loads((out / "summary.json").read_text())
+        assert second["env_steps"] >= steps + 100
+        # a resumed run's clocks go on from its checkpoint's
+        assert second["run_cpu_s"] >= saved["cpu_s"] + second_own - 0.1 and second["run_wall_s"] > saved["wall_s"] + second["wall_s"] - 0.1
     finally:
         ray.shutdown()
 

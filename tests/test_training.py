@@ -75,3 +75,44 @@ def test_resume_check_ignores_keys_the_algorithm_no_longer_takes_but_not_a_chang
     check_resume(tmp_path, meta, "itd3", "bottleneck", small)  # no error: those keys shaped nothing of ITD3
     with pytest.raises(ValueError, match="another network shape"):  # a key ITD3 takes still counts
         check_resume(tmp_path, meta, "itd3", "bottleneck", small | {"hidden": 32})
+
+
+def test_process_tree_cpu_counts_a_live_child_and_keeps_it_once_reaped():
+    import subprocess
+    import sys
+    import time
+
+    from coin_app.training.monitor import process_tree_cpu_seconds
+
+    burn = "import sys, time\nwhile time.process_time() < 0.4: pass\nprint(time.process_time(), flush=True)\nsys.stdin.read()"
+    before, own_before = process_tree_cpu_seconds(), time.process_time()
+    child = subprocess.Popen([sys.executable, "-c", burn], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        child_cpu = float(child.stdout.readline())  # the child's own CPU seconds; it is still alive, waiting on stdin
+        alive = process_tree_cpu_seconds() - before
+    finally:
+        child.communicate("")
+    reaped = process_tree_cpu_seconds() - before
+    own = time.process_time() - own_before
+    assert own < 0.2 < 0.4 <= child_cpu  # this process did little: the figures below are the child's
+    tick = 0.02  # /proc counts in clock ticks (10 ms)
+    assert alive >= child_cpu - tick  # a live descendant counts
+    assert reaped >= child_cpu - tick and reaped >= alive - tick  # an ended, reaped one still does (its parent's children times)
+    assert reaped <= child_cpu + own + 0.3  # and once only (its startup after readline's figure and exit: well under 0.3 s)
+
+
+def test_run_clock_adds_the_resumed_figures_to_this_segments_cpu_and_wall_time():
+    import time
+
+    from coin_app.training.loop import RunClock
+
+    clock = RunClock({"cpu_s": 1000.0, "wall_s": 500.0})
+    start, t0 = time.process_time(), time.perf_counter()
+    while time.process_time() - start < 0.3:
+        pass
+    read = clock.read()
+    spent, wall = time.process_time() - start, time.perf_counter() - t0
+    assert 1000.0 + spent - 0.02 <= read["cpu_s"] <= 1000.0 + spent + 0.2
+    assert 500.0 + wall <= read["wall_s"] <= 500.0 + wall + 0.2
+    fresh = RunClock().read()
+    assert 0.0 <= fresh["cpu_s"] < 0.1 and 0.0 <= fresh["wall_s"] < 0.1

@@ -35,6 +35,7 @@ from coin_app.training.monitor import (
     _eval_line,
     iteration_metrics,
     outcome_text,
+    process_tree_cpu_seconds,
     ray_noise_to,
 )
 
@@ -59,6 +60,22 @@ class Interrupted(KeyboardInterrupt):
     def at_startup(cls, signal_name: str) -> Interrupted:
         """The stop of a signal received before the first iteration."""
         return cls(signal_name, f"{signal_name} during start-up: stopped before any training (no checkpoint was due)")
+
+
+class RunClock:
+    """A run's cumulative clocks over its segments (a fresh start and each resume): ``cpu_s``, CPU seconds of this process
+    and the processes it started (its local Ray's too) since the clock was made, and ``wall_s``, wall seconds since then;
+    each plus the resumed checkpoint's figures (its metadata's ``cpu_s`` and ``wall_s``; 0 for a fresh run)."""
+
+    def __init__(self, resumed: dict[str, Any] | None = None):
+        resumed = resumed or {}
+        self.cpu_before, self.wall_before = float(resumed.get("cpu_s", 0.0)), float(resumed.get("wall_s", 0.0))
+        self.cpu_start, self.wall_start = process_tree_cpu_seconds(), time.perf_counter()
+
+    def read(self) -> dict[str, float]:
+        """``{"cpu_s": ..., "wall_s": ...}`` now, the earlier segments included."""
+        cpu = self.cpu_before + process_tree_cpu_seconds() - self.cpu_start
+        return {"cpu_s": round(cpu, 3), "wall_s": round(self.wall_before + time.perf_counter() - self.wall_start, 3)}
 
 
 class StopRequest:
@@ -133,18 +150,21 @@ def train(
     ``.prev``, after an interrupted save) of the same algorithm, scenario config and network shape.
     Everything is checked before any work starts. SIGINT / SIGTERM: see :func:`stop_on_signal`.
     ``progress``: the progress bar (``None``: on a terminal only; see ``RunProgress``).
+    Every iteration's metrics, checkpoint and the summary carry the run's ``cpu_s`` and ``wall_s`` (:class:`RunClock`).
     """
     check_train_budget(steps, max_minutes, checkpoint_every, threads)
     check_address(address, connect_timeout)  # an unreachable cluster ends here, in one line, after connect_timeout (Ray running or not)
     out = Path(out)
     with stop_on_signal() as stop:
         cfg = build_config(name, scenario, overrides, seed)
+        resume_meta: dict[str, Any] = {}
         if resume is not None:
             found, resume_meta = latest_complete(resume)
             if found != resume:
                 log(f"{resume} is incomplete (a save was interrupted); resuming from the previous checkpoint {found}")
             resume = found
             check_resume(resume, resume_meta, name, scenario, overrides)
+        clock = RunClock(resume_meta)  # from here: the run's CPU (its Ray session's included) and wall time
         with OutputLock(out, command, "the run directory") as lock:
             if lock.stale_note():
                 log(str(lock.stale_note()))
@@ -178,7 +198,7 @@ def train(
                 resources = ray.cluster_resources()
                 log(f"ray: {where} with {int(resources.get('CPU', 0))} CPUs, {int(resources.get('GPU', 0))} GPUs")
             return _run(cfg, spec, name, scenario, steps, seed, overrides, out, checkpoint_every, resume, log, max_minutes, warmup,
-                        progress, stop)  # fmt: skip
+                        progress, stop, clock)  # fmt: skip
 
 
 def _run(
@@ -197,6 +217,7 @@ def _run(
     warmup: int,
     progress: bool | None,
     stop: StopRequest,
+    clock: RunClock,
 ) -> dict[str, Any]:
     """The run itself, once everything is checked and ``out`` is locked (see :func:`train`)."""
     runner = "batched" if cfg.env_runner_cls is BatchedEnvRunner else "RLlib's multi_agent"
@@ -230,7 +251,7 @@ def _run(
 
         def save_at(env_steps: int) -> int:
             bar.phase("saving checkpoint", 0, 0)
-            save(algo, ckpt, meta | {"env_steps": int(env_steps)})
+            save(algo, ckpt, meta | {"env_steps": int(env_steps)} | clock.read())
             return env_steps
 
         try:
@@ -243,7 +264,7 @@ def _run(
                     stopped = STOPPED_AT_MAX_MINUTES
                     break
                 result = algo.train()
-                m = iteration_metrics(result)
+                m = iteration_metrics(result) | clock.read()
                 per_iteration = per_iteration or m["env_steps"] - sampled
                 sampled = m["env_steps"]
                 bar.advance(sampled)
@@ -252,7 +273,9 @@ def _run(
                 critic = next((m[k] for k in CRITIC_LOSS_KEYS if k in m), np.nan)
                 bar.say(
                     f"iter {it:>4}  env steps {sampled:>8}  {(sampled - start) / max(elapsed, 1e-9):7.1f} steps/s  "
-                    f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}" + outcome_text(m)
+                    f"episode return {m['episode_return_mean']:8.2f}  critic loss {critic:8.4f}"
+                    + outcome_text(m)
+                    + f"  cpu {m['cpu_s'] / 3600:.3f} h"
                 )
                 for key, value in m.items():
                     if math.isfinite(value):
@@ -282,6 +305,8 @@ def _run(
         "env_steps": sampled,
         "iterations": int(result.get("training_iteration", 0)),
         "wall_s": round(time.perf_counter() - t0, 1),
+        "run_cpu_s": clock.read()["cpu_s"],  # every segment of the run (resumed ones too), its Ray session's processes included
+        "run_wall_s": clock.read()["wall_s"],
         "eval": last_eval,
         "stopped": stopped,
     }

@@ -103,13 +103,35 @@ def evaluate_algorithm(algo: Algorithm, seeds: list[int]) -> dict[str, float]:
 
 
 class PeriodicEvaluation(RLlibCallback):
-    """Every ``eval_every`` iterations, the deterministic actor on ``eval_episodes`` validation seeds (``result["coin_eval"]``)."""
+    """Every ``eval_every`` iterations, the deterministic actor on ``eval_episodes`` validation seeds (``result["coin_eval"]``,
+    with ``cpu_s``: this process's CPU seconds the evaluation took)."""
 
     def on_train_result(self, *, algorithm: Algorithm, result: dict, **kwargs: Any) -> None:
         """Add the periodic evaluation to this iteration's result when it is due."""
         every = algorithm.config.eval_every
         if every and result["training_iteration"] % every == 0:
-            result[EVAL_RESULT_KEY] = evaluate_algorithm(algorithm, validation_seeds(algorithm.config.eval_episodes))
+            start = time.process_time()
+            metrics = evaluate_algorithm(algorithm, validation_seeds(algorithm.config.eval_episodes))
+            result[EVAL_RESULT_KEY] = metrics | {"cpu_s": time.process_time() - start}
+
+
+def process_tree_cpu_seconds(pid: int | None = None) -> float:
+    """CPU seconds (user + system) used so far by process ``pid`` (default: this one) and every process it started.
+
+    Live processes count their own time; ended ones count once their parent has reaped them (in that parent's children
+    times), as ``time`` counts a command. A local Ray session's GCS, raylet and workers are this process's descendants.
+    """
+    import psutil  # after ray (imported above): Ray's packaged copy (ray/thirdparty_files), so no dependency of its own
+
+    root = psutil.Process(pid)
+    total = 0.0
+    for proc in [root, *root.children(recursive=True)]:
+        try:
+            t = proc.cpu_times()
+        except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):  # ended (its time is its parent's) or not ours
+            continue
+        total += t.user + t.system + t.children_user + t.children_system
+    return total
 
 
 def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
@@ -120,6 +142,7 @@ def iteration_metrics(result: dict[str, Any]) -> dict[str, float]:
     no agent ended), the acting vehicles' ``mean_speed`` (m/s; NaN without driving agents),
     every scalar learner metric of the shared module (``learner/<name>``) and
     the last periodic evaluation on validation seeds (``eval/<metric>``), if any.
+    The train loop adds the run's clocks (``cpu_s``, ``wall_s``: see ``loop.RunClock``).
     """
     runners = result.get("env_runners", {})
     sampled = result.get("num_env_steps_sampled_lifetime", runners.get("num_env_steps_sampled_lifetime", 0))
