@@ -121,7 +121,7 @@ def process_tree_cpu_seconds(pid: int | None = None) -> float:
     Live processes count their own time; ended ones count once their parent has reaped them (in that parent's children
     times), as ``time`` counts a command. A local Ray session's GCS, raylet and workers are this process's descendants.
     """
-    import psutil  # after ray (imported above): Ray's packaged copy (ray/thirdparty_files), so no dependency of its own
+    import psutil  # optional: after ray (imported above), Ray's packaged copy (ray/thirdparty_files); no dependency of its own
 
     root = psutil.Process(pid)
     total = 0.0
