@@ -31,6 +31,12 @@ from coin_app.sim.vehicle import RaycastVehicles, chassis_basis, turn_matrices
 STATE = ("pos", "rot", "vel", "ang")
 
 
+def _ulps(got: np.ndarray, want: np.ndarray) -> None:
+    """Equal to a few ulp: numpy's arctan2, hypot and exp take SIMD paths on some CPUs (AVX-512 here) that round the
+    last bit otherwise than the C library the kernels call; pure arithmetic is checked to the bit elsewhere."""
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+
+
 def test_turn_matrices_equal_the_numpy_ones_to_the_bit():
     w = np.random.default_rng(0).normal(0.0, 3.0, (200, 3))
     w[0] = 0.0
@@ -74,10 +80,10 @@ def test_lane_queries_equal_the_numpy_ones():
         pos = rng.uniform(m.bounds[:2], m.bounds[2:], (500, 2))
         s = rng.uniform(-5, 60, 500)
         for got, want in zip(m.local_coordinates(lane, pos), ref.local_coordinates(lane, pos)):
-            np.testing.assert_array_equal(got, want)
-        np.testing.assert_array_equal(m.heading_at(lane, s), ref.heading_at(lane, s))
-        np.testing.assert_array_equal(m.position(lane, s, pos[:, 0] / 50), ref.position(lane, s, pos[:, 0] / 50))
-        np.testing.assert_array_equal(m.right_normal(lane, pos), ref.right_normal(lane, pos))
+            _ulps(got, want)
+        _ulps(m.heading_at(lane, s), ref.heading_at(lane, s))
+        _ulps(m.position(lane, s, pos[:, 0] / 50), ref.position(lane, s, pos[:, 0] / 50))
+        _ulps(m.right_normal(lane, pos), ref.right_normal(lane, pos))
         contains = m.hull_contains(pos)
         np.testing.assert_array_equal(contains, ref.hull_contains(pos))
         assert contains.any() and not contains.all()
@@ -193,11 +199,11 @@ def test_a_long_seeded_episode_equals_the_numpy_step(scenario, num_envs, steps, 
     assert all(counts[e] > 0 for e in events), counts
 
 
-def test_arena_heuristic_actions_equal_the_numpy_ones_to_the_bit():
+def test_arena_heuristic_actions_equal_the_numpy_ones():
     """Random observations: the line phase and both kinds of approach (sharp and gentle pursuit) all occur."""
     obs = np.random.default_rng(5).uniform(-1.0, 1.0, (3000, 13))
     actions = heuristic_actions(obs)
-    np.testing.assert_array_equal(actions, numpy_heuristic_actions(obs))
+    _ulps(actions, numpy_heuristic_actions(obs))
     assert len(np.unique(np.abs(actions[:, 1]) == 1.0)) == 2 and (np.abs(actions[:, 0]) < 1.0).mean() > 0.05
 
 

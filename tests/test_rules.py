@@ -21,7 +21,9 @@ def _record_module():
 
 
 @pytest.mark.parametrize("scenario", DRIVING_SCENARIOS)
-def test_long_seeded_episodes_give_the_recorded_rewards_terminations_and_infos_bit_for_bit(scenario):
+def test_long_seeded_episodes_give_the_recorded_rewards_terminations_and_infos(scenario):
+    """Every event, id, flag and count equal to the record; rewards and other floats to float64 round-off (numpy's
+    arctan2 and hypot round the last bit differently on CPUs where they take SIMD paths, AVX-512 among them)."""
     record_module = _record_module()
     with np.load(record_module.RECORD) as f:
         want = {k.split("/", 1)[1]: f[k] for k in f.files if k.startswith(f"{scenario}/")}
@@ -34,7 +36,11 @@ def test_long_seeded_episodes_give_the_recorded_rewards_terminations_and_infos_b
     assert flags[0] > 0 and flags[2] > 0 and want["spawned"].sum() > 0  # the record holds arrivals, exits and respawns
     assert got.keys() == want.keys()
     for key in want:
-        assert got[key].dtype == want[key].dtype and np.array_equal(got[key], want[key]), key
+        assert got[key].dtype == want[key].dtype and got[key].shape == want[key].shape, key
+        if np.issubdtype(want[key].dtype, np.floating):
+            np.testing.assert_allclose(got[key], want[key], rtol=1e-9, atol=1e-9, err_msg=key)
+        else:
+            assert np.array_equal(got[key], want[key]), key
 
 
 # ----------------------------------------------------------------------------- each rule by hand

@@ -61,11 +61,14 @@ def test_a_shipped_driving_policy_reaches_its_recorded_test_success(name):
     test = record["test"]
     seeds = eval_test_seeds(test["episodes"])  # the fixed test seeds the record was measured on
     episodes = evaluate_policy(policy, config, seeds)
-    success = float(np.mean([e["success_rate"] for e in episodes]))
-    collision = float(np.mean([e["collision_rate"] for e in episodes]))
-    # deterministic actions on fixed seeds: the same figures up to float round-off across machines
-    assert success == pytest.approx(test["success_rate"], abs=0.03)
-    assert collision == pytest.approx(test["collision_rate"], abs=0.03)
+    # Deterministic actions on fixed seeds repeat on one machine, but the closed loop is chaotic: another CPU's BLAS
+    # rounds the actor's products otherwise and the episodes part after some steps (0.79 on the machine that recorded
+    # the figure, 0.82 on an AVX-512 one). So each figure must lie within three standard errors of the 20 episodes'
+    # own spread (at least 0.03) of the record: a wrong or untrained file lies far outside.
+    for key in ("success_rate", "collision_rate"):
+        values = np.array([e[key] for e in episodes])
+        spread = max(0.03, 3 * values.std(ddof=1) / np.sqrt(len(values)))
+        assert float(values.mean()) == pytest.approx(test[key], abs=spread), key
 
 
 @pytest.mark.parametrize("name", ARENA)
