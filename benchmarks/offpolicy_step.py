@@ -2,14 +2,16 @@
 
 Usage: python benchmarks/offpolicy_step.py [--tree PATH] [--algos cig_td3 itd3 traco] [--agents 4 30]
                                            [--steps4 40] [--steps30 5] [--precision auto|fp32|bf16]
-                                           [--fragment K] [--other-fragment K]
+                                           [--fragment K] [--other-fragment K] [--envs N] [--other-envs N]
 
 Each case builds the algorithm as training does (``coin_app.training.build_config``): at 4 vehicles
 the reduced protocol's trial (``sweep seeds --scale reduced``, seed 0), at 30 the intersection at
 the paper's density with the algorithm's defaults; ``--precision`` overrides the learner precision
 of both (default: the settings' own; the table names the precision it resolved to), ``--fragment``
 the env steps per training step (``rollout_fragment_length``, K) of this tree and ``--other-fragment``
-of the ``--tree`` one (default 1 each). The warm-up is cut to what fills one batch, so the updates
+of the ``--tree`` one (default 1 each), ``--envs`` / ``--other-envs`` the envs each env runner steps together
+(``num_envs_per_env_runner``; default 1 each: the reduced protocol's; an env step is one env's step, so N envs
+sample N env steps per runner step). The warm-up is cut to what fills one batch, so the updates
 start at once (the time of a step after the warm-up does not depend on its length). After the
 first update it times blocks of ``algo.training_step()`` calls, the loop ``algo.train()`` runs
 (the iteration's end, one per 500 env steps, is not timed), and attributes every second to one
@@ -257,7 +259,7 @@ class Worker:
         if not ray.is_initialized():
             ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
         if req["op"] == "build":
-            return self.build(req["algo"], req["agents"], req.get("precision"), req.get("fragment", 1))
+            return self.build(req["algo"], req["agents"], req.get("precision"), req.get("fragment", 1), req.get("envs", 1))
         if req["op"] == "time":
             return self.time(req["steps"])
         if req["op"] == "stop":
@@ -267,7 +269,7 @@ class Worker:
             return {}
         raise ValueError(f"unknown op {req['op']!r}")
 
-    def build(self, algo_name: str, agents: int, precision: str | None, fragment: int) -> dict[str, Any]:
+    def build(self, algo_name: str, agents: int, precision: str | None, fragment: int, envs: int = 1) -> dict[str, Any]:
         """Build and instrument the case's algorithm and run it until its first update; what was found and the settings."""
         from coin_app.training import build_config  # noqa: I001  (the worker's tree)
 
@@ -285,6 +287,8 @@ class Worker:
             overrides["precision"] = precision
         if fragment != 1:
             overrides["rollout_fragment_length"] = fragment
+        if envs != 1:
+            overrides["num_envs_per_env_runner"] = envs
         probe = build_config(algo_name, "intersection", overrides, 0)
         batch = probe.train_batch_size_per_learner
         overrides["warmup_steps"] = 2 * -(-batch // max(1, agents - 1)) + 10  # a batch of sampleable transitions, then updates
@@ -308,6 +312,7 @@ class Worker:
             "warmup_s": time.perf_counter() - t0,
             "precision": precision,
             "fragment": fragment,
+            "envs": envs,
             "batch": batch,
             "num_agents": cfg.scenario_config().num_agents,
         }
@@ -351,8 +356,10 @@ def main() -> None:
     ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), help="learner precision of every case (default: the settings' own)")
     ap.add_argument("--fragment", type=int, default=1, help="env steps per training step (K) in this tree (default 1)")
     ap.add_argument("--other-fragment", type=int, default=1, help="env steps per training step (K) in the --tree one (default 1)")
+    ap.add_argument("--envs", type=int, default=1, help="envs per env runner in this tree (default 1)")
+    ap.add_argument("--other-envs", type=int, default=1, help="envs per env runner in the --tree one (default 1)")
     args = ap.parse_args()
-    for name in ("steps4", "steps30", "blocks", "fragment", "other_fragment"):
+    for name in ("steps4", "steps30", "blocks", "fragment", "other_fragment", "envs", "other_envs"):
         if getattr(args, name) < 1:
             raise SystemExit(f"bad --{name} {getattr(args, name)}; allowed: an integer >= 1")
     trees = {"this": THIS_TREE}
@@ -366,8 +373,9 @@ def main() -> None:
             for algo in args.algos:
                 steps = args.steps4 if agents == REDUCED_AGENTS else args.steps30
                 fragments = {"this": args.fragment, "other": args.other_fragment}
+                envs = {"this": args.envs, "other": args.other_envs}
                 built = {
-                    n: w.call(op="build", algo=algo, agents=agents, precision=args.precision, fragment=fragments[n])
+                    n: w.call(op="build", algo=algo, agents=agents, precision=args.precision, fragment=fragments[n], envs=envs[n])
                     for n, w in workers.items()
                 }
                 runs: dict[str, list[dict[str, Any]]] = {n: [] for n in workers}
@@ -399,7 +407,7 @@ def report(algo: str, agents: int, built: dict[str, dict], runs: dict[str, list[
     """Print one case's breakdown (ms per env step, wall and CPU, per tree); return per tree the wall and CPU totals and updates."""
     first = next(iter(built.values()))
     scale = "reduced protocol" if agents == REDUCED_AGENTS else "paper density"
-    how = "; ".join(f"{n}: precision {b['precision']}, K={b.get('fragment', 1)}" for n, b in built.items())
+    how = "; ".join(f"{n}: precision {b['precision']}, K={b.get('fragment', 1)}, envs {b.get('envs', 1)}" for n, b in built.items())
     print(f"\n{algo}, intersection, {first['num_agents']} vehicles ({scale}), B={first['batch']}, {how}")
     per_step: dict[tuple[str, str], dict[str, float]] = {}  # (tree, clock) -> piece -> ms per env step
     for n, blocks in runs.items():
