@@ -82,6 +82,7 @@ TEST_CLASS: dict[str, str] = {
             "test_bad_inputs.py::test_report_killed_with_sigkill_in_its_swap_leaves_the_old_report_whole_and_the_next_report_a_whole_new_one",
             "test_sweeps.py::test_gpu_sweep_on_a_local_ray_without_enough_gpus_is_refused",
             "test_sweeps.py::test_reduced_protocol_runs_end_to_end_at_a_tiny_budget",
+            "test_sweeps.py::test_dense_protocol_runs_end_to_end_at_a_tiny_budget",
             "test_sweeps.py::test_ablations_smoke_sweep_end_to_end",
             "test_sweeps.py::test_sweep_logs_every_trial_to_wandb_offline_and_an_mlflow_store",
             "test_sweeps.py::test_sweep_killed_with_sigkill_leaves_no_ray_process_and_resumes_without_rerunning_or_losing_anything",

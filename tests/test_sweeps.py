@@ -24,11 +24,12 @@ from coin_app.algorithms.checkpoint_files import verify
 from coin_app.algorithms.td3.learner import lr_schedule
 from coin_app.cli import main
 from coin_app.evaluation.sweep_results import load_trials, trial_name
+from coin_app.sim.config import make_config
 from coin_app.training import checkpoint_meta
 from tuning import EXPERIMENTS, get_experiment
 from tuning import sweep as sweep_module
 from tuning.ablations import VARIANTS
-from tuning.experiment import expand_grid, trial_layers, trial_overrides
+from tuning.experiment import expand_grid, is_per_method, trial_layers, trial_overrides
 from tuning.progress_csv import aligned_row, read_table, write_table
 from tuning.sweep import check_address, check_local_gpus, validate_trials
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus, trial_resources
@@ -155,7 +156,7 @@ def test_bad_sweeps_are_refused_before_any_work(tmp_path, capsys):
         (["sweep", "seeds", "--smoke", "--address", "nohost"], "bad --address 'nohost'"),
         (["sweep", "seeds", "--smoke", "--resume"], "nothing to resume"),
         (["sweep", "seeds", "--smoke", "--restart", "ippo"], "--restart ippo without --resume"),
-        (["sweep", "seeds", "--scale", "huge"], "unknown scale 'huge'; allowed: paper, reduced, smoke"),
+        (["sweep", "seeds", "--scale", "huge"], "unknown scale 'huge'; allowed: paper, dense, reduced, smoke"),
         (["sweep", "ablations", "--scale", "reduced"], "experiment 'ablations' has no reduced scale; allowed: paper, smoke"),
         (["sweep", "seeds", "--smoke", "--scale", "paper"], "--smoke with --scale paper; allowed: one of them"),
     ]
@@ -228,6 +229,77 @@ def test_reduced_scale_is_the_quick_scenario_with_each_familys_protocol_settings
     }
 
 
+DENSE_METHODS = ("cig_td3", "itd3", "traco", "ippo", "cppo", "mfpo", "copo")
+
+
+def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_and_budget(tmp_path, capsys):
+    seeds = get_experiment("seeds")
+    dense = seeds.scale("dense", "intersection")
+    space = seeds.param_space("intersection", "dense", methods=DENSE_METHODS)
+    trials = expand_grid(space)
+    assert len(trials) == 7 * 5 and {t["seed"] for t in trials} == set(range(5))
+    # the PPO family at its reference budget, the TD3 family at its pilots' (one value: tuning/seeds.py)
+    td3_family = {"cig_td3", "itd3", "traco"}
+    budgets = {m: dense.steps_by_family["td3"] if m in td3_family else 1_000_000 for m in DENSE_METHODS}
+    assert {t["algo"]: t["steps"] for t in trials} == budgets and dense.steps_by_family["td3"] < 1_000_000
+    # Tune resolves the per-method budget as expand_grid does (the grid first, then each trial's method)
+    from ray.tune.search.variant_generator import generate_variants
+
+    tuned = [v for _, v in generate_variants(sweep_module.tune_space(space))]
+    assert sorted((t["algo"], t["seed"], t["steps"]) for t in tuned) == sorted((t["algo"], t["seed"], t["steps"]) for t in trials)
+    by_algo = {t["algo"]: t for t in trials if t["seed"] == 0}
+    assert validate_trials(seeds.param_space("intersection", "dense", methods=DENSE_METHODS, seeds=(0,)))  # each method's builds
+    scenario = make_config("intersection")
+    for algo, trial in by_algo.items():
+        preset = registry.get(algo).presets["dense"]
+        assert trial_overrides(trial) == preset.changes()  # the preset alone: no quick scenario, no reduced decay
+        merged = {s.key: s for s in registry.merged_settings(algo, "intersection", trial_layers(trial))}
+        # the scenario at its defaults: 30 vehicles, MetaDrive's horizon of 1000, respawning, COIN's rewards
+        assert (merged["num_agents"].value, merged["horizon"].value, merged["allow_respawn"].value) == (30, 1000, True)
+        for key in ("num_agents", "horizon", "max_agent_steps", "allow_respawn", "crash_penalty"):
+            assert merged[key].value == getattr(scenario, key) and merged[key].origin.endswith("default"), (algo, key)
+        assert (merged["preset"].value, merged["preset"].origin) == ("paper", "default")  # COIN's (issue 56's part 0 decides)
+    # the PPO family: the paper's settings, the defaults (sampled in the trial's process: one CPU a trial)
+    for algo in ("ippo", "cppo", "mfpo", "copo"):
+        assert registry.get(algo).presets["dense"].changes() == {}
+    assert registry.get("ippo").presets["paper"].changes() == {"num_env_runners": 4}
+    assert trial_resources(by_algo["ippo"]).bundles == [{"CPU": 1}]
+    # the TD3 family: one choice (td3/settings.py), lifted into CIG-TD3 and TraCo with their critics' widths and rates;
+    # TraCo keeps the reduced protocol's individual critic (the same freeze guard)
+    family = registry.get("itd3").presets["dense"].changes()
+    for algo in ("cig_td3", "traco"):
+        assert family.items() <= registry.get(algo).presets["dense"].changes().items()
+    assert registry.get("traco").presets["dense"].individual_critic is True
+    cfg = build_trial_config(by_algo["cig_td3"])
+    scenario_cfg = cfg.env_config["scenario_config"]
+    assert (scenario_cfg.num_agents, scenario_cfg.horizon, scenario_cfg.allow_respawn) == (30, 1000, True)
+    cig = registry.get("cig_td3").presets["dense"]
+    assert (cfg.updates_per_env_step, cfg.hidden, cfg.node_width, cfg.precision) == (
+        cig.updates_per_env_step,
+        cig.hidden,
+        cig.node_width,
+        cig.precision,
+    )
+    assert cig.exploration_noise_initial is None and cig.lr_decay_steps == 0  # constant exploration and rates
+    # --steps overrides every method's budget
+    steered = seeds.param_space("intersection", "dense", methods=("cig_td3", "ippo"), seeds=(0,), steps=700)
+    assert steered["steps"] == 700 and {t["steps"] for t in expand_grid(steered)} == {700}
+    assert is_per_method(seeds.param_space("intersection", "dense", methods=("cig_td3", "ippo"))["steps"])
+    # config prints the trial the sweep runs, with the layer of each setting
+    assert main(["config", "--algo", "cig_td3", "--scale", "dense"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].endswith(f"a cig_td3 trial on intersection, {dense.steps_by_family['td3']:,} env steps")
+    rows = {line.split()[0]: line.split(maxsplit=2)[2] for line in out.splitlines() if line.startswith("  ")}
+    assert rows["num_agents"] == "intersection's default" and rows["horizon"] == "ScenarioConfig default"
+    assert rows["updates_per_env_step"] == "preset 'dense' (coin_app.algorithms.cig_td3.settings)"
+    # made for the intersection: another scene is refused in one line before any work
+    argv = ["sweep", "seeds", "--scenario", "roundabout", "--scale", "dense", "--algos", "cig_td3", "--seeds", "0"]
+    assert main([*argv, "--storage", str(tmp_path / "sweeps")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the dense scale was made for the intersection" in err
+    assert "not the roundabout; allowed: --scenario intersection" in err
+
+
 def test_address_probe_accepts_a_listening_port():
     import socket
 
@@ -291,6 +363,31 @@ def test_reduced_protocol_runs_end_to_end_at_a_tiny_budget(ray_session, tmp_path
     # the rerun, in another worker process (another string hash seed), reproduces the first run
     keys = ("env_steps", "episode_return_mean", "learner/policy_loss", "learner/vf_loss", "learner/lcf_mean")
     assert json.dumps([[r[k] for k in keys] for r in new.results]) == json.dumps([[r[k] for k in keys] for r in old.results])
+
+
+def test_dense_protocol_runs_end_to_end_at_a_tiny_budget(ray_session, tmp_path, capsys):
+    """30 vehicles, horizon 1000: CIG-TD3 two iterations of 500 env steps (the warm-up, then 125 updates), IPPO one of 1,600.
+
+    Measured at a load average of 11 on 2 cores: 58 s (CIG-TD3's iterations 6.7 and 22.6 s, IPPO's 12.8 s, the rest
+    building the two algorithms); ``--steps 1`` (one warm-up iteration, no update) took 29 s at a load of 5.
+    """
+    storage = tmp_path / "sweeps"
+    argv = ["sweep", "seeds", "--scale", "dense", "--algos", "cig_td3", "ippo", "--seeds", "0", "--steps", "501"]
+    assert main([*argv, "--storage", str(storage)]) == 0
+    assert "seeds on intersection (dense scale): 2 trials" in capsys.readouterr().out
+    exp_dir = storage / "seeds-intersection-dense"
+    settings = json.loads((exp_dir / "coin_sweep.json").read_text())
+    assert (settings["scale"], settings["steps"]) == ("dense", 501)  # --steps: one budget for both families
+    trials = {t.config["algo"]: t for t in load_trials(exp_dir)}
+    assert sorted(t.name for t in trials.values()) == ["cig_td3-s0", "ippo-s0"]
+    assert [r["env_steps"] for r in trials["cig_td3"].results] == [500, 1000]
+    assert "learner/global_q_loss" in trials["cig_td3"].results[-1]  # past the warm-up: the 30-vehicle update ran
+    assert [r["env_steps"] for r in trials["ippo"].results] == [registry.get("ippo").presets["dense"].train_batch_size_per_learner]
+    for algo, t in trials.items():
+        assert t.finished and t.config["steps"] == 501
+        meta = json.loads((t.final_checkpoint / "coin_app.json").read_text())
+        # the dense preset alone, on the scenario's defaults (30 vehicles, horizon 1000)
+        assert meta["overrides"] == registry.get(algo).presets["dense"].changes() and meta["env_config"] == {}
 
 
 def test_ablations_smoke_sweep_end_to_end(ray_session, tmp_path, capsys):

@@ -1,11 +1,12 @@
 """What a sweep is: methods x variants x seeds on one scenario, at a named scale, as a Tune param space.
 
 An :class:`Experiment` names the methods (registry algorithms), the variants (named override
-sets: ablations) and, per scale, the seeds, the env-step budget per trial, the checkpoint
-cadence and, for generalization, the agent counts and test seeds to evaluate the final
-checkpoints at. :meth:`Experiment.param_space` turns it into the dict Tune expands with
-``grid_search``; :func:`expand_grid` expands the same grid in plain Python so every
-trial's config is validated (``training.build_config``) before any work starts.
+sets: ablations) and, per scale, the seeds, the env-step budget per trial (one for every method,
+or one per algorithm family), the checkpoint cadence and, for generalization, the agent counts and
+test seeds to evaluate the final checkpoints at. :meth:`Experiment.param_space` turns it into the
+dict Tune expands with ``grid_search`` (a budget that differs between the methods is a
+:func:`per_method` value, resolved per trial); :func:`expand_grid` expands the same grid in plain
+Python so every trial's config is validated (``training.build_config``) before any work starts.
 """
 
 from __future__ import annotations
@@ -16,10 +17,18 @@ from typing import Any
 
 from coin_app.algorithms import registry
 
-SCALES = ("paper", "reduced", "smoke")
+# the scales an experiment may have, largest first, with what each is for (sweep --scale's help)
+SCALES = {
+    "paper": "the paper's settings, a cluster",
+    "dense": "the intersection at the paper's density on one machine, docs/studies/dense_pilots.md",
+    "reduced": "the one-machine protocol of docs/results",
+    "smoke": "tests, CI",
+}
+PER_METHOD = "per_method"  # the key of a param-space value that depends on the trial's method (per_method)
 
-# The scales of each algorithm are presets of its settings (its package's settings.py: paper, reduced, smoke), over the quick
-# scenario at the smoke and reduced scales (registry.quick_scenario). The reduced protocol's TD3 family also decays its
+# The scales of each algorithm are presets of its settings (its package's settings.py: paper, dense, reduced, smoke), over the
+# quick scenario at the smoke and reduced scales (registry.quick_scenario); the dense scale is the scenario's own defaults
+# (the intersection's 30 vehicles, horizon 1000, respawning). The reduced protocol's TD3 family also decays its
 # learning rates to REDUCED_LR_FINAL_FRACTION, and its exploration std to the preset's exploration_noise, over the second half
 # of each trial's budget (reduced_decay): with constant rates the policies learned, then froze or crashed late
 # (docs/results/journal.md).
@@ -31,13 +40,19 @@ class Scale:
     """One size of an experiment: seeds, env steps per trial, checkpoints and (generalization) evaluation grid."""
 
     seeds: tuple[int, ...]
-    steps: int
+    steps: int  # env steps per trial of every method whose family steps_by_family does not name
     checkpoint_every: int  # training iterations between checkpoints (plus one at the end)
     keep: int  # checkpoints kept per trial (the newest)
     test_seeds: int = 20  # episodes per (checkpoint, agent count) in the generalization evaluation
     counts: dict[str, tuple[int, ...]] = field(default_factory=dict)  # scenario -> agent counts to evaluate at
     # the scenes the scale was made for (its horizon, budget and settings were chosen there); None = every scene
     made_for: tuple[str, ...] | None = None
+    # algorithm family (AlgorithmSpec.family: "td3" | "ppo") -> its env steps per trial, in place of steps
+    steps_by_family: dict[str, int] = field(default_factory=dict)
+
+    def budget(self, algo: str) -> int:
+        """Env steps per trial of method ``algo``: its family's budget, else ``steps``."""
+        return self.steps_by_family.get(registry.get(algo).family, self.steps)
 
 
 @dataclass(frozen=True)
@@ -51,13 +66,14 @@ class Experiment:
     paper: Scale
     smoke: Scale
     reduced: Scale | None = None  # the one-machine protocol (None: this experiment has no reduced scale)
+    dense: Scale | None = None  # the paper's density on one machine (None: this experiment has no dense scale)
     variants: dict[str, dict[str, Any]] = field(default_factory=lambda: {"default": {}})
     smoke_variants: tuple[str, ...] | None = None  # a subset of variants at smoke scale (None = all)
     allowed_methods: tuple[str, ...] | None = None  # methods the variants apply to (None = every registry algorithm)
 
     def scale(self, name: str, scenario: str | None = None) -> Scale:
-        """The scale called ``name`` (paper, reduced or smoke); a ValueError if it was not made for ``scenario``."""
-        scales = {"paper": self.paper, "reduced": self.reduced, "smoke": self.smoke}
+        """The scale called ``name`` (one of ``SCALES``); a ValueError if it was not made for ``scenario``."""
+        scales: dict[str, Scale | None] = {n: getattr(self, n) for n in SCALES}
         allowed = ", ".join(n for n in SCALES if scales[n] is not None)
         if name not in SCALES:
             raise ValueError(f"unknown scale {name!r}; allowed: {allowed}")
@@ -65,7 +81,7 @@ class Experiment:
         if found is None:
             raise ValueError(f"experiment {self.name!r} has no {name} scale; allowed: {allowed}")
         if scenario is not None and found.made_for is not None and scenario not in found.made_for:
-            fits = ", ".join(n for n in SCALES if scales[n] is not None and scales[n].made_for is None)
+            fits = ", ".join(n for n, sc in scales.items() if sc is not None and sc.made_for is None)
             raise ValueError(
                 f"the {name} scale was made for the {' and '.join(found.made_for)} (its horizon, budget and settings were chosen "
                 f"there), not the {scenario}; allowed: --scenario {' | '.join(found.made_for)}, or a scale for every scene: {fits}"
@@ -89,13 +105,13 @@ class Experiment:
         if seeds is not None and (not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0):
             raise ValueError(f"bad seeds {list(seeds)}; allowed: distinct integers >= 0")
 
-    def base_config(self, scenario: str, scale: str, steps: int, overrides: dict[str, Any]) -> dict[str, Any]:
-        """The part of every trial's config that does not vary."""
+    def base_config(self, scenario: str, scale: str, steps: int | dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+        """The part of every trial's config that Tune's grid does not vary (``steps``: an int, or a :func:`per_method` value)."""
         return {
             "experiment": self.name,
             "scenario": scenario,
             "scale": scale,
-            "steps": int(steps),
+            "steps": steps,
             "overrides": dict(overrides),
             "variant_overrides": {v: dict(self.variants[v]) for v in self.variant_names(scale)},
         }
@@ -109,11 +125,12 @@ class Experiment:
         steps: int | None = None,
         overrides: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
-        """The Tune param space: grid over method x variant x seed."""
+        """The Tune param space: grid over method x variant x seed; ``steps`` (every trial's budget) or each method's ``Scale.budget``."""
         sc = self.scale(scale, scenario)
         methods = tuple(methods or self.methods)
         self.check(scenario, methods, seeds)
-        return self.base_config(scenario, scale, steps or sc.steps, overrides or {}) | {
+        budgets = per_method({m: int(steps or sc.budget(m)) for m in methods})
+        return self.base_config(scenario, scale, budgets, overrides or {}) | {
             "algo": grid_search(methods),
             "variant": grid_search(self.variant_names(scale)),
             "seed": grid_search(seeds or sc.seeds),
@@ -126,11 +143,25 @@ def grid_search(values: Any) -> dict[str, list[Any]]:
     return {"grid_search": list(values)}
 
 
+def per_method(values: dict[str, Any]) -> Any:
+    """A param-space value by the trial's method (``algo``): the one value when every method has it, else
+    ``{PER_METHOD: values}``, which :func:`expand_grid` resolves per trial (and ``tuning.sweep`` as Tune's ``sample_from``)."""
+    distinct = set(values.values())
+    return next(iter(distinct)) if len(distinct) == 1 else {PER_METHOD: dict(values)}
+
+
+def is_per_method(value: Any) -> bool:
+    """Whether a param-space value is a :func:`per_method` mapping."""
+    return isinstance(value, dict) and set(value) == {PER_METHOD}
+
+
 def expand_grid(space: dict[str, Any]) -> list[dict[str, Any]]:
-    """Every trial config of a param space: its top-level ``grid_search`` axes expanded in plain Python."""
+    """Every trial config of a param space: its top-level ``grid_search`` axes expanded in plain Python, then its
+    :func:`per_method` values resolved for each trial's method."""
     axes = {k: v["grid_search"] for k, v in space.items() if isinstance(v, dict) and set(v) == {"grid_search"}}
     fixed = {k: v for k, v in space.items() if k not in axes}
-    return [fixed | dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
+    trials = [fixed | dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
+    return [{k: v[PER_METHOD][t["algo"]] if is_per_method(v) else v for k, v in t.items()} for t in trials]
 
 
 def reduced_decay(steps: int) -> dict[str, Any]:
@@ -145,8 +176,9 @@ def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     """The named layers of one trial's registry overrides, lowest first: the scale's, the variant's, the user's ``--set``.
 
     Every scale is the algorithm's preset of that name (its settings.py), over the quick scenario at the
-    smoke and reduced scales; the reduced TD3 family's rates and exploration decay over the second half of
-    the budget (``reduced_decay``); paper scale: the PPO family's 4 env runners.
+    smoke and reduced scales (the paper and dense scales: the scenario's defaults); the reduced TD3 family's
+    rates and exploration decay over the second half of the budget (``reduced_decay``); paper scale: the PPO
+    family's 4 env runners.
     ``python -m coin_app config`` prints them.
     """
     algo, scale = config["algo"], config["scale"]

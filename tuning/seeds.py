@@ -2,6 +2,9 @@
 
 The reduced scale (``--scale reduced``) is the same comparison on one small machine: 5 seeds on the
 4-agent scenario (each algorithm's ``reduced`` preset, its package's settings.py; docs/results/README.md).
+The dense scale (``--scale dense``) is the comparison at the paper's density on one machine: 5 seeds on the
+intersection at its defaults (30 vehicles, horizon 1000, respawning), each algorithm's ``dense`` preset, the
+PPO family at its reference budget and the TD3 family at its pilots' (docs/studies/dense_pilots.md).
 """
 
 from coin_app.sim.scenes import DRIVING_SCENARIOS
@@ -16,5 +19,19 @@ SEEDS = Experiment(
     # TD3 family: 10 iterations = 5,000 env steps, all 8 checkpoints kept (the report's validation-seed selection picks among them)
     # the one-machine protocol was chosen on the intersection (docs/results/journal.md): 300-step episodes fit its routes
     reduced=Scale(seeds=tuple(range(5)), steps=40_000, checkpoint_every=10, keep=8, made_for=("intersection",)),
+    # A TD3-family iteration is 500 env steps: every 20 iterations (10k env steps, with each periodic validation of the dense
+    # preset's eval_every 20) and at the end, all 11 of a 110k trial kept for the validation-seed selection. A PPO-family
+    # iteration is its batch, 1,600 env steps (train_batch_size_per_learner): a checkpoint every 32k, the newest 11 kept
+    # (from 704k env steps to the end).
+    dense=Scale(
+        seeds=tuple(range(5)),
+        steps=1_000_000,  # the PPO family's reference budget
+        # the TD3 family: what 0.8 core-hours (the pilots' rule) buys P1's settings on this machine, ~26 ms of CPU per env step
+        # (P1 run again here, P1h: docs/studies/dense_pilots.md); the pilots' later choices change it here
+        steps_by_family={"td3": 110_000},
+        checkpoint_every=20,
+        keep=11,
+        made_for=("intersection",),  # the pilots ran there
+    ),
     smoke=Scale(seeds=(0, 1), steps=1000, checkpoint_every=1, keep=1),
 )

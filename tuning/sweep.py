@@ -32,6 +32,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +47,7 @@ from coin_app.evaluation.outputs import OutputLock, write_text_atomic
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings, trial_name
 from coin_app.training import check_address
 from tuning import get_experiment
-from tuning.experiment import expand_grid, trial_layers
+from tuning.experiment import PER_METHOD, expand_grid, is_per_method, trial_layers
 from tuning.progress_csv import AlignedCSVLogger
 from tuning.reaper import clear_mark, start_reaper
 from tuning.trainable import CoinTrial, build_trial_config, trial_gpus
@@ -79,6 +80,17 @@ def validate_trials(space: dict[str, Any]) -> list[dict[str, Any]]:
     for t in trials:
         build_trial_config(t)
     return trials
+
+
+def tune_space(space: dict[str, Any]) -> dict[str, Any]:
+    """The param space as Tune takes it: each :func:`~tuning.experiment.per_method` value as a ``tune.sample_from`` of the
+    trial's method (Tune resolves the grid first, as ``expand_grid`` does)."""
+    return {k: tune.sample_from(partial(_of_method, v[PER_METHOD])) if is_per_method(v) else v for k, v in space.items()}
+
+
+def _of_method(values: dict[str, Any], config: dict[str, Any]) -> Any:
+    """The value of the trial's method (``config``: the trial's config, its grid resolved)."""
+    return values[config["algo"]]
 
 
 def check_local_gpus(needed: float, started_here: bool) -> None:
@@ -288,7 +300,7 @@ def _run_sweep(
             write_settings(path, settings)
         tuner = tune.Tuner(
             CoinTrial,
-            param_space=space,
+            param_space=tune_space(space),
             tune_config=tune.TuneConfig(
                 max_concurrent_trials=max_concurrent,
                 trial_name_creator=lambda t: trial_name(t.config),

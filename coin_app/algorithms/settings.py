@@ -7,7 +7,7 @@ it, and the official code's value where that differs. The rest derives from the 
 ``hyperparameters`` table, ``python -m coin_app scenarios``, ``python -m coin_app config`` and
 ``docs/reference/config-keys.md``. A child algorithm's class subclasses its family's and holds
 only its difference (:func:`redeclare` changes an inherited default). Presets (paper, quick,
-smoke, reduced, tiny) are values of the class, written in one ``settings.py`` per family.
+smoke, reduced, dense, tiny) are values of the class, written in one ``settings.py`` per family.
 
 Ray-free and torch-free: the command line checks ``--set`` values from here before any work.
 """

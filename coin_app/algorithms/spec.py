@@ -59,7 +59,7 @@ class AlgorithmSpec:
     build: ConfigBuilder | str  # the builder, or "package.module:function" imported when a config is built
     capabilities: Capabilities
     settings: type[Settings]  # every --set key of the algorithm, declared once (coin_app.algorithms.settings)
-    presets: Mapping[str, Settings] = field(default_factory=dict)  # values of ``settings``: paper, quick, smoke, reduced, tiny
+    presets: Mapping[str, Settings] = field(default_factory=dict)  # values of ``settings``: paper, quick, smoke, reduced, dense, tiny
     scenarios: tuple[str, ...] = DRIVING_SCENARIOS
     # scenario values the algorithm sets beneath the user's --set (nav_ppo's stage mix), from its --set values
     scenario_defaults: Callable[[Mapping[str, Any]], dict[str, Any]] = _no_scenario_defaults
@@ -68,6 +68,11 @@ class AlgorithmSpec:
     def hyperparameters(self) -> dict[str, tuple[Any, str]]:
         """``--set`` key -> (default, meaning), from the settings class."""
         return self.settings.hyperparameters()
+
+    @property
+    def family(self) -> str:
+        """``"ppo"`` (on-policy: the PPO family) or ``"td3"`` (the TD3 family): what a sweep scale's per-family budget names."""
+        return "ppo" if self.capabilities.on_policy else "td3"
 
     @property
     def quick(self) -> dict[str, Any]:

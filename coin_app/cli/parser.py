@@ -10,6 +10,7 @@ from coin_app.evaluation.limits import CONNECT_TIMEOUT_S, MAX_EPISODES, MAX_SCEN
 from coin_app.sim.arena.config import GENERATORS, PROTOCOLS
 from coin_app.sim.config import PRESETS
 from coin_app.sim.scenes import DRIVING_SCENARIOS as DRIVING
+from tuning.experiment import SCALES
 
 
 class UsageError(ValueError):
@@ -236,11 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--seeds", type=int, nargs="*", default=None, help="training seeds (default: the scale's; paper: 0..7)")
     sw.add_argument("--steps", type=int, default=None, help="env steps per trial (default: the scale's; paper: 1,000,000)")
     add_set(sw, "overrides for every trial")
-    sw.add_argument(
-        "--scale",
-        default=None,
-        help="paper (the paper's settings, a cluster), reduced (the one-machine protocol of docs/results) or smoke (tests, CI)",
-    )
+    scales = [f"{name} ({what})" for name, what in SCALES.items()]
+    sw.add_argument("--scale", default=None, help=f"{', '.join(scales[:-1])} or {scales[-1]}")
     sw.add_argument("--smoke", action="store_true", help="the same as --scale smoke")
     sw.add_argument("--address", default=None, help="Ray cluster to run on: auto, HOST:PORT or ray://HOST:PORT (default: a local Ray)")
     sw.add_argument("--storage", default=None, help="results root: a path or a URI such as s3://bucket/sweeps (default runs/sweeps)")
@@ -317,7 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     cf = sub.add_parser("config", help="print every merged setting of a run (train's or a sweep trial's) with where it came from")
     cf.add_argument("--algo", default="cig_td3", choices=ALGORITHM_NAMES, help="the algorithm")
     cf.add_argument("--scenario", default="intersection", choices=(*DRIVING, ARENA), help="the scenario")
-    cf.add_argument("--scale", default=None, choices=("paper", "reduced", "smoke"), help="a sweep trial's settings at this scale")
+    cf.add_argument("--scale", default=None, choices=tuple(SCALES), help="a sweep trial's settings at this scale (sweep --scale's)")
     cf.add_argument("--experiment", default="seeds", help="the sweep's experiment, with --scale: seeds | ablations | generalization")
     cf.add_argument("--variant", default="default", help="the experiment's variant, with --scale (ablations: e.g. wo_gat)")
     cf.add_argument("--steps", type=int, default=None, help="env steps per trial, with --scale (default: the scale's)")

@@ -8,7 +8,7 @@ from coin_app.algorithms.checks import BOOL, INF, choice, non_negative, positive
 from coin_app.algorithms.choices import GAT_INITS, GLOBAL_MODULES, LOCAL_MODULES
 from coin_app.algorithms.settings import redeclare, setting
 from coin_app.algorithms.spec import AlgorithmSpec
-from coin_app.algorithms.td3.settings import CAPABILITIES, OPTIM, Td3Settings
+from coin_app.algorithms.td3.settings import CAPABILITIES, OPTIM, SMALL_PRESETS, Td3Settings
 from coin_app.algorithms.td3.settings import PRESETS as TD3_PRESETS
 
 CRITIC = "the centralized critic (cig_td3/critic.py)"
@@ -73,7 +73,7 @@ def _presets() -> dict[str, CigTd3Settings]:
     """The TD3 family's presets with the centralized critic's widths and rate; the small presets in fp32 like their family."""
     out = {name: CigTd3Settings.lift(value) for name, value in TD3_PRESETS.items()}
     small = {"latent_dim": 8, "node_width": 16, "central_critic_lr": 1e-3}
-    for name in ("quick", "smoke", "reduced"):
+    for name in SMALL_PRESETS:
         # fp32: bf16 does not pay at these widths (3.3x the fp32 update on a CPU without bf16, 1.0-1.4x on one with AMX)
         out[name] = replace(out[name], **small, precision="fp32")
     out["tiny"] = replace(out["tiny"], latent_dim=4, node_width=8)

@@ -119,6 +119,11 @@ PRESETS: dict[str, PpoSettings] = {
     "quick": replace(DEFAULT, hidden=64),
     # the reduced protocol: the quick networks with the reference batch, sampled in the trial's process
     "reduced": replace(DEFAULT, hidden=64),
+    # the dense protocol (30 vehicles; sweep seeds --scale dense): the defaults, i.e. the paper's networks, batch and update
+    # (its reference budget, 1M env steps, is the scale's), sampled in the trial's process as reduced is (the paper preset's
+    # four env runners would ask Tune for five CPUs a trial). The scenario stays at COIN's default preset: whether the PPO
+    # family trains with CoPO's crash penalties (metadrive_compat, docs/studies/ippo_dense.md) is issue 56's part 0
+    "dense": DEFAULT,
     # smoke sweeps (tests, CI): a few iterations of a few seconds; the chunk fits the batch
     "smoke": replace(DEFAULT, hidden=64, train_batch_size_per_learner=256, minibatch_size=128, num_epochs=1, rollout_fragment_length=128),
     # the smallest that builds, updates and checkpoints in seconds (registry.tiny_settings): two chunks, two epochs of two minibatches

@@ -167,32 +167,40 @@ QUICK = replace(
     actor_preact_penalty=1e-3,
     actor_preact_threshold=2.0,
 )
+# The reduced protocol (docs/results/README.md; each lever's rule, written before its trials, and the trials:
+# docs/results/journal.md). fp32: at these sizes a bf16 update takes 3.3x the fp32 time (benchmarks/learner_update.py).
+# The stronger freeze guard (10x the quick weight, from |u| = 1): with the quick guard CIG-TD3 froze late in the first
+# sweep. Exploration 0.1 decaying to 0.02 over the second half of the budget with the learning rates
+# (tuning.experiment.reduced_decay): 0.766 -> 0.843 validation success. Minibatches of 256 (the paper's), the actor
+# updated after every critic update (policy_delay 1), a time-out ends the TD target (the paper's d_i): each judged on
+# CIG-TD3 by its rule ("Levers after ..." sections of the journal); the whole TD3 family gets them.
+REDUCED = replace(
+    QUICK,
+    precision="fp32",
+    actor_preact_penalty=0.01,
+    actor_preact_threshold=1.0,
+    exploration_noise_initial=0.1,
+    exploration_noise=0.02,
+    train_batch_size_per_learner=256,
+    policy_delay=1,
+    timeout_bootstrap=False,
+)
 PRESETS: dict[str, Td3Settings] = {
     "paper": DEFAULT,
     "quick": QUICK,
     # smoke sweeps (tests, CI): a short warm-up and one update per ten env steps
     "smoke": replace(QUICK, warmup_steps=200, updates_per_env_step=0.1),
-    # The reduced protocol (docs/results/README.md; each lever's rule, written before its trials, and the trials:
-    # docs/results/journal.md). fp32: at these sizes a bf16 update takes 3.3x the fp32 time (benchmarks/learner_update.py).
-    # The stronger freeze guard (10x the quick weight, from |u| = 1): with the quick guard CIG-TD3 froze late in the first
-    # sweep. Exploration 0.1 decaying to 0.02 over the second half of the budget with the learning rates
-    # (tuning.experiment.reduced_decay): 0.766 -> 0.843 validation success. Minibatches of 256 (the paper's), the actor
-    # updated after every critic update (policy_delay 1), a time-out ends the TD target (the paper's d_i): each judged on
-    # CIG-TD3 by its rule ("Levers after ..." sections of the journal); the whole TD3 family gets them.
-    "reduced": replace(
-        QUICK,
-        precision="fp32",
-        actor_preact_penalty=0.01,
-        actor_preact_threshold=1.0,
-        exploration_noise_initial=0.1,
-        exploration_noise=0.02,
-        train_batch_size_per_learner=256,
-        policy_delay=1,
-        timeout_bootstrap=False,
-    ),
+    "reduced": REDUCED,
+    # The dense protocol (30 vehicles; sweep seeds --scale dense): the pilots' current choice, P1 of
+    # docs/studies/dense_pilots.md (its rule picks each lever, in its order; an adopted lever changes its value here):
+    # reduced's networks, batch, rates, guard and time-outs, with exploration 0.1 constant (the scale decays neither it nor
+    # the rates), one update per 4 env steps and a validation evaluation every 20 iterations (10k env steps)
+    "dense": replace(REDUCED, exploration_noise_initial=None, exploration_noise=0.1, updates_per_env_step=0.25, eval_every=20),
     # the smallest that builds, updates and checkpoints in seconds (registry.tiny_settings)
     "tiny": replace(DEFAULT, warmup_steps=60, train_batch_size_per_learner=16, hidden=16, policy_delay=2, eval_every=0),
 }
+# the presets over the quick settings' small networks and faster rates: CIG-TD3's and TraCo's critics take theirs there too
+SMALL_PRESETS = ("quick", "smoke", "reduced", "dense")
 # RLlib's own keys among the settings: set through AlgorithmConfig.training / env_runners, not as the config's attributes
 RLLIB_KEYS = tuple(k for k, d in Td3Settings.declarations().items() if d.reads == RLLIB)
 CAPABILITIES = Capabilities(on_policy=False, centralized_critic=False, joint_replay=True, periodic_evaluation=True)

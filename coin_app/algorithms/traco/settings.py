@@ -9,7 +9,7 @@ from coin_app.algorithms.checks import BOOL, choice, non_negative, positive
 from coin_app.algorithms.choices import DOMAIN_REWARDS, NEIGHBOUR_FEATURES
 from coin_app.algorithms.settings import redeclare, setting
 from coin_app.algorithms.spec import AlgorithmSpec
-from coin_app.algorithms.td3.settings import CAPABILITIES, OPTIM, Td3Settings
+from coin_app.algorithms.td3.settings import CAPABILITIES, OPTIM, SMALL_PRESETS, Td3Settings
 from coin_app.algorithms.td3.settings import PRESETS as TD3_PRESETS
 
 CRITIC = "the domain critic (traco/networks.py)"
@@ -79,11 +79,12 @@ class TracoSettings(Td3Settings):
 def _presets() -> dict[str, TracoSettings]:
     """The TD3 family's presets; the baseline at the critics' rate where they change it. The reduced protocol adds the optional
     individual critic: with the domain critic alone TraCo collapsed at once to one braking action on seeds 0 and 1 under the
-    protocol's guard, with it both seeds drove (docs/results/journal.md)."""
+    protocol's guard, with it both seeds drove (docs/results/journal.md); the dense protocol keeps that guard, and the critic."""
     out = {name: TracoSettings.lift(value) for name, value in TD3_PRESETS.items()}
-    for name in ("quick", "smoke", "reduced"):
+    for name in SMALL_PRESETS:
         out[name] = replace(out[name], baseline_lr=out[name].critic_lr)
-    out["reduced"] = replace(out["reduced"], individual_critic=True)
+    for name in ("reduced", "dense"):
+        out[name] = replace(out[name], individual_critic=True)
     return out
 
 
