@@ -19,10 +19,11 @@ SEEDS = Experiment(
     # TD3 family: 10 iterations = 5,000 env steps, all 8 checkpoints kept (the report's validation-seed selection picks among them)
     # the one-machine protocol was chosen on the intersection (docs/results/journal.md): 300-step episodes fit its routes
     reduced=Scale(seeds=tuple(range(5)), steps=40_000, checkpoint_every=10, keep=8, made_for=("intersection",)),
-    # A TD3-family iteration is 500 env steps: every 20 iterations (10k env steps, with each periodic validation of the dense
-    # preset's eval_every 20) and at the end, all 11 of a 110k trial kept for the validation-seed selection. A PPO-family
-    # iteration is its batch, 1,600 env steps (train_batch_size_per_learner): a checkpoint every 32k, the newest 11 kept
-    # (from 704k env steps to the end).
+    # A TD3-family iteration is 500 env steps: a checkpoint every 20 iterations (10k env steps, with each periodic validation
+    # of the dense preset's eval_every 20) and at the end. A PPO-family iteration is its batch, 1,600 env steps
+    # (train_batch_size_per_learner): a checkpoint every 32k. The newest 4 are kept (the validation-seed selection picks
+    # among them): a TD3 checkpoint holds its replay (P1's was 648 MB at 75.5k env steps), and 11 kept would be ~85 GB for
+    # the family's 15 trials, more than this machine's disk; 4 are ~40 GB.
     dense=Scale(
         seeds=tuple(range(5)),
         steps=1_000_000,  # the PPO family's reference budget
@@ -30,7 +31,7 @@ SEEDS = Experiment(
         # (P1 run again here, P1h: docs/studies/dense_pilots.md); the pilots' later choices change it here
         steps_by_family={"td3": 110_000},
         checkpoint_every=20,
-        keep=11,
+        keep=4,
         made_for=("intersection",),  # the pilots ran there
     ),
     smoke=Scale(seeds=(0, 1), steps=1000, checkpoint_every=1, keep=1),
