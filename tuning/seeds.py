@@ -27,9 +27,9 @@ SEEDS = Experiment(
     dense=Scale(
         seeds=tuple(range(5)),
         steps=1_000_000,  # the PPO family's reference budget
-        # the TD3 family: what 0.8 core-hours (the pilots' rule) buys P1's settings on this machine, ~26 ms of CPU per env step
-        # (P1 run again here, P1h: docs/studies/dense_pilots.md); the pilots' later choices change it here
-        steps_by_family={"td3": 110_000},
+        # the TD3 family: what 0.8 core-hours (the pilots' rule) bought P1's settings on the AVX-512 machine of 2026-12-01,
+        # 30.4 ms of CPU per env step (P1h, docs/studies/dense_pilots.md); the pilots' later choices change it here
+        steps_by_family={"td3": 95_000},
         checkpoint_every=20,
         keep=4,
         made_for=("intersection",),  # the pilots ran there
