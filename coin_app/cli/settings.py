@@ -35,7 +35,7 @@ def cmd_config(args: argparse.Namespace) -> int:
     what, layers = run_layers(args)
     settings = merged_settings(args.algo, args.scenario, layers)
     print(f"config: {what}")
-    print("layers, lowest first: defaults, " + ", ".join(label for label, layer in layers if layer) + " (empty layers left out)")
+    print("layers, lowest first: " + ", ".join(["defaults", *(label for label, layer in layers if layer)]) + " (empty layers left out)")
     width = max(len(s.key) for s in settings)
     for title, group in (("scenario", [s for s in settings if s.scenario_key]), (args.algo, [s for s in settings if not s.scenario_key])):
         print(f"\n{title} settings:")
