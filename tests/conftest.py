@@ -54,6 +54,7 @@ TEST_CLASS: dict[str, str] = {
             "test_cig_td3_device.py::test_one_remote_learner_trains_syncs_evaluates_and_checkpoints",
             "test_cli.py::test_train_evaluate_and_resume",
             "test_cluster.py::test_submit_a_smoke_sweep_to_a_local_head_and_follow_it",
+            "test_curriculum.py::test_the_training_step_moves_every_env_to_the_full_count_after_the_first_phase",
             "test_copo.py::test_three_advantages_match_a_reference_implementation",
             "test_copo.py::test_copo_trains_moves_the_lcf_and_pushes_it_to_every_env_runner",
             "test_copo.py::test_copo_cli_train_export_evaluate",

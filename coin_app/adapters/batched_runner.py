@@ -182,6 +182,11 @@ class BatchedEnvRunner(EnvRunner, Checkpointable):
         if self.vector_env is not None:
             self.vector_env.set_start_difficulty(difficulty)
 
+    def set_num_agents(self, n: int) -> None:
+        """A driving curriculum's phase: vehicles at reset of every env's episodes started from now on."""
+        if self.vector_env is not None:
+            self.vector_env.set_num_agents(n)
+
     def stop(self) -> None:
         """Release the vector env."""
         if self.vector_env is not None:

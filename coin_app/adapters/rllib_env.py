@@ -155,6 +155,13 @@ class CoinMultiAgentEnv(MultiAgentEnv):
         setter(difficulty)
         self.config = self.driving_env.config
 
+    def set_num_agents(self, n: int) -> None:
+        """A curriculum's phase: vehicles at reset (and the respawn cap) from the next episode on, 1 to the config's num_agents."""
+        setter = getattr(self.driving_env, "set_num_agents", None)
+        if setter is None:
+            raise ValueError(f"a num_agents curriculum needs the native driving simulator; this env runs {type(self.driving_env).__name__}")
+        setter(n)
+
     def set_lcf_distribution(self, mean: float, std: float) -> None:
         """Draw the LCFs of agents spawned from now on from N(mean, std) (an env with LCFs only)."""
         if self.lcf is None:

@@ -96,6 +96,10 @@ class VectorEnv:
         """The arena's curriculum: the start spread of scenarios generated from now on (other scenarios have none)."""
         raise ValueError(f"start_difficulty is an arena setting; this vector env steps {type(self).__name__}")
 
+    def set_num_agents(self, n: int) -> None:
+        """A driving curriculum's phase: vehicles at reset of the episodes started from now on (the arena has none)."""
+        raise ValueError(f"num_agents curricula are a driving setting; this vector env steps {type(self).__name__}")
+
     def close(self) -> None:
         """Nothing to release."""
 
@@ -124,6 +128,10 @@ class DrivingVectorEnv(VectorEnv):
         if self.lcf is None:
             raise RuntimeError("this env has no local coordination factors (env_config has no 'lcf')")
         self.lcf.set_distribution(*check_distribution(mean, std))
+
+    def set_num_agents(self, n: int) -> None:
+        """Vehicles at reset (and the respawn cap) of every env's episodes started from now on: 1 to the config's num_agents."""
+        self.sim.set_num_agents(n)
 
     def reset(self, seed: int | None = None) -> dict[int, dict[str, Any]]:
         """Start new episodes in every env (env ``e`` seeded ``seed + e``); the infos of the vehicles born."""

@@ -71,6 +71,10 @@ class DrivingEnv:
         self.episode_over = bool(res.episode_over[0])
         return out
 
+    def set_num_agents(self, n: int) -> None:
+        """Vehicles at reset (and the respawn cap) from the next ``reset`` on: 1 to the config's num_agents (a curriculum's phase)."""
+        self.sim.set_num_agents(n)
+
     def agent_slot(self, agent_id: str) -> int:
         """Simulator slot of an acting agent."""
         return self._slot_of[agent_id]

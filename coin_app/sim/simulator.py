@@ -108,6 +108,9 @@ class DrivingSimulator:
         self.max_agent_ids = config.num_agents + min(MAX_RESPAWN_PER_STEP, config.num_agents) * config.horizon
         # until an env is reset with a seed it draws from a fixed stream (env e: seed e)
         self.rngs = [np.random.default_rng(e) for e in range(num_envs)]
+        # vehicles at reset and the respawn cap, per env: the config's num_agents unless a curriculum lowered it
+        self.agent_cap = np.full(num_envs, config.num_agents, np.int64)
+        self._next_cap = config.num_agents  # the cap of episodes started from now on (set_num_agents)
         g = m.hull_grid
         self._map_arrays = (  # what road_map.localize reads of the map
             (g.table, g.origin, float(g.cell), g.shape),
@@ -161,6 +164,15 @@ class DrivingSimulator:
             seeds = list(seed)
         return self.reset_envs(np.arange(self.num_envs), seeds)
 
+    def set_num_agents(self, n: int) -> None:
+        """Vehicles at reset (and the respawn cap) of every episode started from now on: 1 to the config's num_agents.
+
+        Episodes in progress keep their cap; slots, the id pool and the spaces stay the config's (a curriculum's phase).
+        """
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= self.cfg.num_agents:
+            raise ValueError(f"num_agents={n!r}; allowed: an integer from 1 to the scenario's num_agents ({self.cfg.num_agents})")
+        self._next_cap = int(n)
+
     def reset_envs(self, envs: np.ndarray, seeds: list[int | None]) -> StepResult:
         """Start new episodes in ``envs`` (others are untouched; their rows in the result are zero)."""
         m, cfg = self.map, self.cfg
@@ -168,8 +180,9 @@ class DrivingSimulator:
         if len(seeds) != len(envs):
             raise ValueError(f"need one seed per env: {len(envs)} envs, {len(seeds)} seeds")
         spawned = np.zeros(self.num_slots, bool)
-        n = cfg.num_agents
+        n = self._next_cap
         for e, sd in zip(envs, seeds):
+            self.agent_cap[e] = n
             rows = self.env_slots(int(e))
             self.status[rows] = EMPTY
             self.agent_num[rows] = -1
@@ -398,7 +411,7 @@ class DrivingSimulator:
             return np.zeros(0, dtype=np.int64)
         e_n, s_n = self.num_envs, self.slots_per_env
         live = (self.status != EMPTY).reshape(e_n, s_n)
-        allowed = np.where(env_ok & (self.env_step < cfg.horizon), cfg.num_agents - live.sum(1), 0)
+        allowed = np.where(env_ok & (self.env_step < cfg.horizon), self.agent_cap - live.sum(1), 0)
         if not (allowed > 0).any():
             return np.zeros(0, dtype=np.int64)
         # which places are blocked by a vehicle of the same env (8 x 3 m box at the place)

@@ -127,6 +127,21 @@ class Td3Settings(Settings):
     lr_final_fraction: float = setting(
         1.0, unit(lo_open=True), "fraction of each learning rate reached at the decay's end and kept after it", reads=OPTIM
     )
+    # an optional curriculum over traffic density (off = the scenario's num_agents throughout, the paper)
+    curriculum_agents: int = setting(
+        0,
+        non_negative("int"),
+        "vehicles at reset (and the respawn cap) during the curriculum's first phase, below the scenario's num_agents "
+        "(0 = no curriculum, the paper)",
+        reads=STEP,
+    )
+    curriculum_steps: int = setting(
+        0,
+        non_negative("int"),
+        "env steps of that first phase; after it every env's next episode has the scenario's num_agents (the replay, the "
+        "networks and the periodic evaluation always see the scenario's)",
+        reads=STEP,
+    )
     learner_threads: int = setting(
         1, positive("int"), "torch threads for updates in the learner's process (more only if a benchmark shows it helps)", reads=OPTIM
     )

@@ -59,6 +59,7 @@ from coin_app.algorithms.common import (
     backend_errors,
     policy_mapping_fn,
     scenario_config_of,
+    set_on_envs,
 )
 from coin_app.algorithms.td3.buffer import JointStepReplayBuffer
 from coin_app.algorithms.td3.learner import Td3TorchLearner
@@ -120,12 +121,32 @@ class Td3Config(AlgorithmConfig):
                 f"num_learners={self.num_learners}; allowed: 0 (local learner) or 1 (one remote learner: one replay, one learner)"
             )
         try:
-            self.scenario_config()
+            errors += self.curriculum_errors(self.scenario_config())
         except ValueError as exc:
             errors.append(str(exc))
         errors += backend_errors(self)
         if errors:
             raise ValueError(f"invalid {self.LABEL} config: " + "; ".join(errors))
+
+    def curriculum_errors(self, scenario: ScenarioConfig) -> list[str]:
+        """One line per invalid curriculum setting on ``scenario`` (both keys set or neither; fewer vehicles; native simulator)."""
+        agents, steps = self.curriculum_agents, self.curriculum_steps
+        if (agents > 0) != (steps > 0):
+            return [f"curriculum_agents={agents} with curriculum_steps={steps}; allowed: both > 0 (a curriculum) or both 0 (none)"]
+        if agents == 0:
+            return []
+        errors = []
+        if agents >= scenario.num_agents:
+            errors.append(f"curriculum_agents={agents}; allowed: 1 to {scenario.num_agents - 1} (fewer than the scenario's num_agents)")
+        if scenario.backend != "native":
+            errors.append(f"curriculum_agents={agents} with backend {scenario.backend!r}; allowed: a curriculum on backend 'native'")
+        return errors
+
+    def curriculum_phase(self, env_steps: int) -> int:
+        """Vehicles at reset for episodes started after ``env_steps`` lifetime env steps (the scenario's after the first phase)."""
+        if self.curriculum_agents > 0 and env_steps < self.curriculum_steps:
+            return self.curriculum_agents
+        return self.scenario_config().num_agents
 
     def combination_errors(self) -> list[str]:
         """One line per invalid combination of well-typed keys (none in TD3; the children's switches have theirs)."""
@@ -186,6 +207,7 @@ class Td3(ProgressReporting, Algorithm):
             step_capacity=max(self.config.replay_capacity // 2 + 64, self.config.replay_capacity // max(1, scen.num_agents - 1)),
         )
         self._update_credit = 0.0
+        self._phase_agents: int | None = None  # the curriculum's vehicles the env runners were last given (None: not yet)
         learner = getattr(self.learner_group, "_learner", None)  # None when the learner is a remote actor
         if learner is not None:  # the learner connector reads the replay's joint records in place
             learner.joint_state.records = self.replay
@@ -195,6 +217,7 @@ class Td3(ProgressReporting, Algorithm):
         """One sample -> replay -> update(s) -> sync cycle: ``rollout_fragment_length`` env steps, then their updates."""
         cfg = self.config
         self._sync_env_steps()
+        self._set_curriculum_phase()
         self.report_progress("sampling", 0, 0)
         with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
             episodes, runner_results = synchronous_parallel_sample(
@@ -239,6 +262,17 @@ class Td3(ProgressReporting, Algorithm):
             if (updates - n_updates) // cfg.policy_delay != updates // cfg.policy_delay:  # a policy step: the actor changed
                 with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
                     self._sync_actor()
+
+    def _set_curriculum_phase(self) -> None:
+        """Give every env runner the curriculum's vehicle count for its next episodes when the phase changes (none: nothing)."""
+        if self.config.curriculum_agents == 0:
+            return
+        lifetime = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
+        agents = self.config.curriculum_phase(lifetime)
+        if agents != self._phase_agents:
+            self.env_runner_group.foreach_env_runner(lambda runner: set_on_envs(runner, "set_num_agents", agents), local_env_runner=True)
+            self._phase_agents = agents
+        self.metrics.log_value("curriculum_agents", agents, window=1)
 
     def joint_delta(self) -> dict[str, Any]:
         """The learner update's keyword for a remote learner: the replay's joint records written since the last update ({} if local)."""
