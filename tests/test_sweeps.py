@@ -249,16 +249,19 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     assert sorted((t["algo"], t["seed"], t["steps"]) for t in tuned) == sorted((t["algo"], t["seed"], t["steps"]) for t in trials)
     by_algo = {t["algo"]: t for t in trials if t["seed"] == 0}
     assert validate_trials(seeds.param_space("intersection", "dense", methods=DENSE_METHODS, seeds=(0,)))  # each method's builds
-    scenario = make_config("intersection")
+    scenario = make_config("intersection", preset="metadrive_compat")
     for algo, trial in by_algo.items():
         preset = registry.get(algo).presets["dense"]
-        assert trial_overrides(trial) == preset.changes()  # the preset alone: no quick scenario, no reduced decay
+        # the preset and the scale's scenario alone: no quick scenario, no reduced decay
+        assert trial_overrides(trial) == preset.changes() | {"preset": "metadrive_compat"}
         merged = {s.key: s for s in registry.merged_settings(algo, "intersection", trial_layers(trial))}
-        # the scenario at its defaults: 30 vehicles, MetaDrive's horizon of 1000, respawning, COIN's rewards
+        # the scenario at its defaults: 30 vehicles, MetaDrive's horizon of 1000, respawning
         assert (merged["num_agents"].value, merged["horizon"].value, merged["allow_respawn"].value) == (30, 1000, True)
-        for key in ("num_agents", "horizon", "max_agent_steps", "allow_respawn", "crash_penalty"):
+        for key in ("num_agents", "horizon", "max_agent_steps", "allow_respawn"):
             assert merged[key].value == getattr(scenario, key) and merged[key].origin.endswith("default"), (algo, key)
-        assert (merged["preset"].value, merged["preset"].origin) == ("paper", "default")  # COIN's (issue 56's part 0 decides)
+        # the authors' code's and CoPO's environment (issue 56's part 0): its penalties and lidar range
+        assert (merged["preset"].value, merged["crash_penalty"].value, merged["lidar_range"].value) == ("metadrive_compat", 10.0, 40.0)
+        assert merged["crash_penalty"].origin == "preset 'metadrive_compat'"
     # the PPO family: the paper's settings, the defaults (sampled in the trial's process: one CPU a trial)
     for algo in ("ippo", "cppo", "mfpo", "copo"):
         assert registry.get(algo).presets["dense"].changes() == {}
@@ -273,6 +276,10 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     cfg = build_trial_config(by_algo["cig_td3"])
     scenario_cfg = cfg.env_config["scenario_config"]
     assert (scenario_cfg.num_agents, scenario_cfg.horizon, scenario_cfg.allow_respawn) == (30, 1000, True)
+    # every method trains in the environment of the authors' code and CoPO's: penalties 10, lidar 40 m
+    for trial in by_algo.values():
+        env = build_trial_config(trial).env_config["scenario_config"]
+        assert (env.crash_penalty, env.out_of_road_penalty, env.lidar_range) == (10.0, 10.0, 40.0)
     cig = registry.get("cig_td3").presets["dense"]
     assert (cfg.updates_per_env_step, cfg.hidden, cfg.node_width, cfg.precision) == (
         cig.updates_per_env_step,
@@ -288,10 +295,11 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     # config prints the trial the sweep runs, with the layer of each setting
     assert main(["config", "--algo", "cig_td3", "--scale", "dense"]) == 0
     out = capsys.readouterr().out
-    assert out.splitlines()[0].endswith(f"a cig_td3 trial on intersection, {dense.steps_by_family['td3']:,} env steps")
+    assert out.splitlines()[0].endswith(f"one cig_td3 trial on intersection, {dense.steps_by_family['td3']:,} env steps")
     rows = {line.split()[0]: line.split(maxsplit=2)[2] for line in out.splitlines() if line.startswith("  ")}
     assert rows["num_agents"] == "intersection's default" and rows["horizon"] == "ScenarioConfig default"
     assert rows["updates_per_env_step"] == "preset 'dense' (coin_app.algorithms.cig_td3.settings)"
+    assert rows["preset"].startswith("dense scale's scenario") and rows["lidar_range"] == "preset 'metadrive_compat'"
     # made for the intersection: another scene is refused in one line before any work
     argv = ["sweep", "seeds", "--scenario", "roundabout", "--scale", "dense", "--algos", "cig_td3", "--seeds", "0"]
     assert main([*argv, "--storage", str(tmp_path / "sweeps")]) == 2

@@ -49,6 +49,8 @@ class Scale:
     made_for: tuple[str, ...] | None = None
     # algorithm family (AlgorithmSpec.family: "td3" | "ppo") -> its env steps per trial, in place of steps
     steps_by_family: dict[str, int] = field(default_factory=dict)
+    # scenario settings every trial of the scale takes (a preset, penalties...), below the variant's and --set
+    scenario: dict[str, Any] = field(default_factory=dict)
 
     def budget(self, algo: str) -> int:
         """Env steps per trial of method ``algo``: its family's budget, else ``steps``."""
@@ -107,7 +109,8 @@ class Experiment:
 
     def base_config(self, scenario: str, scale: str, steps: int | dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
         """The part of every trial's config that Tune's grid does not vary (``steps``: an int, or a :func:`per_method` value)."""
-        return {
+        settings = self.scale(scale).scenario
+        return ({"scale_scenario": dict(settings)} if settings else {}) | {
             "experiment": self.name,
             "scenario": scenario,
             "scale": scale,
@@ -191,6 +194,8 @@ def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     if scale == "reduced" and "lr_decay_start" in spec.keys():  # the TD3 family's late decay
         steps = int(config["steps"])
         layers.append((f"reduced scale: decay over the second half of {steps:,} env steps", reduced_decay(steps)))
+    if config.get("scale_scenario"):
+        layers.append((f"{scale} scale's scenario ({config['experiment']} experiment, tuning/)", dict(config["scale_scenario"])))
     layers.append((f"variant {config['variant']!r}", dict(config["variant_overrides"][config["variant"]])))
     layers.append(("--set", dict(config["overrides"])))
     return layers

@@ -26,7 +26,7 @@ def run_layers(args: argparse.Namespace) -> tuple[str, list[tuple[str, dict]]]:
     steps = args.steps or scale.budget(args.algo)
     trial = experiment.base_config(args.scenario, args.scale, steps, overrides) | {"algo": args.algo, "variant": args.variant}
     trial["variant_overrides"] = {args.variant: dict(experiment.variants[args.variant])}
-    what = f"sweep {args.experiment} --scale {args.scale}: a {args.algo} trial on {args.scenario}, {steps:,} env steps"
+    what = f"sweep {args.experiment} --scale {args.scale}: one {args.algo} trial on {args.scenario}, {steps:,} env steps"
     return what, trial_layers(trial)
 
 

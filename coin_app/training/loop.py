@@ -235,7 +235,8 @@ def _run(
         if spec.capabilities.joint_replay:
             agents = scenario_config_of(cfg).num_agents
             log(f"replay: {cfg.replay_capacity:,} agent transitions, about {cfg.replay_capacity // agents:,} env steps at {agents} agents")
-        freeze = FreezeDetector(warmup)
+        # the TD3 family's full-brake freeze (its advice names their keys); a PPO policy creeps early by design
+        freeze = None if spec.capabilities.on_policy else FreezeDetector(warmup)
         board = SummaryWriter(str(out / TENSORBOARD_DIR))  # what Tune trials write too: tensorboard --logdir <out>
         t0 = time.perf_counter()
         start = sampled = int(algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
@@ -281,7 +282,7 @@ def _run(
                     if math.isfinite(value):
                         board.add_scalar(key, value, global_step=sampled)
                 board.flush()
-                warning = freeze.update(m)
+                warning = freeze.update(m) if freeze is not None else None
                 if warning:
                     bar.say(warning)
                 if EVAL_RESULT_KEY in result:
