@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 from coin_app.cli import main
+from coin_app.evaluation.plots import curve_axes, mean_curve, plot_learning_curves
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
 from coin_app.evaluation.report import learning_curves
 from coin_app.evaluation.sweep_results import load_trials
@@ -277,3 +278,37 @@ def test_learning_curves_keep_the_resumed_rows_of_a_trial_that_ran_steps_again(t
     assert curves["env_steps"].tolist() == [500, 1000, 1500, 2000]
     assert curves["train_success_rate"].tolist() == [0.1, 0.2, 0.3, 0.4]
     assert set(curves["seed"]) == {3} and set(curves["label"]) == {"cig_td3"}
+
+
+def _progress(tmp_path, name, seed, columns):
+    """A trial directory with a progress.csv of ``columns`` and its one table row (the report's view of it)."""
+    trial = tmp_path / name
+    trial.mkdir()
+    pd.DataFrame(columns).to_csv(trial / "progress.csv", index=False)
+    return {"method": "itd3", "variant": "default", "trained_seed": seed, "scenario": "intersection", "checkpoint": str(trial / "c")}
+
+
+def test_learning_curves_against_cpu_and_wall_time_by_hand(tmp_path):
+    # seed 0: success 0.1 per CPU hour; seed 1: 0.3 per CPU hour, recorded at other times
+    rows = [
+        _progress(
+            tmp_path, "a", 0, {"env_steps": [1, 2, 3], "train_success_rate": [0.0, 0.1, 0.2], "cpu_s": [0, 3600, 7200], "wall_s": [0, 1, 2]}
+        ),
+        _progress(
+            tmp_path, "b", 1, {"env_steps": [1, 2], "train_success_rate": [0.0, 0.45], "cpu_s": [1800, 7200], "time_total_s": [5, 9]}
+        ),
+    ]
+    curves = learning_curves(pd.DataFrame(rows))
+    assert curves["wall_s"].tolist() == [0, 1, 2, 5, 9]  # seed 1's sweep ran before trials kept clocks: Tune's own wall time
+    assert curve_axes(curves) == ["cpu_s", "wall_s"]
+    x, mean, std = mean_curve(curves, "train_success_rate", points=3, x="cpu_s")
+    # the grid spans what both reached (1800..7200 s); seed 0 at 1800, 4500, 7200: 0.05, 0.125, 0.2; seed 1: 0, 0.225, 0.45
+    np.testing.assert_allclose(x, [1800, 4500, 7200])
+    np.testing.assert_allclose(mean, [0.025, 0.175, 0.325])
+    np.testing.assert_allclose(std, [0.025, 0.05, 0.125])
+    assert plot_learning_curves(curves.assign(label="itd3"), tmp_path / "c.png", "intersection", {"itd3": "C0"}, "cpu_s").stat().st_size
+    # a run without CPU clocks leaves that axis out
+    no_cpu = learning_curves(
+        pd.DataFrame([rows[0], _progress(tmp_path, "d", 2, {"env_steps": [1], "train_success_rate": [0.0], "time_total_s": [3]})])
+    )
+    assert curve_axes(no_cpu) == ["wall_s"]

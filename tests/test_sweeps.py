@@ -394,8 +394,13 @@ def test_dense_protocol_runs_end_to_end_at_a_tiny_budget(ray_session, tmp_path, 
     for algo, t in trials.items():
         assert t.finished and t.config["steps"] == 501
         meta = json.loads((t.final_checkpoint / "coin_app.json").read_text())
-        # the dense preset alone, on the scenario's defaults (30 vehicles, horizon 1000)
-        assert meta["overrides"] == registry.get(algo).presets["dense"].changes() and meta["env_config"] == {}
+        # the dense preset alone, on the scenario's defaults (30 vehicles, horizon 1000) in the metadrive_compat environment
+        assert meta["overrides"] == registry.get(algo).presets["dense"].changes() | {"preset": "metadrive_compat"}
+        assert meta["env_config"] == {"preset": "metadrive_compat"}
+        # every iteration carries the trial's clocks, and its checkpoint the clocks at its save
+        cpu, wall = [r["cpu_s"] for r in t.results], [r["wall_s"] for r in t.results]
+        assert cpu == sorted(cpu) and wall == sorted(wall) and 0 < cpu[0] and 0 < wall[0]
+        assert meta["cpu_s"] >= cpu[-1] and meta["wall_s"] >= wall[-1]
 
 
 def test_ablations_smoke_sweep_end_to_end(ray_session, tmp_path, capsys):
@@ -497,6 +502,7 @@ def test_sweep_killed_with_sigkill_leaves_no_ray_process_and_resumes_without_rer
         "checkpoints": {c.name: sorted(p.name for p in c.rglob("*")) for c in first.checkpoints},
     }
     interrupted = next(t for t in before if not t.finished)
+    resumed_from = json.loads((interrupted.checkpoints[-1] / "coin_app.json").read_text())
     assert main([*argv, "--resume"]) == 0
     assert "resuming" in capsys.readouterr().out
     after = trials()
@@ -510,6 +516,9 @@ def test_sweep_killed_with_sigkill_leaves_no_ray_process_and_resumes_without_rer
     # it continued from its checkpoint: its env-step count never went back to the start
     steps = [r["env_steps"] for r in resumed.results]
     assert steps[0] == 500 and steps.count(500) == 1 and steps[-1] >= 1000
+    # its clocks continued from the checkpoint's: the rows after it count the killed segment's CPU and wall time too
+    after_restore = [r for r in resumed.results if r["env_steps"] > resumed_from["env_steps"]][-1]
+    assert after_restore["cpu_s"] > resumed_from["cpu_s"] and after_restore["wall_s"] > resumed_from["wall_s"]
     # progress.csv: every row of the resumed trial under the right header (one column order across the restore)
     _check_progress_aligned(resumed)
 

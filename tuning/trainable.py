@@ -3,7 +3,8 @@
 A class trainable, so Tune's own ``CheckpointConfig`` (frequency, keep-N, at end) and
 ``Tuner.restore`` apply. Each ``step`` is one RLlib iteration and reports
 ``training.iteration_metrics`` (env steps, returns, agent outcomes, learner losses, periodic
-validation metrics); the trial is done once ``steps`` env steps are sampled. Checkpoints are
+validation metrics) with the trial's ``cpu_s`` and ``wall_s`` (``training.loop.RunClock``, carried over a
+restore by the checkpoint's metadata); the trial is done once ``steps`` env steps are sampled. Checkpoints are
 coin_app checkpoints (RLlib's layout plus ``coin_app.json``), so ``python -m coin_app
 evaluate|export`` take any of them directly.
 
@@ -28,6 +29,7 @@ from ray.tune import PlacementGroupFactory
 from coin_app.algorithms.checkpoint_files import verify
 from coin_app.training import build_config, checkpoint_meta, iteration_metrics, save
 from coin_app.training.checkpoints import check_restorable
+from coin_app.training.loop import RunClock
 from tuning.experiment import trial_overrides
 
 
@@ -62,6 +64,7 @@ class CoinTrial(tune.Trainable):
 
         self.steps = int(config["steps"])
         self.last: dict[str, Any] = {}
+        self.clock = RunClock()  # the trial's CPU and wall seconds, every segment (a restore carries them over)
         self.algo = build_trial_config(config).build_algo()
         self.meta = checkpoint_meta(
             config["algo"],
@@ -78,13 +81,14 @@ class CoinTrial(tune.Trainable):
         sampled = int(self.algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
         if sampled >= self.steps and self.last:  # restored at or past the budget (a resume right after the last step)
             return self.last | {"done": True}
-        self.last = iteration_metrics(self.algo.train())
+        self.last = iteration_metrics(self.algo.train()) | self.clock.read()
         return self.last | {"done": self.last["env_steps"] >= self.steps}
 
     def save_checkpoint(self, checkpoint_dir: str) -> None:
         """Write a coin_app checkpoint (algorithm state and metadata) into Tune's checkpoint directory."""
 
-        meta = self.meta | {"env_steps": int(self.last.get("env_steps", 0))}  # what evaluation tables report as trained env steps
+        # the trained env steps (what evaluation tables report) and the trial's clocks so far
+        meta = self.meta | {"env_steps": int(self.last.get("env_steps", 0))} | self.clock.read()
         save(self.algo, Path(checkpoint_dir), meta, atomic=False)  # Tune made this directory for this save
 
     def load_checkpoint(self, checkpoint: str) -> None:
@@ -93,6 +97,7 @@ class CoinTrial(tune.Trainable):
         method = self.config["algo"]
         check_restorable(self.algo, Path(checkpoint), meta, f"sweep --resume --restart {method} (reruns its trials with this code)")
         self.algo.restore_from_path(str(Path(checkpoint).resolve()))
+        self.clock = RunClock(meta)  # continues the checkpoint's cpu_s and wall_s
         self.last = {"env_steps": int(self.algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))}
 
     def cleanup(self) -> None:

@@ -119,42 +119,59 @@ def plot_generalization(rows: pd.DataFrame, path: Path, scenario: str, colors: d
     return _save(fig, path)
 
 
-def mean_curve(curves: pd.DataFrame, column: str, points: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(steps, mean, std) of ``column`` over seeds, each seed's curve interpolated onto a common grid.
+def mean_curve(curves: pd.DataFrame, column: str, points: int = 50, x: str = "env_steps") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, mean, std) of ``column`` over seeds, each seed's curve against ``x`` interpolated onto a common grid.
 
-    The grid spans the steps every seed reached (from the largest first point to the smallest last).
+    The grid spans the ``x`` every seed reached (from the largest first point to the smallest last).
     """
-    seeds = [g.dropna(subset=[column]).sort_values("env_steps") for _, g in curves.groupby("seed")]
+    seeds = [g.dropna(subset=[column, x]).sort_values(x) for _, g in curves.groupby("seed")]
     seeds = [g for g in seeds if len(g)]
     if not seeds:
         return np.zeros(0), np.zeros(0), np.zeros(0)
-    lo = max(float(g["env_steps"].iloc[0]) for g in seeds)
-    hi = min(float(g["env_steps"].iloc[-1]) for g in seeds)
+    lo = max(float(g[x].iloc[0]) for g in seeds)
+    hi = min(float(g[x].iloc[-1]) for g in seeds)
     grid = np.linspace(lo, hi, points) if hi > lo else np.array([hi])
-    ys = np.array([np.interp(grid, g["env_steps"].to_numpy(float), g[column].to_numpy(float)) for g in seeds])
+    ys = np.array([np.interp(grid, g[x].to_numpy(float), g[column].to_numpy(float)) for g in seeds])
     return grid, ys.mean(0), ys.std(0)
 
 
-def plot_learning_curves(curves: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:
-    """Training episode return and train success rate vs env steps, mean +- std over seeds, per label."""
+# the x axes of the learning curves: (progress column, axis label, scale to the axis unit)
+CURVE_AXES = {
+    "env_steps": ("env steps", 1.0),
+    "cpu_s": ("CPU hours of the trial (its processes)", 1 / 3600),
+    "wall_s": ("wall-clock hours of the trial", 1 / 3600),
+}
+
+
+def curve_axes(curves: pd.DataFrame) -> list[str]:
+    """The time axes every run of ``curves`` has: ``cpu_s`` and ``wall_s`` where each run recorded them."""
+    runs = curves.groupby(["label", "seed"])
+    return [x for x in ("cpu_s", "wall_s") if x in curves.columns and runs[x].apply(lambda v: v.notna().any()).all()]
+
+
+def plot_learning_curves(curves: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str], x: str = "env_steps") -> Path:
+    """Training episode return and train success rate vs ``x`` (env steps, CPU or wall seconds), mean +- std over seeds, per label."""
     panels = [("episode_return_mean", "episode return (train)"), ("train_success_rate", "success rate (train)")]
     panels = [p for p in panels if p[0] in curves.columns]
+    xlabel, factor = CURVE_AXES[x]
     fig = _figure(5.0 * len(panels), 3.8)
     for k, (column, ylabel) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), k + 1)
         for label, g in curves.groupby("label", sort=False):
-            x, m, s = mean_curve(g, column)
-            if len(x):
-                ax.plot(x, m, color=colors[label], lw=2, label=f"{label} ({_seeds(g['seed'].nunique())})", zorder=_z(colors, label))
-                ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.15)
+            grid, m, s = mean_curve(g, column, x=x)
+            if len(grid):
+                grid = grid * factor
+                ax.plot(grid, m, color=colors[label], lw=2, label=f"{label} ({_seeds(g['seed'].nunique())})", zorder=_z(colors, label))
+                ax.fill_between(grid, m - s, m + s, color=colors[label], alpha=0.15)
         if column == "train_success_rate":
             ax.set_ylim(-0.03, 1.03)
-        ax.set_xlabel("env steps")
+        ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
         if k == 0:
             ax.legend(fontsize=8, frameon=False)
-    fig.suptitle(f"{scenario}: learning curves (mean ± std over seeds)", fontsize=10)
+    against = "" if x == "env_steps" else f" against {xlabel.split(' of ')[0]}"
+    fig.suptitle(f"{scenario}: learning curves{against} (mean ± std over seeds)", fontsize=10)
     return _save(fig, path)
 
 

@@ -9,7 +9,8 @@ every output without changes here. Outputs in ``out``:
 
 ``results.csv`` + ``evaluation.json`` (per-episode table, settings, failures), ``table_main``
 and ``table_ablation`` ``.{md,csv,tex}``, ``stats.csv``, ``radar_<scenario>.png``,
-``generalization_<scenario>.png``, ``learning_curves_<scenario>.png``,
+``generalization_<scenario>.png``, ``learning_curves_<scenario>.png`` (and against the trials' CPU and wall
+hours, ``learning_curves_cpu_s_<scenario>.png`` / ``learning_curves_wall_s_<scenario>.png``, where they recorded them),
 ``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``marl_eval.json``, with
 ``select="validation"`` each trial's checkpoint chosen on validation seeds (``selection.csv``:
 :mod:`coin_app.evaluation.selection`), with
@@ -228,7 +229,9 @@ def learning_curves(table: pd.DataFrame, unreadable: list[dict[str, Any]] | None
             if unreadable is not None:
                 unreadable.append({"path": str(progress), "error": f"unreadable progress.csv ({str(exc).splitlines()[0]})"})
             continue
-        cols = [c for c in ("env_steps", "episode_return_mean", "train_success_rate") if c in df.columns]
+        if "wall_s" not in df.columns and "time_total_s" in df.columns:  # a sweep before trials kept their clocks: Tune's own
+            df = df.assign(wall_s=df["time_total_s"])
+        cols = [c for c in ("env_steps", "episode_return_mean", "train_success_rate", "cpu_s", "wall_s") if c in df.columns]
         if "env_steps" not in cols:
             continue
         df = df.drop_duplicates("env_steps", keep="last").sort_values("env_steps")
@@ -366,6 +369,13 @@ def build_report(
             log,
             lambda c=s_curves, n=scenario: _curves(c, out / f"learning_curves_{n}.png", n, colors),
         )
+        for x in plots.curve_axes(s_curves):  # compute efficiency beside sample efficiency
+            _attempt(
+                f"learning_curves_{x}_{scenario}",
+                figures,
+                log,
+                lambda c=s_curves, n=scenario, x=x: plots.plot_learning_curves(c, out / f"learning_curves_{x}_{n}.png", n, colors, x),
+            )
         for method, g in main[main["scenario"] == scenario].groupby("method", sort=True):
             first = g.sort_values(["trained_seed", "test_seed"]).iloc[0]
             _attempt(
