@@ -74,8 +74,10 @@ def write_html(
     figures: dict[str, Any],
     context: dict[str, Any],
     transfer: pd.DataFrame | None = None,
+    beside: pd.DataFrame | None = None,
 ) -> Path:
-    """Write the report page (with the native -> other-backend gap when ``transfer`` is given); returns its path."""
+    """Write the report page (with the native -> other-backend gap when ``transfer`` is given, and the models at Table
+    5.1's density beside the paper's figures when ``beside`` has rows); returns its path."""
     opts = context["options"]
     fails = context["failures"]
     parts = [
@@ -95,6 +97,13 @@ def write_html(
         "<p>Mean (std) over all test episodes of all trained seeds; best in bold, second underlined.</p>",
     ]
     parts.append(to_html(main_summary))
+    if beside is not None and len(beside):
+        parts += [
+            "<h2>Beside COIN's Table 5.1</h2>",
+            "<p>The models trained at the paper's density: our mean and std over test episodes, the paper's, and the difference "
+            "(ours - paper), in the paper's units (rates in %).</p>",
+            beside.to_html(index=False, float_format=lambda v: f"{v:.2f}", na_rep="-"),
+        ]
     if ablation_summary is not None:
         parts += [f"<h2>Ablations of {escape(opts['method'])}</h2>", to_html(ablation_summary, "Variant")]
     if len(stats):

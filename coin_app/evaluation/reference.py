@@ -29,6 +29,7 @@ import pandas as pd
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.outputs import write_text_atomic
+from coin_app.evaluation.paper_table import TABLE_5_1
 from coin_app.inference.coin_actors import SOURCE, find_coin_actors, load_coin_actor
 from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.scenes import SCENES
@@ -37,7 +38,9 @@ EPISODE_SEED_BASE, EPISODE_SEED_STEP = 1000, 100  # coin_eval.py: episode i runs
 BACKENDS = ("native", "metadrive")
 PRESET = "metadrive_compat"
 # COIN Table 5.1, the COIN row: success, off-road and collision rates (%)
-PAPER = {"intersection": (88.78, 4.13, 3.94), "roundabout": (90.68, 5.36, 3.22), "bottleneck": (96.33, 2.13, 1.57)}
+PAPER = {
+    scene: tuple(TABLE_5_1[scene]["cig_td3"][m][0] for m in ("success_rate", "out_of_road_rate", "collision_rate")) for scene in TABLE_5_1
+}
 RATES = {"success_rate": "success", "collision_rate": "collision", "out_of_road_rate": "off-road", "timeout_rate": "time-out"}
 KEY = ["scene", "backend", "train_seed", "episode_seed"]
 RESULTS, TABLE_CSV, TABLE_MD, SETTINGS = "results.csv", "table.csv", "table.md", "settings.json"

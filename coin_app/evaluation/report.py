@@ -8,7 +8,8 @@ at the other counts); methods and variants come from the data, so a new baseline
 every output without changes here. Outputs in ``out``:
 
 ``results.csv`` + ``evaluation.json`` (per-episode table, settings, failures), ``table_main``
-and ``table_ablation`` ``.{md,csv,tex}``, ``stats.csv``, ``radar_<scenario>.png``,
+and ``table_ablation`` ``.{md,csv,tex}``, ``table_paper.{md,csv}`` (the models trained at Table 5.1's density beside
+the paper's figures: :mod:`coin_app.evaluation.paper_table`), ``stats.csv``, ``radar_<scenario>.png``,
 ``generalization_<scenario>.png``, ``learning_curves_<scenario>.png`` (and against the trials' CPU and wall
 hours, ``learning_curves_cpu_s_<scenario>.png`` / ``learning_curves_wall_s_<scenario>.png``, where they recorded them),
 ``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``marl_eval.json``, with
@@ -36,7 +37,7 @@ import pandas as pd
 
 from coin_app.algorithms.checkpoints import load_checkpoint_policy, scenario_of
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
-from coin_app.evaluation import plots, statistics, tables
+from coin_app.evaluation import paper_table, plots, statistics, tables
 from coin_app.evaluation.embedding import kmeans, tsne
 from coin_app.evaluation.evaluate import run_episode
 from coin_app.evaluation.html_report import write_html
@@ -331,6 +332,10 @@ def build_report(
     models = "; ".join(eval_settings["captions"])
     caption = f"Results at the training agent count ({models}): mean (std) over test episodes"
     files = tables.write_tables(main_summary, out, "table_main", caption)
+    dense = paper_table.at_paper_density(main)
+    beside = paper_table.beside_paper(statistics.summarize(dense)) if len(dense) else pd.DataFrame()
+    if len(beside):
+        files += paper_table.write_beside(beside, out, f"Beside COIN's Table 5.1 ({models}): ours (std over test episodes) / the paper's")
     if (out / SELECTION_FILE).is_file() and options.select == VALIDATION:
         files.append(out / SELECTION_FILE)
     ablation = statistics.ablation_rows(trained, options.method)
@@ -399,7 +404,7 @@ def build_report(
         "evaluation": eval_settings,
         "failures": failures + unreadable,
     }
-    html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context, transfer)
+    html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context, transfer, beside)
     summary = {
         "out": str(shown),
         "episodes": len(table),
