@@ -60,3 +60,62 @@ def test_only_models_trained_and_tested_at_the_papers_density_are_beside_it():
     )
     assert at_paper_density(rows).index.tolist() == [0, 3, 4]
     assert paper_table.PAPER_COUNTS == {"intersection": 30, "roundabout": 40, "bottleneck": 20}
+
+
+def _results(method, seeds, success, count=30, scenario="intersection"):
+    """Result rows of ``method``: 3 test seeds per trained seed, success rates from ``success`` (one per row)."""
+    rows, k = [], 0
+    for seed in seeds:
+        for test_seed in (200000, 200001, 200002):
+            s = success[k % len(success)]
+            k += 1
+            rows.append(
+                {"method": method, "variant": "default", "trained_seed": seed, "test_seed": test_seed, "scenario": scenario}
+                | {"agent_count": count, "trained_agent_count": count, "backend": "native", "success_rate": s}
+                | {"collision_rate": 1 - s, "out_of_road_rate": 0.0, "efficiency": 10 * s, "safety": -10 * (1 - s)}
+                | {"avg_travel_steps": 400.0, "avg_travel_steps_arrived": 300.0, "episode_return": 1.0, "num_vehicles": 40}
+                | {"episode_length": 1000, "wall_time_s": 1.0, "trained_env_steps": 1000, "checkpoint": f"runs/{method}-s{seed}"}
+            )
+    return rows
+
+
+def test_a_report_at_the_papers_density_has_the_paper_beside_it_and_the_authors_row_outside_the_tests(tmp_path, monkeypatch):
+    from coin_app.evaluation import report
+    from coin_app.evaluation.reference import REFERENCE_METHOD
+
+    rows = _results("cig_td3", (0, 1), [0.9, 0.8, 1.0]) + _results("ippo", (0, 1), [0.6, 0.7, 0.5])
+    rows += _results("itd3", (0,), [0.5], count=4, scenario="roundabout")  # 4 vehicles: in the main table, not beside the paper
+    source = tmp_path / "in" / "results.csv"
+    source.parent.mkdir()
+    pd.DataFrame(rows).to_csv(source, index=False)
+    asked = []
+
+    def authors(root, scene, test_seeds, workers, log):
+        asked.append((scene, list(test_seeds)))
+        return pd.DataFrame(_results(REFERENCE_METHOD, (1000, 2000), [0.95]))
+
+    monkeypatch.setattr(report, "test_seed_rows", authors)
+    options = report.ReportOptions(tsne_samples=10, reference_actors=str(tmp_path))
+    report.build_report([source], tmp_path / "out", options, log=lambda _line: None)
+    assert asked == [("intersection", [200000, 200001, 200002])]  # only the scene at the paper's density, on its test seeds
+    main = (tmp_path / "out" / "table_main.md").read_text()
+    assert f"| {REFERENCE_METHOD} |" in main and "| itd3 |" in main and "### roundabout" in main
+    beside = pd.read_csv(tmp_path / "out" / "table_paper.csv")
+    success = beside[beside["metric"] == "success_rate"].set_index("label")
+    assert sorted(success.index) == ["cig_td3", "ippo"]
+    assert math.isclose(success.at["cig_td3", "ours"], 90.0) and math.isclose(success.at["cig_td3", "difference"], 90.0 - 88.78)
+    assert math.isclose(success.at["ippo", "ours"], 60.0) and math.isclose(success.at["ippo", "paper"], 69.96)
+    stats = pd.read_csv(tmp_path / "out" / "stats.csv")
+    assert set(stats["baseline"]) == {"ippo"}  # the authors' actors are a reference row, not a baseline
+    # redrawn from its own results, the authors' rows are read, not evaluated again
+    report.build_report([tmp_path / "out" / "results.csv"], tmp_path / "again", options, log=lambda _line: None)
+    assert len(asked) == 1 and f"| {REFERENCE_METHOD} |" in (tmp_path / "again" / "table_main.md").read_text()
+
+
+def test_a_missing_reference_actors_directory_is_refused_before_any_work(tmp_path):
+    import pytest
+
+    from coin_app.evaluation.report import ReportOptions
+
+    with pytest.raises(ValueError, match=r"bad --reference-actors '.*nowhere'; allowed: a directory of the COIN authors' actors"):
+        ReportOptions(reference_actors=str(tmp_path / "nowhere")).check()

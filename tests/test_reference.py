@@ -231,3 +231,28 @@ def test_tables_are_written_whole_or_not_at_all(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="No space left"):
         reference.write_tables(pd.DataFrame([row | {"success_rate": 0.0}]), tmp_path, {"command": "second"})
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no partial file left, nothing changed
+
+
+def test_the_authors_rows_on_a_reports_test_seeds_are_their_episodes_in_the_results_layout(tmp_path, monkeypatch):
+    from coin_app.evaluation.evaluate import evaluate_policy
+    from coin_app.evaluation.protocol import RESULT_COLUMNS
+    from coin_app.sim.config import make_config
+
+    small = make_config("intersection", "metadrive_compat", num_agents=3, horizon=40, max_agent_steps=40)
+    monkeypatch.setattr(reference, "reference_config", lambda scene, backend: small)
+    (tmp_path / "intersection").mkdir()
+    for seed in (1000, 2000):
+        _save(_official_actor(91, seed), tmp_path / "intersection" / f"TD3_intersection_{seed}_best_model_150_0.90_actor")
+    rows = reference.test_seed_rows(tmp_path, "intersection", [200000, 200001])
+    assert list(rows.columns) == list(RESULT_COLUMNS)
+    assert rows[["trained_seed", "test_seed"]].values.tolist() == [[1000, 200000], [1000, 200001], [2000, 200000], [2000, 200001]]
+    assert set(rows["method"]) == {reference.REFERENCE_METHOD} and set(rows["agent_count"]) == {3}
+    for seed in (1000, 2000):
+        path = tmp_path / "intersection" / f"TD3_intersection_{seed}_best_model_150_0.90_actor"
+        want = evaluate_policy(load_coin_actor(path), small, [200000, 200001])
+        got = rows[rows["trained_seed"] == seed]
+        assert got["success_rate"].tolist() == [w["success_rate"] for w in want]
+        assert got["episode_length"].tolist() == [w["env_steps"] for w in want]
+        assert set(got["checkpoint"]) == {str(path)}
+    with pytest.raises(ValueError, match="no roundabout actors"):
+        reference.test_seed_rows(tmp_path, "roundabout", [200000])

@@ -295,6 +295,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the checkpoint of each trial scored on the test seeds: final (default) | validation (the one best on validation seeds)",
     )
     rp.add_argument("--validation-episodes", type=int, default=10, help="validation seeds per checkpoint with --select validation")
+    rp.add_argument(
+        "--reference-actors",
+        default=None,
+        help="also evaluate the COIN authors' released actors (this directory, see evaluate-reference --actors) on the same test "
+        "seeds, for every scene the report has at Table 5.1's density: the reference row 'coin_authors' (not in the t-tests)",
+    )
     rp.set_defaults(run="sweeps.cmd_report")
 
     sb = sub.add_parser("submit", help="submit a coin_app command to a Ray cluster as a job (ray job submit); prints the job id")

@@ -83,6 +83,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         transfer_test_seeds=args.transfer_test_seeds,
         select=args.select,
         validation_episodes=args.validation_episodes,
+        reference_actors=args.reference_actors,
         command=getattr(args, "command_line", None),
     )
     arena = [Path(p) for p in args.sources if is_arena_eval(p)]  # evaluate-arena outputs: the arena page

@@ -30,6 +30,7 @@ from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.outputs import write_text_atomic
 from coin_app.evaluation.paper_table import TABLE_5_1
+from coin_app.evaluation.protocol import EPISODE_METRICS
 from coin_app.inference.coin_actors import SOURCE, find_coin_actors, load_coin_actor
 from coin_app.sim.config import ScenarioConfig, make_config
 from coin_app.sim.scenes import SCENES
@@ -187,6 +188,47 @@ def run_reference(
 def _run_pair(task: Task) -> tuple[Task, list[dict[str, Any]]]:
     """``(task, run_task(task))`` for the worker pool (one task per process: MetaDrive keeps state in its process)."""
     return task, run_task(task)
+
+
+REFERENCE_METHOD = "coin_authors"  # the label of the authors' actors in a report's tables: a reference row, never a baseline
+
+
+def test_seed_rows(
+    root: Path, scene: str, test_seeds: Sequence[int], workers: int = 1, log: Callable[[str], None] | None = None
+) -> pd.DataFrame:
+    """The authors' actors of ``scene`` (every training seed under ``root``) on a report's ``test_seeds``, natively: one row
+    per episode in the report's results layout (method :data:`REFERENCE_METHOD`, the actor file as its checkpoint).
+
+    The scene is the authors' (:func:`reference_config`) at COIN's vehicle count; a ValueError if ``root`` has no actors of it.
+    """
+    actors = find_coin_actors(root, scene)
+    if not actors:
+        raise ValueError(f"no {scene} actors (TD3_{scene}_<seed>_best_model_*_actor) under {root}")
+    tasks = [Task(scene, "native", seed, path, tuple(int(s) for s in test_seeds)) for seed, path in actors.items()]
+    (log or (lambda _line: None))(f"  the COIN authors' {scene} actors: {len(tasks)} training seeds x {len(test_seeds)} test seeds")
+    if workers == 1 or len(tasks) == 1:
+        done = [_episodes_of(t) for t in tasks]
+    else:
+        with mp.get_context("spawn").Pool(min(workers, len(tasks)), maxtasksperchild=1) as pool:
+            done = list(pool.imap(_episodes_of, tasks))
+    count = reference_config(scene, "native").num_agents
+    rows = []
+    for task, episodes, wall in done:
+        for seed, m in zip(task.episode_seeds, episodes):
+            rows.append(
+                {"method": REFERENCE_METHOD, "variant": "default", "trained_seed": task.train_seed, "test_seed": seed}
+                | {"scenario": scene, "agent_count": count, "trained_agent_count": count, "backend": task.backend}
+                | {k: float(m[k]) for k in EPISODE_METRICS}
+                | {"episode_length": int(m["env_steps"]), "wall_time_s": wall, "trained_env_steps": np.nan, "checkpoint": str(task.actor)}
+            )
+    return pd.DataFrame(rows)
+
+
+def _episodes_of(task: Task) -> tuple[Task, list[dict[str, Any]], float]:
+    """One task's episode metrics (``evaluate_policy``'s) and its wall seconds per episode."""
+    start = time.perf_counter()
+    episodes = evaluate_policy(load_coin_actor(task.actor), reference_config(task.scene, task.backend), task.episode_seeds)
+    return task, episodes, (time.perf_counter() - start) / len(episodes)
 
 
 def summary_table(results: pd.DataFrame) -> pd.DataFrame:

@@ -44,6 +44,7 @@ from coin_app.evaluation.html_report import write_html
 from coin_app.evaluation.latents import collect_latents
 from coin_app.evaluation.marl_eval import run_label, write_marl_eval
 from coin_app.evaluation.protocol import EVALUATION_FILE, EvalRun, Evaluation, read_results, run_evaluation, write_results
+from coin_app.evaluation.reference import REFERENCE_METHOD, test_seed_rows
 from coin_app.evaluation.selection import FINAL, SELECTION_FILE, SELECTIONS, VALIDATION, Candidates, select_checkpoints, selection_caption
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings
 from coin_app.evaluation.transfer import transfer_table, write_transfer
@@ -70,6 +71,7 @@ class ReportOptions:
     transfer_test_seeds: int = 5  # test episodes per model on that backend (the first of the native test seeds)
     select: str = FINAL  # the checkpoint of a trial scored: its final one, or the one best on validation seeds (COIN's "best_model")
     validation_episodes: int = 10  # validation seeds per checkpoint for select="validation"
+    reference_actors: str | None = None  # the COIN authors' actors' directory: their row on the same test seeds (reference.py)
     command: str | None = None  # the command line, recorded in the page
 
     def check(self) -> None:
@@ -95,6 +97,8 @@ class ReportOptions:
             raise ValueError(f"bad --validation-episodes {self.validation_episodes}; allowed: an integer >= 1")
         if self.transfer_test_seeds < 1:
             raise ValueError(f"bad --transfer-test-seeds {self.transfer_test_seeds}; allowed: an integer >= 1")
+        if self.reference_actors is not None and not Path(self.reference_actors).is_dir():
+            raise ValueError(f"bad --reference-actors {self.reference_actors!r}; allowed: a directory of the COIN authors' actors")
         if self.transfer == "metadrive" and not metadrive_available():
             raise ValueError(f"--transfer metadrive needs the metadrive-simulator package, which is not installed; {INSTALL_HINT}")
 
@@ -202,6 +206,21 @@ def evaluate_sources(
     combined = pd.concat([f for f in frames if not f.empty], ignore_index=True)
     combined = combined.drop_duplicates(subset=["checkpoint", "scenario", "agent_count", "test_seed"], keep="last")
     return combined.reset_index(drop=True), failures, settings
+
+
+def with_reference_rows(table: pd.DataFrame, root: Path, workers: int, log: Log) -> pd.DataFrame:
+    """``table`` plus the COIN authors' actors on its test seeds for every scene it has at Table 5.1's density (scenes whose
+    reference rows it already holds, from an earlier report's results, are not evaluated again)."""
+    dense = paper_table.at_paper_density(table[table["method"] != REFERENCE_METHOD])
+    have = set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])
+    frames = [table]
+    for scene, g in dense.groupby("scenario", sort=True):
+        if scene in have:
+            continue
+        frames.append(test_seed_rows(root, str(scene), sorted(int(s) for s in g["test_seed"].unique()), workers, log))
+    if len(frames) == 1:
+        log("  no scene at Table 5.1's density without its reference rows: the authors' actors are not evaluated")
+    return pd.concat(frames, ignore_index=True)
 
 
 def ordered_labels(labels: Sequence[str], method: str) -> list[str]:
@@ -322,6 +341,8 @@ def build_report(
         if sweep["unfinished"]:
             log(f"  note: unfinished trials in {sweep['path']}, their newest checkpoints are evaluated: {', '.join(sweep['unfinished'])}")
     table, failures, eval_settings = evaluate_sources(sources, options, out, log)
+    if options.reference_actors is not None:
+        table = with_reference_rows(table, Path(options.reference_actors), options.workers, log)
     table.to_csv(out / "results.csv", index=False)  # new evaluations and read tables together
     table = table.assign(label=[run_label(m, v) for m, v in zip(table["method"], table["variant"])])
     colors = plots.label_colors(ordered_labels(list(table["label"]) + list(table["method"]), options.method))
@@ -342,7 +363,8 @@ def build_report(
     ablation_summary = statistics.rank_marks(statistics.summarize(ablation)) if len(ablation) else None
     if ablation_summary is not None:
         files += tables.write_tables(ablation_summary, out, "table_ablation", f"Ablations of {options.method}", "Variant")
-    stats = statistics.paired_tests_all_units(main, options.method, alpha=options.alpha)
+    learned = main[main["method"] != REFERENCE_METHOD]  # the authors' actors are a reference row, not a baseline
+    stats = statistics.paired_tests_all_units(learned, options.method, alpha=options.alpha)
     stats.to_csv(out / "stats.csv", index=False)
     files += [out / "stats.csv", write_marl_eval(table, out / "marl_eval.json")]
     transfer = None
@@ -381,7 +403,7 @@ def build_report(
                 log,
                 lambda c=s_curves, n=scenario, x=x: plots.plot_learning_curves(c, out / f"learning_curves_{x}_{n}.png", n, colors, x),
             )
-        for method, g in main[main["scenario"] == scenario].groupby("method", sort=True):
+        for method, g in learned[learned["scenario"] == scenario].groupby("method", sort=True):
             first = g.sort_values(["trained_seed", "test_seed"]).iloc[0]
             _attempt(
                 f"trajectories_{scenario}_{method}",
@@ -425,6 +447,7 @@ def evaluate_transfer(table: pd.DataFrame, options: ReportOptions, out: Path, lo
     The test seeds are the first ``transfer_test_seeds`` of the native ones, so every episode has its native partner.
     """
     trained = statistics.main_rows(statistics.at_training_count(table)).drop_duplicates("checkpoint")
+    trained = trained[trained["method"] != REFERENCE_METHOD]  # the authors' actors are not checkpoints (evaluate-reference)
     steps = trained["trained_env_steps"] if "trained_env_steps" in trained else pd.Series(np.nan, index=trained.index)
     runs = [
         EvalRun(r.method, r.variant, int(r.trained_seed), r.checkpoint, None if pd.isna(n) else int(n))
