@@ -25,7 +25,7 @@ from coin_app.algorithms.td3.learner import lr_schedule
 from coin_app.cli import main
 from coin_app.evaluation.sweep_results import load_trials, trial_name
 from coin_app.sim.config import make_config
-from coin_app.training import checkpoint_meta
+from coin_app.training import checkpoint_meta, iteration_metrics
 from tuning import EXPERIMENTS, get_experiment
 from tuning import sweep as sweep_module
 from tuning.ablations import VARIANTS
@@ -288,6 +288,11 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
         cig.precision,
     )
     assert cig.exploration_noise_initial is None and cig.lr_decay_steps == 0  # constant exploration and rates
+    # the TD3 family keeps its checkpoints best on their periodic validation: the key iteration_metrics gives that figure
+    from coin_app.training import EVAL_RESULT_KEY
+
+    assert dense.keep_best in iteration_metrics({"env_runners": {}, EVAL_RESULT_KEY: {"success_rate": 0.5}})
+    assert registry.get("cig_td3").presets["dense"].eval_every == dense.checkpoint_every  # every checkpoint has its evaluation
     # --steps overrides every method's budget
     steered = seeds.param_space("intersection", "dense", methods=("cig_td3", "ippo"), seeds=(0,), steps=700)
     assert steered["steps"] == 700 and {t["steps"] for t in expand_grid(steered)} == {700}

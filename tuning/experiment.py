@@ -42,13 +42,16 @@ class Scale:
     seeds: tuple[int, ...]
     steps: int  # env steps per trial of every method whose family steps_by_family does not name
     checkpoint_every: int  # training iterations between checkpoints (plus one at the end)
-    keep: int  # checkpoints kept per trial (the newest)
+    keep: int  # checkpoints kept per trial (the newest, or with keep_best the best by that result key; the latest always stays)
     test_seeds: int = 20  # episodes per (checkpoint, agent count) in the generalization evaluation
     counts: dict[str, tuple[int, ...]] = field(default_factory=dict)  # scenario -> agent counts to evaluate at
     # the scenes the scale was made for (its horizon, budget and settings were chosen there); None = every scene
     made_for: tuple[str, ...] | None = None
     # algorithm family (AlgorithmSpec.family: "td3" | "ppo") -> its env steps per trial, in place of steps
     steps_by_family: dict[str, int] = field(default_factory=dict)
+    # the result key (iteration_metrics') whose best `keep` checkpoints a trial keeps besides its latest; None: the newest.
+    # A trial whose results lack the key (no periodic evaluation) keeps its newest.
+    keep_best: str | None = None
     # scenario settings every trial of the scale takes (a preset, penalties...), below the variant's and --set
     scenario: dict[str, Any] = field(default_factory=dict)
 

@@ -21,9 +21,11 @@ SEEDS = Experiment(
     reduced=Scale(seeds=tuple(range(5)), steps=40_000, checkpoint_every=10, keep=8, made_for=("intersection",)),
     # A TD3-family iteration is 500 env steps: a checkpoint every 20 iterations (10k env steps, with each periodic validation
     # of the dense preset's eval_every 20) and at the end. A PPO-family iteration is its batch, 1,600 env steps
-    # (train_batch_size_per_learner): a checkpoint every 32k. The newest 4 are kept (the validation-seed selection picks
-    # among them): a TD3 checkpoint holds its replay (P1's was 648 MB at 75.5k env steps), and 11 kept would be ~85 GB for
-    # the family's 15 trials, more than this machine's disk; 4 are ~40 GB.
+    # (train_batch_size_per_learner): a checkpoint every 32k. 4 are kept besides the latest (the validation-seed selection
+    # picks among them): a TD3 checkpoint holds its replay (P1's was 648 MB at 75.5k env steps), and 11 kept would be ~85 GB
+    # for the family's 15 trials, more than this machine's disk; 5 are ~50 GB. The TD3 family keeps the 4 best by their
+    # periodic validation (every checkpoint has one: eval_every 20 = checkpoint_every), since its dense curves peak and fall
+    # back (docs/studies/dense_pilots.md, P1h); the PPO family, without one, keeps its newest.
     dense=Scale(
         seeds=tuple(range(5)),
         steps=1_000_000,  # the PPO family's reference budget
@@ -32,6 +34,7 @@ SEEDS = Experiment(
         steps_by_family={"td3": 95_000},
         checkpoint_every=20,
         keep=4,
+        keep_best="eval/success_rate",  # iteration_metrics' key of the periodic validation's success (tested)
         made_for=("intersection",),  # the pilots ran there
         # the environment the authors' code and CoPO's baselines trained in (penalties 10, lidar 40 m), one for every method:
         # the PPO family learns only with it (docs/studies/ippo_dense.md), the authors' actors are evaluated in it

@@ -310,7 +310,11 @@ def _run_sweep(
                 name=name,
                 storage_path=root,
                 checkpoint_config=tune.CheckpointConfig(
-                    checkpoint_frequency=sc.checkpoint_every, checkpoint_at_end=True, num_to_keep=sc.keep
+                    checkpoint_frequency=sc.checkpoint_every,
+                    checkpoint_at_end=True,
+                    num_to_keep=sc.keep,
+                    checkpoint_score_attribute=sc.keep_best,
+                    checkpoint_score_order="max",
                 ),
                 failure_config=tune.FailureConfig(max_failures=1),
                 callbacks=[AlignedCSVLogger(), *extra_loggers],  # progress.csv keeps one column order across restores
