@@ -119,3 +119,35 @@ def test_a_missing_reference_actors_directory_is_refused_before_any_work(tmp_pat
 
     with pytest.raises(ValueError, match=r"bad --reference-actors '.*nowhere'; allowed: a directory of the COIN authors' actors"):
         ReportOptions(reference_actors=str(tmp_path / "nowhere")).check()
+
+
+def test_the_authors_actors_transfer_on_the_same_seeds_beside_the_models(tmp_path, monkeypatch):
+    from coin_app.evaluation import report
+    from coin_app.evaluation.protocol import Evaluation
+    from coin_app.evaluation.reference import REFERENCE_METHOD
+
+    source = tmp_path / "in" / "results.csv"
+    source.parent.mkdir()
+    pd.DataFrame(_results("cig_td3", (0,), [0.9])).to_csv(source, index=False)
+    native_authors = pd.DataFrame(_results(REFERENCE_METHOD, (1000,), [0.95]))
+    asked = []
+
+    def authors(root, scene, test_seeds, workers, log, backend="native"):
+        asked.append((backend, list(test_seeds)))
+        rows = native_authors[native_authors["test_seed"].isin(test_seeds)]
+        return rows.assign(backend=backend, success_rate=0.9 if backend == "metadrive" else 0.95)
+
+    def models(runs, seeds, workers, log, backend):  # the sweep's models on MetaDrive: 10 points lower
+        rows = pd.DataFrame(_results("cig_td3", (0,), [0.8]))
+        return Evaluation(rows[rows["test_seed"].isin(seeds)].assign(backend=backend), [], 1.0)
+
+    monkeypatch.setattr(report, "test_seed_rows", authors)
+    monkeypatch.setattr(report, "run_evaluation", models)
+    monkeypatch.setattr(report, "metadrive_available", lambda: True)
+    options = report.ReportOptions(tsne_samples=10, reference_actors=str(tmp_path), transfer="metadrive", transfer_test_seeds=2)
+    report.build_report([source], tmp_path / "out", options, log=lambda _line: None)
+    assert asked == [("native", [200000, 200001, 200002]), ("metadrive", [200000, 200001])]
+    gap = pd.read_csv(tmp_path / "out" / "table_transfer.csv")
+    success = gap[gap["metric"] == "success_rate"].set_index("label")
+    assert math.isclose(success.at[REFERENCE_METHOD, "gap"], -0.05) and math.isclose(success.at["cig_td3", "gap"], -0.1)
+    assert set(success["n"]) == {2}

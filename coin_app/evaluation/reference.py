@@ -194,24 +194,34 @@ REFERENCE_METHOD = "coin_authors"  # the label of the authors' actors in a repor
 
 
 def test_seed_rows(
-    root: Path, scene: str, test_seeds: Sequence[int], workers: int = 1, log: Callable[[str], None] | None = None
+    root: Path,
+    scene: str,
+    test_seeds: Sequence[int],
+    workers: int = 1,
+    log: Callable[[str], None] | None = None,
+    backend: str = "native",
 ) -> pd.DataFrame:
-    """The authors' actors of ``scene`` (every training seed under ``root``) on a report's ``test_seeds``, natively: one row
-    per episode in the report's results layout (method :data:`REFERENCE_METHOD`, the actor file as its checkpoint).
+    """The authors' actors of ``scene`` (every training seed under ``root``) on a report's ``test_seeds`` on ``backend``: one
+    row per episode in the report's results layout (method :data:`REFERENCE_METHOD`, the actor file as its checkpoint).
 
     The scene is the authors' (:func:`reference_config`) at COIN's vehicle count; a ValueError if ``root`` has no actors of it.
     """
     actors = find_coin_actors(root, scene)
     if not actors:
         raise ValueError(f"no {scene} actors (TD3_{scene}_<seed>_best_model_*_actor) under {root}")
-    tasks = [Task(scene, "native", seed, path, tuple(int(s) for s in test_seeds)) for seed, path in actors.items()]
-    (log or (lambda _line: None))(f"  the COIN authors' {scene} actors: {len(tasks)} training seeds x {len(test_seeds)} test seeds")
+    seeds = tuple(int(s) for s in test_seeds)
+    if backend == "native":  # one batched simulator per actor; MetaDrive: one engine (process) per episode
+        tasks = [Task(scene, backend, seed, path, seeds) for seed, path in actors.items()]
+    else:
+        tasks = [Task(scene, backend, seed, path, (s,)) for seed, path in actors.items() for s in seeds]
+    say = log or (lambda _line: None)
+    say(f"  the COIN authors' {scene} actors: {len(actors)} training seeds x {len(seeds)} test seeds on {backend}")
     if workers == 1 or len(tasks) == 1:
         done = [_episodes_of(t) for t in tasks]
     else:
         with mp.get_context("spawn").Pool(min(workers, len(tasks)), maxtasksperchild=1) as pool:
             done = list(pool.imap(_episodes_of, tasks))
-    count = reference_config(scene, "native").num_agents
+    count = reference_config(scene, backend).num_agents
     rows = []
     for task, episodes, wall in done:
         for seed, m in zip(task.episode_seeds, episodes):

@@ -455,8 +455,13 @@ def evaluate_transfer(table: pd.DataFrame, options: ReportOptions, out: Path, lo
     ]
     seeds = sorted(int(s) for s in table["test_seed"].unique())[: options.transfer_test_seeds]
     ev = run_evaluation(runs, seeds, workers=options.workers, log=log, backend=options.transfer)
-    ev.table.to_csv(out / "transfer_results.csv", index=False)
-    return ev.table, [{**f, "backend": options.transfer} for f in ev.failures]
+    frames = [ev.table]
+    if options.reference_actors is not None:  # the authors' actors on the same seeds, on the other simulator too
+        for scene in sorted(set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])):
+            frames.append(test_seed_rows(Path(options.reference_actors), scene, seeds, options.workers, log, options.transfer))
+    other = pd.concat([f for f in frames if not f.empty], ignore_index=True) if len(frames) > 1 else ev.table
+    other.to_csv(out / "transfer_results.csv", index=False)
+    return other, [{**f, "backend": options.transfer} for f in ev.failures]
 
 
 def _curves(curves: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:
