@@ -164,6 +164,19 @@ def test_train_evaluate_and_resume(no_ray, tmp_path, capsys):
         assert second["env_steps"] >= steps + 100
         # a resumed run's clocks go on from its checkpoint's
         assert second["run_cpu_s"] >= saved["cpu_s"] + second_own - 0.1 and second["run_wall_s"] > saved["wall_s"] + second["wall_s"] - 0.1
+        # a CPU budget counts the whole run: one already spent stops a resume before its first iteration, with a checkpoint
+        spent = json.loads((ckpt / "coin_app.json").read_text())["cpu_s"] / 3600  # where the resumed clock starts
+        argv = ["train", "--algo", "itd3", "--steps", "1000000", "--out", str(out), "--resume", str(ckpt), "--max-cpu-hours"]
+        assert main([*argv, f"{spent:.9f}", *TINY_TRAIN]) == 0
+        third = json.loads((out / "summary.json").read_text())
+        assert (third["stopped"], third["env_steps"]) == ("max_cpu_hours", second["env_steps"]) and third["run_cpu_s"] >= spent * 3600
+        assert "stopped early (max_cpu_hours)" in capsys.readouterr().out
+        # three more CPU seconds: it trains until the run has used them, then stops between iterations
+        start_cpu = json.loads((ckpt / "coin_app.json").read_text())["cpu_s"]
+        assert main([*argv, f"{(start_cpu + 3) / 3600:.9f}", *TINY_TRAIN]) == 0
+        fourth = json.loads((out / "summary.json").read_text())
+        assert fourth["stopped"] == "max_cpu_hours" and fourth["run_cpu_s"] >= start_cpu + 3 - 1e-3
+        assert second["env_steps"] <= fourth["env_steps"] < 1_000_000
     finally:
         ray.shutdown()
 
@@ -178,6 +191,8 @@ def test_train_and_evaluate_refuse_bad_input(tmp_path, capsys):
     # training seeds stay below the validation (100000 + k) and test (200000 + k) seeds
     assert main(["train", "--steps", "10", "--seed", "200003", "--out", str(tmp_path / "x")]) == 2
     assert "bad seed 200003; allowed: an integer in [0, 90000)" in capsys.readouterr().err
+    assert main(["train", "--steps", "10", "--max-cpu-hours", "0", "--out", str(tmp_path / "x")]) == 2
+    assert "bad max_cpu_hours 0.0; allowed: a number > 0 or None" in capsys.readouterr().err
     assert main(["evaluate", str(tmp_path / "missing"), "--episodes", "2"]) == 2
     assert "missing" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()  # refused before any work started

@@ -92,6 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", default=None, help="run directory (default runs/<algo>_<scenario>_s<seed>)")
     tr.add_argument("--checkpoint-every", type=int, default=10, help="checkpoint every K training iterations")
     tr.add_argument("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this much wall time")
+    tr.add_argument(
+        "--max-cpu-hours",
+        type=float,
+        default=None,
+        help="stop (with a checkpoint) once the run's CPU time, its Ray processes' and a resumed run's earlier segments "
+        "included, reaches this many hours (checked between iterations)",
+    )
     tr.add_argument("--resume", default=None, help="checkpoint directory to continue from (same algorithm, scenario and network)")
     tr.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out (refused without --resume or this)")
     tr.add_argument(

@@ -22,7 +22,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides = overrides_of(args.set, flags)
     if args.quick:  # the small settings that learn within minutes, beneath the user's --set
         overrides = {**quick_settings(args.algo, args.scenario), **overrides}
-    check_train_budget(args.steps, args.max_minutes, args.checkpoint_every, args.threads)
+    check_train_budget(args.steps, args.max_minutes, args.checkpoint_every, args.threads, args.max_cpu_hours)
     check_timeout(args.connect_timeout, "--connect-timeout")
     resolve_run(args.algo, args.scenario, overrides, args.seed)  # every --set value, the seed and the scenario: Ray-free
     # optional: the training machinery (Ray, RLlib, torch: seconds) only for arguments that passed the checks above
@@ -43,6 +43,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         args.checkpoint_every,
         resume,
         max_minutes=args.max_minutes,
+        max_cpu_hours=args.max_cpu_hours,
         threads=args.threads,
         address=args.address,
         overwrite=args.overwrite,

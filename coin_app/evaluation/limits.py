@@ -30,13 +30,15 @@ def check_count(value: Any, flag: str, limit: int, low: int = 1) -> int:
     return value
 
 
-def check_train_budget(steps: Any, max_minutes: Any, checkpoint_every: Any, threads: Any) -> None:
-    """A ValueError naming the first bad one of ``train``'s budget: steps and checkpoint_every integers >= 1, max_minutes a
-    number > 0 or None, threads an integer >= 1."""
+def check_train_budget(steps: Any, max_minutes: Any, checkpoint_every: Any, threads: Any, max_cpu_hours: Any = None) -> None:
+    """A ValueError naming the first bad one of ``train``'s budget: steps and checkpoint_every integers >= 1, max_minutes and
+    max_cpu_hours numbers > 0 or None, threads an integer >= 1."""
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"bad steps {steps}; allowed: an integer >= 1")
     if max_minutes is not None and not max_minutes > 0:
         raise ValueError(f"bad max_minutes {max_minutes}; allowed: a number > 0 or None")
+    if max_cpu_hours is not None and not max_cpu_hours > 0:
+        raise ValueError(f"bad max_cpu_hours {max_cpu_hours}; allowed: a number > 0 or None")
     if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 1:
         raise ValueError(f"bad checkpoint_every {checkpoint_every}; allowed: an integer >= 1")
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:

@@ -14,6 +14,7 @@ from coin_app.training.config import build_config, fresh_module, with_env_runner
 from coin_app.training.loop import (
     RAY_LOG,
     STOPPED_AT_BUDGET,
+    STOPPED_AT_MAX_CPU,
     STOPPED_AT_MAX_MINUTES,
     TENSORBOARD_DIR,
     Interrupted,
@@ -40,6 +41,7 @@ __all__ = [
     "EVAL_RESULT_KEY",
     "RAY_LOG",
     "STOPPED_AT_BUDGET",
+    "STOPPED_AT_MAX_CPU",
     "STOPPED_AT_MAX_MINUTES",
     "TENSORBOARD_DIR",
     "FreezeDetector",

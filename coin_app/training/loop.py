@@ -45,7 +45,8 @@ TENSORBOARD_DIR = "tensorboard"  # the iteration metrics of a train run as Tenso
 RAY_LOG = "ray.log"  # Ray's and RLlib's log records and Python warnings of a train run, in its --out
 
 
-STOPPED_AT_BUDGET, STOPPED_AT_MAX_MINUTES = "steps", "max_minutes"  # summary["stopped"], or the name of the signal
+# summary["stopped"], or the name of the signal
+STOPPED_AT_BUDGET, STOPPED_AT_MAX_MINUTES, STOPPED_AT_MAX_CPU = "steps", "max_minutes", "max_cpu_hours"
 
 
 class Interrupted(KeyboardInterrupt):
@@ -138,8 +139,10 @@ def train(
     progress: bool | None = None,
     connect_timeout: float = CONNECT_TIMEOUT_S,
     command: str | None = None,
+    max_cpu_hours: float | None = None,
 ) -> dict[str, Any]:
-    """Train for ``steps`` env steps or ``max_minutes`` of wall time; checkpoints every ``checkpoint_every`` iterations and at the end.
+    """Train for ``steps`` env steps, ``max_minutes`` of wall time (this segment) or ``max_cpu_hours`` of the run's CPU time
+    (every segment, :class:`RunClock`), whichever ends first; checkpoints every ``checkpoint_every`` iterations and at the end.
 
     ``threads``: torch threads of this process (its learner and local env runner; one by default,
     as every Ray worker gets). ``address``: a running Ray cluster to use instead of a local session
@@ -152,7 +155,7 @@ def train(
     ``progress``: the progress bar (``None``: on a terminal only; see ``RunProgress``).
     Every iteration's metrics, checkpoint and the summary carry the run's ``cpu_s`` and ``wall_s`` (:class:`RunClock`).
     """
-    check_train_budget(steps, max_minutes, checkpoint_every, threads)
+    check_train_budget(steps, max_minutes, checkpoint_every, threads, max_cpu_hours)
     check_address(address, connect_timeout)  # an unreachable cluster ends here, in one line, after connect_timeout (Ray running or not)
     out = Path(out)
     with stop_on_signal() as stop:
@@ -198,7 +201,7 @@ def train(
                 resources = ray.cluster_resources()
                 log(f"ray: {where} with {int(resources.get('CPU', 0))} CPUs, {int(resources.get('GPU', 0))} GPUs")
             return _run(cfg, spec, name, scenario, steps, seed, overrides, out, checkpoint_every, resume, log, max_minutes, warmup,
-                        progress, stop, clock)  # fmt: skip
+                        progress, stop, clock, max_cpu_hours)  # fmt: skip
 
 
 def _run(
@@ -218,6 +221,7 @@ def _run(
     progress: bool | None,
     stop: StopRequest,
     clock: RunClock,
+    max_cpu_hours: float | None = None,
 ) -> dict[str, Any]:
     """The run itself, once everything is checked and ``out`` is locked (see :func:`train`)."""
     runner = "batched" if cfg.env_runner_cls is BatchedEnvRunner else "RLlib's multi_agent"
@@ -246,7 +250,7 @@ def _run(
         bar = RunProgress(steps, start, log, progress)
         if isinstance(algo, ProgressReporting):  # long iterations: their updates are shown as they go
             algo.progress_callback = bar.phase
-        stopped = STOPPED_AT_BUDGET  # why the loop ended: the budget, max_minutes or a signal's name
+        stopped = STOPPED_AT_BUDGET  # why the loop ended: the budget, max_minutes, max_cpu_hours or a signal's name
         saved = None  # env steps of the newest checkpoint written by this run
         per_iteration = 0  # env steps the first iteration sampled (an iteration's batch)
 
@@ -263,6 +267,9 @@ def _run(
             while sampled < steps and stop.signal is None:
                 if max_minutes is not None and time.perf_counter() - t0 >= 60.0 * max_minutes:
                     stopped = STOPPED_AT_MAX_MINUTES
+                    break
+                if max_cpu_hours is not None and clock.read()["cpu_s"] >= 3600.0 * max_cpu_hours:
+                    stopped = STOPPED_AT_MAX_CPU
                     break
                 result = algo.train()
                 m = iteration_metrics(result) | clock.read()
