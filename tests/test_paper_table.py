@@ -102,7 +102,8 @@ def test_a_report_at_the_papers_density_has_the_paper_beside_it_and_the_authors_
     assert f"| {REFERENCE_METHOD} |" in main and "| itd3 |" in main and "### roundabout" in main
     beside = pd.read_csv(tmp_path / "out" / "table_paper.csv")
     success = beside[beside["metric"] == "success_rate"].set_index("label")
-    assert sorted(success.index) == ["cig_td3", "ippo"]
+    assert sorted(success.index) == ["cig_td3", "coin_authors", "ippo"]
+    assert (success.at["coin_authors", "ours"], success.at["coin_authors", "paper"]) == (95.0, 88.78)  # beside COIN's row
     assert math.isclose(success.at["cig_td3", "ours"], 90.0) and math.isclose(success.at["cig_td3", "difference"], 90.0 - 88.78)
     assert math.isclose(success.at["ippo", "ours"], 60.0) and math.isclose(success.at["ippo", "paper"], 69.96)
     stats = pd.read_csv(tmp_path / "out" / "stats.csv")
@@ -151,3 +152,24 @@ def test_the_authors_actors_transfer_on_the_same_seeds_beside_the_models(tmp_pat
     success = gap[gap["metric"] == "success_rate"].set_index("label")
     assert math.isclose(success.at[REFERENCE_METHOD, "gap"], -0.05) and math.isclose(success.at["cig_td3", "gap"], -0.1)
     assert set(success["n"]) == {2}
+
+
+def test_a_scene_without_the_authors_actors_is_named_and_the_report_goes_on(tmp_path, monkeypatch):
+    from coin_app.evaluation import report
+    from coin_app.evaluation.reference import REFERENCE_METHOD
+
+    source = tmp_path / "in" / "results.csv"
+    source.parent.mkdir()
+    pd.DataFrame(_results("cig_td3", (0,), [0.9]) + _results("ippo", (0,), [0.6])).to_csv(source, index=False)
+
+    def missing(root, scene, test_seeds, workers, log):
+        raise ValueError(f"no {scene} actors (TD3_{scene}_<seed>_best_model_*_actor) under {root}")
+
+    monkeypatch.setattr(report, "test_seed_rows", missing)
+    options = report.ReportOptions(tsne_samples=10, reference_actors=str(tmp_path))
+    summary = report.build_report([source], tmp_path / "out", options, log=lambda _line: None)
+    assert [f["error"] for f in summary["failures"]] == [
+        f"ValueError: no intersection actors (TD3_intersection_<seed>_best_model_*_actor) under {tmp_path}"
+    ]
+    main = (tmp_path / "out" / "table_main.md").read_text()
+    assert "| cig_td3 |" in main and REFERENCE_METHOD not in main

@@ -312,3 +312,4 @@ def test_learning_curves_against_cpu_and_wall_time_by_hand(tmp_path):
         pd.DataFrame([rows[0], _progress(tmp_path, "d", 2, {"env_steps": [1], "train_success_rate": [0.0], "time_total_s": [3]})])
     )
     assert curve_axes(no_cpu) == ["wall_s"]
+    assert curve_axes(curves[curves["scenario"] == "roundabout"]) == []  # a scene without curves draws none

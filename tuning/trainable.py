@@ -3,8 +3,9 @@
 A class trainable, so Tune's own ``CheckpointConfig`` (frequency, keep-N, at end) and
 ``Tuner.restore`` apply. Each ``step`` is one RLlib iteration and reports
 ``training.iteration_metrics`` (env steps, returns, agent outcomes, learner losses, periodic
-validation metrics) with the trial's ``cpu_s`` and ``wall_s`` (``training.loop.RunClock``, carried over a
-restore by the checkpoint's metadata); the trial is done once ``steps`` env steps are sampled. Checkpoints are
+validation metrics; the trial's last iteration is evaluated too) with the trial's ``cpu_s`` and ``wall_s``
+(``training.loop.RunClock``, carried over a restore by the checkpoint's metadata: the trial's process and its children,
+not remote env runners or learners, which Ray starts elsewhere); the trial is done once ``steps`` env steps are sampled. Checkpoints are
 coin_app checkpoints (RLlib's layout plus ``coin_app.json``), so ``python -m coin_app
 evaluate|export`` take any of them directly.
 
@@ -30,6 +31,7 @@ from coin_app.algorithms.checkpoint_files import verify
 from coin_app.training import build_config, checkpoint_meta, iteration_metrics, save
 from coin_app.training.checkpoints import check_restorable
 from coin_app.training.loop import RunClock
+from coin_app.training.monitor import EVAL_RESULT_KEY, validation_metrics
 from tuning.experiment import trial_overrides
 
 
@@ -81,8 +83,13 @@ class CoinTrial(tune.Trainable):
         sampled = int(self.algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0))
         if sampled >= self.steps and self.last:  # restored at or past the budget (a resume right after the last step)
             return self.last | {"done": True}
-        self.last = iteration_metrics(self.algo.train()) | self.clock.read()
-        return self.last | {"done": self.last["env_steps"] >= self.steps}
+        result = self.algo.train()
+        done = iteration_metrics(result)["env_steps"] >= self.steps
+        if done and getattr(self.algo.config, "eval_every", 0) and EVAL_RESULT_KEY not in result:
+            # the last iteration is evaluated too, so the final checkpoint has the score its siblings are kept by (keep_best)
+            result[EVAL_RESULT_KEY] = validation_metrics(self.algo)
+        self.last = iteration_metrics(result) | self.clock.read()
+        return self.last | {"done": done}
 
     def save_checkpoint(self, checkpoint_dir: str) -> None:
         """Write a coin_app checkpoint (algorithm state and metadata) into Tune's checkpoint directory."""

@@ -18,7 +18,10 @@ from coin_app.evaluation.statistics import METRIC_BY_KEY, METRICS
 
 PAPER_COUNTS = {"intersection": 30, "roundabout": 40, "bottleneck": 20}  # initial vehicles of each scene in Table 5.1
 PAPER_METRICS = tuple(m.key for m in METRICS)  # the table's columns, in its order
+AUTHORS = "coin_authors"  # the label of the COIN authors' released actors in a report: beside the paper's COIN row
 PAPER_NAMES = {"ippo": "IPPO", "mfpo": "MFPO", "cppo": "CPPO", "copo": "CoPo", "itd3": "ITD3", "traco": "TraCo", "cig_td3": "COIN"}
+PAPER_NAMES[AUTHORS] = "COIN, the authors' actors"
+PAPER_ROW = {AUTHORS: "cig_td3"}  # a label's Table 5.1 row where it is not the label's own
 
 _ROWS = {  # (mean, std) per metric in PAPER_METRICS' order, as printed in Table 5.1
     "intersection": {
@@ -70,11 +73,12 @@ def beside_paper(summary: pd.DataFrame) -> pd.DataFrame:
     """A summary's rows (scenario, label, metric, mean, std, n) that Table 5.1 has, beside the paper's, in its units.
 
     ``summary`` must be at the paper's density of each scene (the caller filters by training agent count);
-    labels are method names (``cig_td3``, ``ippo``...), others are left out. ``difference`` = ours - paper.
+    labels are method names (``cig_td3``, ``ippo``...; the authors' actors, :data:`AUTHORS`, beside the paper's COIN row),
+    others are left out. ``difference`` = ours - paper.
     """
     rows = []
     for r in summary.itertuples():
-        paper = paper_figure(str(r.scenario), str(r.label), str(r.metric))
+        paper = paper_figure(str(r.scenario), PAPER_ROW.get(str(r.label), str(r.label)), str(r.metric))
         if paper is None:
             continue
         scale = METRIC_BY_KEY[r.metric].scale
@@ -90,7 +94,7 @@ def to_markdown(beside: pd.DataFrame, title: str) -> str:
         metrics = [m for m in PAPER_METRICS if m in set(g["metric"])]
         header = ["Method", *(f"{METRIC_BY_KEY[m].label}: ours / paper" for m in metrics)]
         lines += [f"### {scene} ({PAPER_COUNTS[scene]} vehicles)", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-        for method in [m for m in TABLE_5_1[scene] if m in set(g["label"])]:
+        for method in [m for m in (*TABLE_5_1[scene], AUTHORS) if m in set(g["label"])]:
             by_metric = g[g["label"] == method].set_index("metric")
             cells = []
             for m in metrics:

@@ -145,6 +145,8 @@ CURVE_AXES = {
 
 def curve_axes(curves: pd.DataFrame) -> list[str]:
     """The time axes every run of ``curves`` has: ``cpu_s`` and ``wall_s`` where each run recorded them."""
+    if curves.empty:
+        return []
     runs = curves.groupby(["label", "seed"])
     return [x for x in ("cpu_s", "wall_s") if x in curves.columns and runs[x].apply(lambda v: v.notna().any()).all()]
 

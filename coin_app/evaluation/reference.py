@@ -29,7 +29,7 @@ import pandas as pd
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.outputs import write_text_atomic
-from coin_app.evaluation.paper_table import TABLE_5_1
+from coin_app.evaluation.paper_table import AUTHORS, TABLE_5_1
 from coin_app.evaluation.protocol import EPISODE_METRICS
 from coin_app.inference.coin_actors import SOURCE, find_coin_actors, load_coin_actor
 from coin_app.sim.config import ScenarioConfig, make_config
@@ -190,7 +190,7 @@ def _run_pair(task: Task) -> tuple[Task, list[dict[str, Any]]]:
     return task, run_task(task)
 
 
-REFERENCE_METHOD = "coin_authors"  # the label of the authors' actors in a report's tables: a reference row, never a baseline
+REFERENCE_METHOD = AUTHORS  # the label of the authors' actors in a report's tables: a reference row, never a baseline
 
 
 def test_seed_rows(

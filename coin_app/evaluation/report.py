@@ -208,19 +208,24 @@ def evaluate_sources(
     return combined.reset_index(drop=True), failures, settings
 
 
-def with_reference_rows(table: pd.DataFrame, root: Path, workers: int, log: Log) -> pd.DataFrame:
+def with_reference_rows(table: pd.DataFrame, root: Path, workers: int, log: Log) -> tuple[pd.DataFrame, list[dict[str, Any]]]:
     """``table`` plus the COIN authors' actors on its test seeds for every scene it has at Table 5.1's density (scenes whose
-    reference rows it already holds, from an earlier report's results, are not evaluated again)."""
+    reference rows it already holds, from an earlier report's results, are not evaluated again), and the failures: a scene
+    without actors under ``root`` or whose evaluation failed is named there and left out, the rest of the report goes on."""
     dense = paper_table.at_paper_density(table[table["method"] != REFERENCE_METHOD])
     have = set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])
-    frames = [table]
+    frames, failures = [table], []
     for scene, g in dense.groupby("scenario", sort=True):
         if scene in have:
             continue
-        frames.append(test_seed_rows(root, str(scene), sorted(int(s) for s in g["test_seed"].unique()), workers, log))
-    if len(frames) == 1:
+        try:
+            frames.append(test_seed_rows(root, str(scene), sorted(int(s) for s in g["test_seed"].unique()), workers, log))
+        except Exception as exc:  # noqa: BLE001 - the models' evaluations are kept; the reference row is named as missing
+            failures.append({"checkpoint": f"{REFERENCE_METHOD} ({scene}, {root})", "error": f"{type(exc).__name__}: {exc}"})
+            log(f"  the COIN authors' {scene} actors were not evaluated: {exc}")
+    if len(frames) == 1 and not failures:
         log("  no scene at Table 5.1's density without its reference rows: the authors' actors are not evaluated")
-    return pd.concat(frames, ignore_index=True)
+    return pd.concat(frames, ignore_index=True), failures
 
 
 def ordered_labels(labels: Sequence[str], method: str) -> list[str]:
@@ -342,7 +347,8 @@ def build_report(
             log(f"  note: unfinished trials in {sweep['path']}, their newest checkpoints are evaluated: {', '.join(sweep['unfinished'])}")
     table, failures, eval_settings = evaluate_sources(sources, options, out, log)
     if options.reference_actors is not None:
-        table = with_reference_rows(table, Path(options.reference_actors), options.workers, log)
+        table, reference_failures = with_reference_rows(table, Path(options.reference_actors), options.workers, log)
+        failures += reference_failures
     table.to_csv(out / "results.csv", index=False)  # new evaluations and read tables together
     table = table.assign(label=[run_label(m, v) for m, v in zip(table["method"], table["variant"])])
     colors = plots.label_colors(ordered_labels(list(table["label"]) + list(table["method"]), options.method))
@@ -455,13 +461,16 @@ def evaluate_transfer(table: pd.DataFrame, options: ReportOptions, out: Path, lo
     ]
     seeds = sorted(int(s) for s in table["test_seed"].unique())[: options.transfer_test_seeds]
     ev = run_evaluation(runs, seeds, workers=options.workers, log=log, backend=options.transfer)
-    frames = [ev.table]
+    frames, failures = [ev.table], list(ev.failures)
     if options.reference_actors is not None:  # the authors' actors on the same seeds, on the other simulator too
         for scene in sorted(set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])):
-            frames.append(test_seed_rows(Path(options.reference_actors), scene, seeds, options.workers, log, options.transfer))
+            try:
+                frames.append(test_seed_rows(Path(options.reference_actors), scene, seeds, options.workers, log, options.transfer))
+            except Exception as exc:  # noqa: BLE001 - as natively: named, and the rest of the transfer table stays
+                failures.append({"checkpoint": f"{REFERENCE_METHOD} ({scene})", "error": f"{type(exc).__name__}: {exc}"})
     other = pd.concat([f for f in frames if not f.empty], ignore_index=True) if len(frames) > 1 else ev.table
     other.to_csv(out / "transfer_results.csv", index=False)
-    return other, [{**f, "backend": options.transfer} for f in ev.failures]
+    return other, [{**f, "backend": options.transfer} for f in failures]
 
 
 def _curves(curves: pd.DataFrame, path: Path, scenario: str, colors: dict[str, str]) -> Path:

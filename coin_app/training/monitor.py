@@ -110,9 +110,15 @@ class PeriodicEvaluation(RLlibCallback):
         """Add the periodic evaluation to this iteration's result when it is due."""
         every = algorithm.config.eval_every
         if every and result["training_iteration"] % every == 0:
-            start = time.process_time()
-            metrics = evaluate_algorithm(algorithm, validation_seeds(algorithm.config.eval_episodes))
-            result[EVAL_RESULT_KEY] = metrics | {"cpu_s": time.process_time() - start}
+            result[EVAL_RESULT_KEY] = validation_metrics(algorithm)
+
+
+def validation_metrics(algorithm: Algorithm) -> dict[str, float]:
+    """The periodic evaluation now: the deterministic actor on the config's ``eval_episodes`` validation seeds, with the
+    ``cpu_s`` of this process it took."""
+    start = time.process_time()
+    metrics = evaluate_algorithm(algorithm, validation_seeds(algorithm.config.eval_episodes))
+    return metrics | {"cpu_s": time.process_time() - start}
 
 
 def process_tree_cpu_seconds(pid: int | None = None) -> float:

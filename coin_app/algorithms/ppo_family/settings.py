@@ -121,8 +121,8 @@ PRESETS: dict[str, PpoSettings] = {
     "reduced": replace(DEFAULT, hidden=64),
     # the dense protocol (30 vehicles; sweep seeds --scale dense): the defaults, i.e. the paper's networks, batch and update
     # (its reference budget, 1M env steps, is the scale's), sampled in the trial's process as reduced is (the paper preset's
-    # four env runners would ask Tune for five CPUs a trial). The scenario stays at COIN's default preset: whether the PPO
-    # family trains with CoPO's crash penalties (metadrive_compat, docs/studies/ippo_dense.md) is issue 56's part 0
+    # four env runners would ask Tune for five CPUs a trial). The scenario is the scale's (tuning/seeds.py: metadrive_compat,
+    # CoPO's penalties and lidar, for every method; docs/studies/ippo_dense.md)
     "dense": DEFAULT,
     # smoke sweeps (tests, CI): a few iterations of a few seconds; the chunk fits the batch
     "smoke": replace(DEFAULT, hidden=64, train_batch_size_per_learner=256, minibatch_size=128, num_epochs=1, rollout_fragment_length=128),

@@ -207,7 +207,7 @@ class Td3(ProgressReporting, Algorithm):
             step_capacity=max(self.config.replay_capacity // 2 + 64, self.config.replay_capacity // max(1, scen.num_agents - 1)),
         )
         self._update_credit = 0.0
-        self._phase_agents: int | None = None  # the curriculum's vehicles the env runners were last given (None: not yet)
+        self._phase_sent: tuple[int, int] | None = None  # (vehicles, iteration) the env runners were last given the curriculum
         learner = getattr(self.learner_group, "_learner", None)  # None when the learner is a remote actor
         if learner is not None:  # the learner connector reads the replay's joint records in place
             learner.joint_state.records = self.replay
@@ -264,14 +264,16 @@ class Td3(ProgressReporting, Algorithm):
                     self._sync_actor()
 
     def _set_curriculum_phase(self) -> None:
-        """Give every env runner the curriculum's vehicle count for its next episodes when the phase changes (none: nothing)."""
+        """Give every env runner the curriculum's vehicle count for its next episodes when the phase changes, and once an
+        iteration (a runner RLlib restarted starts at the scenario's count); no curriculum: nothing."""
         if self.config.curriculum_agents == 0:
             return
         lifetime = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
         agents = self.config.curriculum_phase(lifetime)
-        if agents != self._phase_agents:
+        sent = (agents, self.iteration)
+        if sent != self._phase_sent:
             self.env_runner_group.foreach_env_runner(lambda runner: set_on_envs(runner, "set_num_agents", agents), local_env_runner=True)
-            self._phase_agents = agents
+            self._phase_sent = sent
         self.metrics.log_value("curriculum_agents", agents, window=1)
 
     def joint_delta(self) -> dict[str, Any]:
