@@ -78,13 +78,21 @@ def test_a_bad_curriculum_is_refused_before_any_work(settings, match):
 
 
 @pytest.mark.usefixtures("ray_session")
-def test_the_training_step_moves_every_env_to_the_full_count_after_the_first_phase():
+def test_the_training_step_moves_every_env_to_the_full_count_after_the_first_phase(tmp_path):
     # 6 vehicles, 2 in the first 50 env steps; episodes of at most 40 steps end (all vehicles out by their step limit)
     _, settings = tiny("cig_td3", "intersection", num_agents=6, curriculum_agents=2, curriculum_steps=50, eval_every=0)
     algo = build_config("cig_td3", "intersection", settings, 0).build_algo()
     sim = algo.env_runner.vector_env.sim
     caps, live = [], []
-    for _ in range(160):
+    for k in range(160):
+        if k == 20:  # a run restored in the first phase gives its new env runner the phase's count again
+            algo.save_to_path(str(tmp_path / "ckpt"))
+            restored = build_config("cig_td3", "intersection", settings, 0).build_algo()
+            restored.restore_from_path(str(tmp_path / "ckpt"))
+            assert restored.env_runner.vector_env.sim._next_cap == 6  # a fresh runner: the scenario's count
+            restored.training_step()
+            assert restored.env_runner.vector_env.sim._next_cap == 2
+            restored.stop()
         algo.training_step()
         caps.append(int(sim.agent_cap[0]))
         live.append(int((sim.status != 0).sum()))
