@@ -84,7 +84,7 @@ class CoinTrial(tune.Trainable):
         if sampled >= self.steps and self.last:  # restored at or past the budget (a resume right after the last step)
             return self.last | {"done": True}
         result = self.algo.train()
-        done = iteration_metrics(result)["env_steps"] >= self.steps
+        done = int(self.algo.metrics.peek(("env_runners", "num_env_steps_sampled_lifetime"), default=0)) >= self.steps
         if done and getattr(self.algo.config, "eval_every", 0) and EVAL_RESULT_KEY not in result:
             # the last iteration is evaluated too, so the final checkpoint has the score its siblings are kept by (keep_best)
             result[EVAL_RESULT_KEY] = validation_metrics(self.algo)
