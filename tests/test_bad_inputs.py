@@ -327,6 +327,32 @@ def test_a_locked_output_is_refused_naming_its_writer_and_a_dead_writers_lock_is
     assert not lock_path(out).exists()  # the last release removes it
 
 
+def test_a_refusal_in_the_moment_between_the_lock_and_its_record_still_names_the_holder(tmp_path):
+    """The holder writes its record just after taking the lock: a refusal in between waits for it, not ``PID ?``."""
+    import fcntl
+    import os
+    import threading
+    import time
+
+    from coin_app.evaluation.outputs import OutputLock, lock_path
+
+    out = tmp_path / "run"
+    out.mkdir()
+    fd = os.open(lock_path(out), os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # locked, record still empty (as a holder is for a moment)
+    record = {"pid": os.getpid(), "host": "h", "command": "the late writer", "started": "now"}
+    writer = threading.Timer(0.3, lambda: os.pwrite(fd, json.dumps(record).encode(), 0))
+    writer.start()
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(ValueError, match=rf"being written by PID {os.getpid()} on h \(the late writer, since now\)"):
+            OutputLock(out).acquire()
+        assert time.monotonic() - t0 >= 0.25  # it waited for the record rather than answering from the empty file
+    finally:
+        writer.join()
+        os.close(fd)
+
+
 def _snapshot(directory):
     """Every file under ``directory`` (relative path -> bytes)."""
     return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}

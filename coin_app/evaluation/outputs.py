@@ -56,6 +56,17 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _holder_record(fd: int, wait_s: float = 2.0) -> dict[str, Any]:
+    """The live holder's record; it writes it just after taking the lock, so an empty or dead one is re-read a while."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        record = _read_record(fd)
+        pid = record.get("pid")
+        if (isinstance(pid, int) and _alive(pid)) or time.monotonic() >= deadline:
+            return record
+        time.sleep(0.02)
+
+
 class OutputLock:
     """The one writer of an output directory (see module doc); reentrant within a process; ``with`` releases it."""
 
@@ -90,7 +101,7 @@ class OutputLock:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = _read_record(fd)
+                holder = _holder_record(fd)
                 os.close(fd)
                 raise ValueError(
                     f"{self.directory} is being written by PID {holder.get('pid', '?')} on {holder.get('host', '?')} "
