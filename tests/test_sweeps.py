@@ -313,6 +313,28 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     assert "not the roundabout; allowed: --scenario intersection" in err
 
 
+def test_a_scales_scenario_by_family_reaches_only_that_familys_trials():
+    import dataclasses
+
+    from tuning.experiment import per_method
+
+    seeds = get_experiment("seeds")
+    dense = dataclasses.replace(seeds.dense, scenario={"lidar_range": 40.0}, scenario_by_family={"ppo": {"crash_penalty": 10.0}})
+    exp = dataclasses.replace(seeds, dense=dense)
+    space = exp.param_space("intersection", "dense", methods=("cig_td3", "ippo", "itd3"), seeds=(0,))
+    assert is_per_method(space["scale_scenario"])
+    by_algo = {t["algo"]: trial_overrides(t) for t in expand_grid(space)}
+    assert {a: (o["lidar_range"], o.get("crash_penalty")) for a, o in by_algo.items()} == {
+        "cig_td3": (40.0, None),
+        "itd3": (40.0, None),
+        "ippo": (40.0, 10.0),
+    }
+    # one family only: every trial's settings are the same, a plain value rather than a per-method one
+    alone = exp.param_space("intersection", "dense", methods=("cig_td3", "itd3"), seeds=(0,))
+    assert alone["scale_scenario"] == {"lidar_range": 40.0}
+    assert per_method({"a": {"x": 1}, "b": {"x": 1}}) == {"x": 1} and is_per_method(per_method({"a": {"x": 1}, "b": {}}))
+
+
 def test_address_probe_accepts_a_listening_port():
     import socket
 

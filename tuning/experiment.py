@@ -12,6 +12,7 @@ Python so every trial's config is validated (``training.build_config``) before a
 from __future__ import annotations
 
 import itertools
+import json
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -54,10 +55,16 @@ class Scale:
     keep_best: str | None = None
     # scenario settings every trial of the scale takes (a preset, penalties...), below the variant's and --set
     scenario: dict[str, Any] = field(default_factory=dict)
+    # algorithm family -> scenario settings its trials take over `scenario` (a family's own training penalties)
+    scenario_by_family: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def budget(self, algo: str) -> int:
         """Env steps per trial of method ``algo``: its family's budget, else ``steps``."""
         return self.steps_by_family.get(registry.get(algo).family, self.steps)
+
+    def scenario_for(self, algo: str) -> dict[str, Any]:
+        """The scenario settings of method ``algo``'s trials: ``scenario``, then its family's ``scenario_by_family``."""
+        return dict(self.scenario) | dict(self.scenario_by_family.get(registry.get(algo).family, {}))
 
 
 @dataclass(frozen=True)
@@ -110,10 +117,13 @@ class Experiment:
         if seeds is not None and (not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0):
             raise ValueError(f"bad seeds {list(seeds)}; allowed: distinct integers >= 0")
 
-    def base_config(self, scenario: str, scale: str, steps: int | dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
-        """The part of every trial's config that Tune's grid does not vary (``steps``: an int, or a :func:`per_method` value)."""
-        settings = self.scale(scale).scenario
-        return ({"scale_scenario": dict(settings)} if settings else {}) | {
+    def base_config(
+        self, scenario: str, scale: str, steps: int | dict[str, Any], overrides: dict[str, Any], settings: Any = None
+    ) -> dict[str, Any]:
+        """The part of every trial's config that Tune's grid does not vary (``steps`` and the scale's scenario ``settings``:
+        a value, or a :func:`per_method` one; ``settings`` None: the scale's ``scenario``)."""
+        settings = dict(self.scale(scale).scenario) if settings is None else settings
+        return ({"scale_scenario": settings} if settings else {}) | {
             "experiment": self.name,
             "scenario": scenario,
             "scale": scale,
@@ -136,7 +146,8 @@ class Experiment:
         methods = tuple(methods or self.methods)
         self.check(scenario, methods, seeds)
         budgets = per_method({m: int(steps or sc.budget(m)) for m in methods})
-        return self.base_config(scenario, scale, budgets, overrides or {}) | {
+        settings = per_method({m: sc.scenario_for(m) for m in methods})
+        return self.base_config(scenario, scale, budgets, overrides or {}, settings) | {
             "algo": grid_search(methods),
             "variant": grid_search(self.variant_names(scale)),
             "seed": grid_search(seeds or sc.seeds),
@@ -152,8 +163,8 @@ def grid_search(values: Any) -> dict[str, list[Any]]:
 def per_method(values: dict[str, Any]) -> Any:
     """A param-space value by the trial's method (``algo``): the one value when every method has it, else
     ``{PER_METHOD: values}``, which :func:`expand_grid` resolves per trial (and ``tuning.sweep`` as Tune's ``sample_from``)."""
-    distinct = set(values.values())
-    return next(iter(distinct)) if len(distinct) == 1 else {PER_METHOD: dict(values)}
+    distinct = {json.dumps(v, sort_keys=True, default=str) for v in values.values()}  # dicts too
+    return next(iter(values.values())) if len(distinct) == 1 else {PER_METHOD: dict(values)}
 
 
 def is_per_method(value: Any) -> bool:
