@@ -151,6 +151,30 @@ def test_report_refuses_bad_options_before_any_work(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_report_refuses_models_of_one_scene_trained_at_two_vehicle_counts(tmp_path, capsys):
+    import pandas as pd
+
+    def table(name, trained, authors=False):
+        row = dict(method="cig_td3", variant="default", trained_seed=0, test_seed=0, scenario="intersection", agent_count=trained)
+        row |= dict(trained_agent_count=trained, success_rate=0.5, safety=-1.0, efficiency=1.0, checkpoint=f"/ckpt/{name}")
+        rows = [row] + ([row | {"method": "coin_authors", "trained_agent_count": 30, "agent_count": 30}] if authors else [])
+        path = tmp_path / name / "results.csv"
+        path.parent.mkdir()
+        pd.DataFrame(rows).to_csv(path, index=False)
+        return path
+
+    reduced, dense = table("reduced", 4, authors=True), table("dense", 30)
+    assert main(["report", str(reduced), str(dense), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the intersection's models were trained at 2 vehicle counts: 4 vehicles" in err
+    assert f"({reduced}), 30 vehicles ({dense})" in err and "report each count separately" in err
+    assert not (tmp_path / "o").exists()
+    # the authors' reference row (at the paper's 30) beside the 4-vehicle models is not a second training count
+    from coin_app.evaluation.report import gather
+
+    assert len(gather([reduced]).tables) == 1
+
+
 def test_report_names_the_path_of_a_file_that_is_not_a_results_table(tmp_path, capsys):
     bad = tmp_path / "other.csv"
     bad.write_text("a,b\n1,2\n")

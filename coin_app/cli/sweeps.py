@@ -9,7 +9,7 @@ from coin_app.cli.flags import overrides_of
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
 from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, write_arena_html
 from coin_app.evaluation.outputs import OutputLock, check_dir_output, staged_outputs
-from coin_app.evaluation.report import ReportOptions, build_report
+from coin_app.evaluation.report import ReportOptions, build_report, gather
 from tuning.sweep import run_sweep, write_generalization
 
 
@@ -91,6 +91,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     out = Path(args.out)
     options.check()
     check_dir_output(out, [p for p in map(Path, args.sources) if p.is_dir()], what="a sweep it reads")
+    sources = gather(sweeps) if sweeps else None  # a bad source is refused before anything is written
     # one writer; the old report's files stay whole until the new ones are complete (other files in --out stay)
     with OutputLock(out, options.command, "the report directory") as lock, staged_outputs(out) as stage:
         if lock.stale_note():
@@ -98,7 +99,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         if arena:
             page = write_arena_html(stage / ARENA_PAGE, [load_arena_eval(p) for p in arena], options.command)
             print(f"arena report: {len(arena)} evaluate-arena run(s) -> {out / page.name}")
-        summary = build_report(sweeps, stage, options, shown_as=out) if sweeps else None
+        summary = build_report(sources, stage, options, shown_as=out) if sources else None
     if summary is None:
         return 0
     print(f"\nreport summary: {summary['episodes']} test episodes of {summary['models']} models in {summary['wall_s']:.0f} s -> {out}")

@@ -149,7 +149,33 @@ def gather(paths: Sequence[Path]) -> Sources:
                     "unfinished": unfinished,
                 }
             )
+    check_training_counts(out)
     return out
+
+
+def check_training_counts(sources: Sources) -> None:
+    """A ValueError naming a scene whose models were trained at more than one vehicle count (the tables and tests would
+    pool them): one training count per scene and report. Read from the checkpoints' records, before any evaluation."""
+    found: dict[str, dict[int, str]] = {}  # scene -> training count -> the first source with it
+    for table in sources.tables:
+        rows = table["table"]
+        if {"scenario", "trained_agent_count", "method"} <= set(rows.columns):
+            for (scene, count), _ in rows[rows["method"] != REFERENCE_METHOD].groupby(["scenario", "trained_agent_count"]):
+                found.setdefault(str(scene), {}).setdefault(int(count), str(table["path"]))
+    for sweep in sources.sweeps:
+        for run in sweep["runs"]:
+            try:
+                trained = scenario_of(Path(run.checkpoint))
+            except Exception:  # noqa: BLE001 - an unreadable checkpoint is a failure of its own, reported by the evaluation
+                continue
+            found.setdefault(trained.scenario, {}).setdefault(int(trained.num_agents), str(sweep["path"]))
+    for scene, counts in found.items():
+        if len(counts) > 1:
+            named = ", ".join(f"{n} vehicles ({where})" for n, where in sorted(counts.items()))
+            raise ValueError(
+                f"the {scene}'s models were trained at {len(counts)} vehicle counts: {named}; allowed: the sources of one "
+                "training count per scene in one report (report each count separately)"
+            )
 
 
 def evaluate_sources(
@@ -318,9 +344,10 @@ def _attempt(name: str, figures: dict[str, Any], log: Log, fn: Callable[[], Path
 
 
 def build_report(
-    paths: Sequence[Path], out: Path, options: ReportOptions | None = None, log: Log = print, shown_as: Path | None = None
+    paths: Sequence[Path] | Sources, out: Path, options: ReportOptions | None = None, log: Log = print, shown_as: Path | None = None
 ) -> dict[str, Any]:
-    """Evaluate the sources and write every table, figure, the marl-eval JSON and report.html into ``out``.
+    """Evaluate the sources (paths, or what :func:`gather` made of them) and write every table, figure, the marl-eval
+    JSON and report.html into ``out``.
 
     ``shown_as``: where ``out`` will be once complete (the CLI builds a report in a staging directory,
     :func:`~coin_app.evaluation.outputs.staged_outputs`): the paths logged and returned name it. A report
@@ -331,7 +358,7 @@ def build_report(
     options = options or ReportOptions()
     options.check()
     t0 = time.perf_counter()
-    sources = gather(paths)
+    sources = paths if isinstance(paths, Sources) else gather(paths)
     out = Path(out)
     shown = Path(shown_as) if shown_as is not None else out
     out.mkdir(parents=True, exist_ok=True)
