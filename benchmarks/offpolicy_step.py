@@ -1,12 +1,13 @@
 """Where the TD3 family's training step spends its time, per env step: CIG-TD3, ITD3 and TraCo at 4 and 30 vehicles.
 
-Usage: python benchmarks/offpolicy_step.py [--tree PATH] [--algos cig_td3 itd3 traco] [--agents 4 30]
+Usage: python benchmarks/offpolicy_step.py [--tree PATH] [--algos cig_td3 itd3 traco] [--agents 4 30] [--dense]
                                            [--steps4 40] [--steps30 5] [--precision auto|fp32|bf16]
                                            [--fragment K] [--other-fragment K] [--envs N] [--other-envs N]
 
 Each case builds the algorithm as training does (``coin_app.training.build_config``): at 4 vehicles
 the reduced protocol's trial (``sweep seeds --scale reduced``, seed 0), at 30 the intersection at
-the paper's density with the algorithm's defaults; ``--precision`` overrides the learner precision
+the paper's density with the algorithm's defaults (``--dense``: the dense protocol's trial, ``--scale dense``);
+``--precision`` overrides the learner precision
 of both (default: the settings' own; the table names the precision it resolved to), ``--fragment``
 the env steps per training step (``rollout_fragment_length``, K) of this tree and ``--other-fragment``
 of the ``--tree`` one (default 1 each), ``--envs`` / ``--other-envs`` the envs each env runner steps together
@@ -259,7 +260,9 @@ class Worker:
         if not ray.is_initialized():
             ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
         if req["op"] == "build":
-            return self.build(req["algo"], req["agents"], req.get("precision"), req.get("fragment", 1), req.get("envs", 1))
+            return self.build(
+                req["algo"], req["agents"], req.get("precision"), req.get("fragment", 1), req.get("envs", 1), req.get("dense", False)
+            )
         if req["op"] == "time":
             return self.time(req["steps"])
         if req["op"] == "stop":
@@ -269,18 +272,21 @@ class Worker:
             return {}
         raise ValueError(f"unknown op {req['op']!r}")
 
-    def build(self, algo_name: str, agents: int, precision: str | None, fragment: int, envs: int = 1) -> dict[str, Any]:
+    def build(
+        self, algo_name: str, agents: int, precision: str | None, fragment: int, envs: int = 1, dense: bool = False
+    ) -> dict[str, Any]:
         """Build and instrument the case's algorithm and run it until its first update; what was found and the settings."""
         from coin_app.training import build_config  # noqa: I001  (the worker's tree)
 
         overrides: dict[str, Any] = {"eval_every": 0}
-        if agents == REDUCED_AGENTS:
+        if agents == REDUCED_AGENTS or dense:
             from tuning import get_experiment
             from tuning.experiment import expand_grid
             from tuning.trainable import trial_overrides
 
-            (trial,) = expand_grid(get_experiment("seeds").param_space("intersection", "reduced", (algo_name,), (0,)))
-            overrides.update(trial_overrides(trial))
+            scale = "reduced" if agents == REDUCED_AGENTS else "dense"
+            (trial,) = expand_grid(get_experiment("seeds").param_space("intersection", scale, (algo_name,), (0,)))
+            overrides.update(trial_overrides(trial) | {"eval_every": 0})
         else:
             overrides["num_agents"] = agents
         if precision is not None:
@@ -353,6 +359,7 @@ def main() -> None:
     ap.add_argument("--steps4", type=int, default=40, help="timed env steps per tree at 4 vehicles (default 40)")
     ap.add_argument("--steps30", type=int, default=5, help="timed env steps per tree at 30 vehicles (default 5: one policy-delay cycle)")
     ap.add_argument("--blocks", type=int, default=1, help="timed blocks per tree, the trees alternating (default 1)")
+    ap.add_argument("--dense", action="store_true", help="at 30 vehicles, the dense protocol's trial (sweep seeds --scale dense)")
     ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), help="learner precision of every case (default: the settings' own)")
     ap.add_argument("--fragment", type=int, default=1, help="env steps per training step (K) in this tree (default 1)")
     ap.add_argument("--other-fragment", type=int, default=1, help="env steps per training step (K) in the --tree one (default 1)")
@@ -375,7 +382,15 @@ def main() -> None:
                 fragments = {"this": args.fragment, "other": args.other_fragment}
                 envs = {"this": args.envs, "other": args.other_envs}
                 built = {
-                    n: w.call(op="build", algo=algo, agents=agents, precision=args.precision, fragment=fragments[n], envs=envs[n])
+                    n: w.call(
+                        op="build",
+                        algo=algo,
+                        agents=agents,
+                        precision=args.precision,
+                        fragment=fragments[n],
+                        envs=envs[n],
+                        dense=args.dense,
+                    )
                     for n, w in workers.items()
                 }
                 runs: dict[str, list[dict[str, Any]]] = {n: [] for n in workers}
@@ -384,7 +399,7 @@ def main() -> None:
                         runs[n].append(w.call(op="time", steps=steps))
                 for w in workers.values():
                     w.call(op="stop")
-                summary.append(report(algo, agents, built, runs))
+                summary.append(report(algo, agents, built, runs, args.dense))
     finally:
         for w in workers.values():
             w.close()
@@ -403,10 +418,12 @@ def main() -> None:
     print(f"\n({time.perf_counter() - t_start:.0f} s in all)")
 
 
-def report(algo: str, agents: int, built: dict[str, dict], runs: dict[str, list[dict]]) -> tuple[str, dict[str, dict[str, float]]]:
+def report(
+    algo: str, agents: int, built: dict[str, dict], runs: dict[str, list[dict]], dense: bool = False
+) -> tuple[str, dict[str, dict[str, float]]]:
     """Print one case's breakdown (ms per env step, wall and CPU, per tree); return per tree the wall and CPU totals and updates."""
     first = next(iter(built.values()))
-    scale = "reduced protocol" if agents == REDUCED_AGENTS else "paper density"
+    scale = "reduced protocol" if agents == REDUCED_AGENTS else "dense protocol" if dense else "paper density"
     how = "; ".join(f"{n}: precision {b['precision']}, K={b.get('fragment', 1)}, envs {b.get('envs', 1)}" for n, b in built.items())
     print(f"\n{algo}, intersection, {first['num_agents']} vehicles ({scale}), B={first['batch']}, {how}")
     per_step: dict[tuple[str, str], dict[str, float]] = {}  # (tree, clock) -> piece -> ms per env step
