@@ -357,7 +357,11 @@ def main() -> None:
     ap.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
     ap.add_argument("--agents", nargs="+", type=int, choices=(REDUCED_AGENTS, 30), default=[REDUCED_AGENTS, 30])
     ap.add_argument("--steps4", type=int, default=40, help="timed env steps per tree at 4 vehicles (default 40)")
-    ap.add_argument("--steps30", type=int, default=5, help="timed env steps per tree at 30 vehicles (default 5: one policy-delay cycle)")
+    ap.add_argument(
+        "--steps30",
+        type=int,
+        help="timed env steps per tree at 30 vehicles (default 5: one policy-delay cycle; with --dense 40: 10 updates)",
+    )
     ap.add_argument("--blocks", type=int, default=1, help="timed blocks per tree, the trees alternating (default 1)")
     ap.add_argument("--dense", action="store_true", help="at 30 vehicles, the dense protocol's trial (sweep seeds --scale dense)")
     ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), help="learner precision of every case (default: the settings' own)")
@@ -366,6 +370,8 @@ def main() -> None:
     ap.add_argument("--envs", type=int, default=1, help="envs per env runner in this tree (default 1)")
     ap.add_argument("--other-envs", type=int, default=1, help="envs per env runner in the --tree one (default 1)")
     args = ap.parse_args()
+    if args.steps30 is None:
+        args.steps30 = 40 if args.dense else 5
     for name in ("steps4", "steps30", "blocks", "fragment", "other_fragment", "envs", "other_envs"):
         if getattr(args, name) < 1:
             raise SystemExit(f"bad --{name} {getattr(args, name)}; allowed: an integer >= 1")

@@ -170,9 +170,19 @@ def test_report_refuses_models_of_one_scene_trained_at_two_vehicle_counts(tmp_pa
     assert f"({reduced}), 30 vehicles ({dense})" in err and "report each count separately" in err
     assert not (tmp_path / "o").exists()
     # the authors' reference row (at the paper's 30) beside the 4-vehicle models is not a second training count
-    from coin_app.evaluation.report import gather
+    from coin_app.evaluation.protocol import EvalRun, read_results
+    from coin_app.evaluation.report import Sources, check_training_counts, gather
 
     assert len(gather([reduced]).tables) == 1
+    # a sweep's models: the count its checkpoints' records name (the scene's default when they name none), against a table
+    ckpt = tmp_path / "sweep" / "trial" / "checkpoint"
+    ckpt.mkdir(parents=True)
+    (ckpt / "coin_app.json").write_text(json.dumps({"scenario": "intersection", "env_config": {}}))  # the default: 30
+    run = EvalRun("cig_td3", "default", 0, str(ckpt))
+    sweep = {"path": tmp_path / "sweep", "runs": [run]}
+    check_training_counts(Sources(sweeps=[sweep], tables=[{"path": dense, "table": read_results(dense)}]))  # 30 and 30
+    with pytest.raises(ValueError, match=r"4 vehicles \(.*reduced.*\), 30 vehicles \(.*sweep\)"):
+        check_training_counts(Sources(sweeps=[sweep], tables=[{"path": reduced, "table": read_results(reduced)}]))
 
 
 def test_report_names_the_path_of_a_file_that_is_not_a_results_table(tmp_path, capsys):

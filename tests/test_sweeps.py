@@ -313,7 +313,7 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     assert "not the roundabout; allowed: --scenario intersection" in err
 
 
-def test_a_scales_scenario_by_family_reaches_only_that_familys_trials():
+def test_a_scales_scenario_by_family_reaches_only_that_familys_trials(monkeypatch, capsys):
     import dataclasses
 
     from tuning.experiment import per_method
@@ -333,6 +333,24 @@ def test_a_scales_scenario_by_family_reaches_only_that_familys_trials():
     alone = exp.param_space("intersection", "dense", methods=("cig_td3", "itd3"), seeds=(0,))
     assert alone["scale_scenario"] == {"lidar_range": 40.0}
     assert per_method({"a": {"x": 1}, "b": {"x": 1}}) == {"x": 1} and is_per_method(per_method({"a": {"x": 1}, "b": {}}))
+    # what Tune resolves (tune.sample_from per method) is what expand_grid gives
+    from ray.tune.search.variant_generator import generate_variants
+
+    from tuning.sweep import tune_space
+
+    tuned = {v["algo"]: v["scale_scenario"] for _, v in generate_variants(tune_space(space))}
+    assert tuned == {"cig_td3": {"lidar_range": 40.0}, "itd3": {"lidar_range": 40.0}, "ippo": {"lidar_range": 40.0, "crash_penalty": 10.0}}
+    # config --scale prints the family's layer, as the sweep's trial takes it
+    import tuning
+
+    monkeypatch.setitem(tuning.EXPERIMENTS, "seeds", exp)
+    assert main(["config", "--algo", "ippo", "--scale", "dense"]) == 0
+    rows = {line.split()[0]: line.split(maxsplit=2)[2] for line in capsys.readouterr().out.splitlines() if line.startswith("  ")}
+    assert rows["crash_penalty"] == "dense scale's scenario for the ppo family (seeds experiment, tuning/)"
+    assert rows["lidar_range"] == rows["crash_penalty"]
+    # a family no algorithm has is refused where the scale is written
+    with pytest.raises(ValueError, match=r"unknown algorithm families \['PPO'\]; allowed: ppo, td3"):
+        dataclasses.replace(seeds.dense, scenario_by_family={"PPO": {}})
 
 
 def test_address_probe_accepts_a_listening_port():

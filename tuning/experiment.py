@@ -62,6 +62,14 @@ class Scale:
         """Env steps per trial of method ``algo``: its family's budget, else ``steps``."""
         return self.steps_by_family.get(registry.get(algo).family, self.steps)
 
+    def __post_init__(self) -> None:
+        """Refuse a family name no algorithm has (a typo would be ignored silently)."""
+        families = {spec.family for spec in registry.ALGORITHMS.values()}
+        for by in (self.steps_by_family, self.scenario_by_family):
+            unknown = sorted(set(by) - families)
+            if unknown:
+                raise ValueError(f"unknown algorithm families {unknown}; allowed: {', '.join(sorted(families))}")
+
     def scenario_for(self, algo: str) -> dict[str, Any]:
         """The scenario settings of method ``algo``'s trials: ``scenario``, then its family's ``scenario_by_family``."""
         return dict(self.scenario) | dict(self.scenario_by_family.get(registry.get(algo).family, {}))
@@ -118,11 +126,10 @@ class Experiment:
             raise ValueError(f"bad seeds {list(seeds)}; allowed: distinct integers >= 0")
 
     def base_config(
-        self, scenario: str, scale: str, steps: int | dict[str, Any], overrides: dict[str, Any], settings: Any = None
+        self, scenario: str, scale: str, steps: int | dict[str, Any], overrides: dict[str, Any], settings: Any
     ) -> dict[str, Any]:
-        """The part of every trial's config that Tune's grid does not vary (``steps`` and the scale's scenario ``settings``:
-        a value, or a :func:`per_method` one; ``settings`` None: the scale's ``scenario``)."""
-        settings = dict(self.scale(scale).scenario) if settings is None else settings
+        """The part of every trial's config that Tune's grid does not vary (``steps`` and the scale's scenario ``settings``,
+        :meth:`Scale.scenario_for`: each a value, or a :func:`per_method` one)."""
         return ({"scale_scenario": settings} if settings else {}) | {
             "experiment": self.name,
             "scenario": scenario,
@@ -209,7 +216,8 @@ def trial_layers(config: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
         steps = int(config["steps"])
         layers.append((f"reduced scale: decay over the second half of {steps:,} env steps", reduced_decay(steps)))
     if config.get("scale_scenario"):
-        layers.append((f"{scale} scale's scenario ({config['experiment']} experiment, tuning/)", dict(config["scale_scenario"])))
+        label = f"{scale} scale's scenario for the {spec.family} family ({config['experiment']} experiment, tuning/)"
+        layers.append((label, dict(config["scale_scenario"])))
     layers.append((f"variant {config['variant']!r}", dict(config["variant_overrides"][config["variant"]])))
     layers.append(("--set", dict(config["overrides"])))
     return layers

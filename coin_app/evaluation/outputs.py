@@ -62,7 +62,8 @@ def _holder_record(fd: int, wait_s: float = 2.0) -> dict[str, Any]:
     while True:
         record = _read_record(fd)
         pid = record.get("pid")
-        if (isinstance(pid, int) and _alive(pid)) or time.monotonic() >= deadline:
+        elsewhere = record.get("host") not in (None, socket.gethostname())  # another machine's PID cannot be checked here
+        if (isinstance(pid, int) and (elsewhere or _alive(pid))) or time.monotonic() >= deadline:
             return record
         time.sleep(0.02)
 
@@ -156,7 +157,7 @@ class OutputLock:
 def _read_record(fd: int) -> dict[str, Any]:
     """The holder record in a lock file ({} when empty or unreadable)."""
     try:
-        data = os.pread(fd, 4096, 0)
+        data = os.pread(fd, max(4096, os.fstat(fd).st_size), 0)
         record = json.loads(data.decode()) if data else {}
         return record if isinstance(record, dict) else {}
     except (OSError, ValueError):

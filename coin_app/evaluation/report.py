@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from coin_app.algorithms.checkpoint_files import META_FILE
 from coin_app.algorithms.checkpoints import load_checkpoint_policy, scenario_of
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation import paper_table, plots, statistics, tables
@@ -51,6 +52,7 @@ from coin_app.evaluation.transfer import transfer_table, write_transfer
 from coin_app.sim.config import BACKENDS
 from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.rendering import EpisodeTrace, plot_trajectories
+from coin_app.sim.scenarios import config_from_dict
 from coin_app.sim.seeds import eval_test_seeds
 
 Log = Callable[[str], None]
@@ -158,17 +160,18 @@ def check_training_counts(sources: Sources) -> None:
     pool them): one training count per scene and report. Read from the checkpoints' records, before any evaluation."""
     found: dict[str, dict[int, str]] = {}  # scene -> training count -> the first source with it
     for table in sources.tables:
-        rows = table["table"]
-        if {"scenario", "trained_agent_count", "method"} <= set(rows.columns):
-            for (scene, count), _ in rows[rows["method"] != REFERENCE_METHOD].groupby(["scenario", "trained_agent_count"]):
-                found.setdefault(str(scene), {}).setdefault(int(count), str(table["path"]))
+        rows = table["table"]  # read_results checked its columns
+        for (scene, count), _ in rows[rows["method"] != REFERENCE_METHOD].groupby(["scenario", "trained_agent_count"]):
+            found.setdefault(str(scene), {}).setdefault(int(count), str(table["path"]))
     for sweep in sources.sweeps:
         for run in sweep["runs"]:
-            try:
-                trained = scenario_of(Path(run.checkpoint))
-            except Exception:  # noqa: BLE001 - an unreadable checkpoint is a failure of its own, reported by the evaluation
+            try:  # the record alone (the evaluation verifies the whole checkpoint, replay included, later)
+                meta = json.loads((Path(run.checkpoint) / META_FILE).read_text())
+                trained = config_from_dict(meta["scenario"], meta.get("env_config", {}))
+                scene, count = trained.scenario, int(trained.num_agents)
+            except Exception:  # noqa: BLE001 - an unreadable checkpoint (or an arena's) is the evaluation's to report
                 continue
-            found.setdefault(trained.scenario, {}).setdefault(int(trained.num_agents), str(sweep["path"]))
+            found.setdefault(scene, {}).setdefault(count, str(sweep["path"]))
     for scene, counts in found.items():
         if len(counts) > 1:
             named = ", ".join(f"{n} vehicles ({where})" for n, where in sorted(counts.items()))
