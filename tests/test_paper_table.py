@@ -90,8 +90,9 @@ def test_a_report_at_the_papers_density_has_the_paper_beside_it_and_the_authors_
     pd.DataFrame(rows).to_csv(source, index=False)
     asked = []
 
-    def authors(root, scene, test_seeds, workers, log):
+    def authors(root, scene, test_seeds, workers, log, backend="native"):
         asked.append((scene, list(test_seeds)))
+        assert backend == "native"
         return pd.DataFrame(_results(REFERENCE_METHOD, (1000, 2000), [0.95]))
 
     monkeypatch.setattr(report, "test_seed_rows", authors)
@@ -162,7 +163,7 @@ def test_a_scene_without_the_authors_actors_is_named_and_the_report_goes_on(tmp_
     source.parent.mkdir()
     pd.DataFrame(_results("cig_td3", (0,), [0.9]) + _results("ippo", (0,), [0.6])).to_csv(source, index=False)
 
-    def missing(root, scene, test_seeds, workers, log):
+    def missing(root, scene, test_seeds, workers, log, backend="native"):
         raise ValueError(f"no {scene} actors (TD3_{scene}_<seed>_best_model_*_actor) under {root}")
 
     monkeypatch.setattr(report, "test_seed_rows", missing)

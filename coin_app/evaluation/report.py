@@ -243,18 +243,26 @@ def with_reference_rows(table: pd.DataFrame, root: Path, workers: int, log: Log)
     without actors under ``root`` or whose evaluation failed is named there and left out, the rest of the report goes on."""
     dense = paper_table.at_paper_density(table[table["method"] != REFERENCE_METHOD])
     have = set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])
-    frames, failures = [table], []
-    for scene, g in dense.groupby("scenario", sort=True):
-        if scene in have:
-            continue
+    scenes = {str(scene): sorted(int(s) for s in g["test_seed"].unique()) for scene, g in dense.groupby("scenario", sort=True)}
+    frames, failures = reference_rows(root, {k: v for k, v in scenes.items() if k not in have}, workers, log)
+    if not frames and not failures:
+        log("  no scene at Table 5.1's density without its reference rows: the authors' actors are not evaluated")
+    return pd.concat([table, *frames], ignore_index=True), failures
+
+
+def reference_rows(
+    root: Path, seeds_by_scene: dict[str, list[int]], workers: int, log: Log, backend: str = "native"
+) -> tuple[list[pd.DataFrame], list[dict[str, Any]]]:
+    """The authors' actors' episodes per scene on its test seeds (``backend``: another simulator), and the failures: a scene
+    without actors under ``root`` or whose evaluation failed is named (``{"checkpoint", "error"}``) and left out."""
+    frames, failures = [], []
+    for scene, seeds in sorted(seeds_by_scene.items()):
         try:
-            frames.append(test_seed_rows(root, str(scene), sorted(int(s) for s in g["test_seed"].unique()), workers, log))
+            frames.append(test_seed_rows(root, scene, seeds, workers, log, backend))
         except Exception as exc:  # noqa: BLE001 - the models' evaluations are kept; the reference row is named as missing
             failures.append({"checkpoint": f"{REFERENCE_METHOD} ({scene}, {root})", "error": f"{type(exc).__name__}: {exc}"})
-            log(f"  the COIN authors' {scene} actors were not evaluated: {exc}")
-    if len(frames) == 1 and not failures:
-        log("  no scene at Table 5.1's density without its reference rows: the authors' actors are not evaluated")
-    return pd.concat(frames, ignore_index=True), failures
+            log(f"  the COIN authors' {scene} actors were not evaluated{'' if backend == 'native' else f' on {backend}'}: {exc}")
+    return frames, failures
 
 
 def ordered_labels(labels: Sequence[str], method: str) -> list[str]:
@@ -493,11 +501,9 @@ def evaluate_transfer(table: pd.DataFrame, options: ReportOptions, out: Path, lo
     ev = run_evaluation(runs, seeds, workers=options.workers, log=log, backend=options.transfer)
     frames, failures = [ev.table], list(ev.failures)
     if options.reference_actors is not None:  # the authors' actors on the same seeds, on the other simulator too
-        for scene in sorted(set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])):
-            try:
-                frames.append(test_seed_rows(Path(options.reference_actors), scene, seeds, options.workers, log, options.transfer))
-            except Exception as exc:  # noqa: BLE001 - as natively: named, and the rest of the transfer table stays
-                failures.append({"checkpoint": f"{REFERENCE_METHOD} ({scene})", "error": f"{type(exc).__name__}: {exc}"})
+        scenes = {str(scene): seeds for scene in set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])}
+        more, missing = reference_rows(Path(options.reference_actors), scenes, options.workers, log, options.transfer)
+        frames, failures = frames + more, failures + missing
     other = pd.concat([f for f in frames if not f.empty], ignore_index=True) if len(frames) > 1 else ev.table
     other.to_csv(out / "transfer_results.csv", index=False)
     return other, [{**f, "backend": options.transfer} for f in failures]
