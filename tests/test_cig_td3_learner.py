@@ -370,6 +370,23 @@ def test_without_a_decay_the_learning_rates_stay_constant():
         assert learner.get_optimizer("shared", "actor").param_groups[0]["lr"] == pytest.approx(1e-3)
 
 
+def test_updates_before_a_decay_starts_equal_the_constant_rates_bit_for_bit():
+    """A scheduled rate starts as the same python float as a constant one (RLlib's own start is a float32 tensor)."""
+    rates = {"actor_lr": 6e-4, "critic_lr": 1e-3, "central_critic_lr": 1e-3}
+    learners = []
+    for decay in ({}, {"lr_decay_start": 10_000, "lr_decay_steps": 10_000, "lr_final_fraction": 0.1}):
+        cfg, learner = build_learner(**rates, **decay)  # the same initial weights (seeded)
+        torch.manual_seed(1)  # the same target-policy noise
+        for step in range(6):  # both sides of a policy step (delay 3); the decay is 10k env steps away
+            learner_update(learner, random_batch(step, cfg.max_others), env_steps=step)
+        learners.append(learner)
+    constant, scheduled = learners
+    a, b = module_of(constant).state_dict(), module_of(scheduled).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    groups = [learner.get_optimizer("shared", "actor").param_groups[0]["lr"] for learner in (constant, scheduled)]
+    assert groups == [6e-4, 6e-4] and all(type(g) is float for g in groups)
+
+
 @pytest.mark.parametrize("poison", [None, float("nan"), float("inf")])
 def test_gradient_step_matches_rllibs_with_finite_and_non_finite_gradients(poison):
     from ray.rllib.core.learner.torch.torch_learner import TorchLearner

@@ -263,6 +263,11 @@ class Td3TorchLearner(TorchLearner):
             self.register_optimizer(
                 module_id=module_id, optimizer_name=name, optimizer=optimizer, params=params, lr_or_lr_schedule=schedule
             )
+            # RLlib starts a scheduled rate as a float32 tensor (its schedule's variable) until the first update's hook sets
+            # the python float: the first step then rounds unlike a constant rate's. The schedule starts at lr, so a
+            # decay leaves every update before it equal to the constant-rate run's, bit for bit (tested).
+            for group in optimizer.param_groups:
+                group["lr"] = float(lr)
 
     def before_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
         """Remember the lifetime env-step count (the actor's start after the warm-up depends on it)."""
