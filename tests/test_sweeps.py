@@ -250,18 +250,25 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     by_algo = {t["algo"]: t for t in trials if t["seed"] == 0}
     assert validate_trials(seeds.param_space("intersection", "dense", methods=DENSE_METHODS, seeds=(0,)))  # each method's builds
     scenario = make_config("intersection", preset="metadrive_compat")
+    penalties = {"crash_penalty": 5.0, "out_of_road_penalty": 5.0}  # COIN's, for the TD3 family only
     for algo, trial in by_algo.items():
         preset = registry.get(algo).presets["dense"]
+        own = penalties if algo in td3_family else {}
         # the preset and the scale's scenario alone: no quick scenario, no reduced decay
-        assert trial_overrides(trial) == preset.changes() | {"preset": "metadrive_compat"}
+        assert trial_overrides(trial) == preset.changes() | {"preset": "metadrive_compat"} | own
         merged = {s.key: s for s in registry.merged_settings(algo, "intersection", trial_layers(trial))}
         # the scenario at its defaults: 30 vehicles, MetaDrive's horizon of 1000, respawning
         assert (merged["num_agents"].value, merged["horizon"].value, merged["allow_respawn"].value) == (30, 1000, True)
         for key in ("num_agents", "horizon", "max_agent_steps", "allow_respawn"):
             assert merged[key].value == getattr(scenario, key) and merged[key].origin.endswith("default"), (algo, key)
-        # the authors' code's and CoPO's environment (issue 56's part 0): its penalties and lidar range
-        assert (merged["preset"].value, merged["crash_penalty"].value, merged["lidar_range"].value) == ("metadrive_compat", 10.0, 40.0)
-        assert merged["crash_penalty"].origin == "preset 'metadrive_compat'"
+        # the authors' code's and CoPO's environment (issue 56's part 0): its lidar range for all, its penalties for the PPO
+        # family, COIN's for the TD3 family (the pilots' P9)
+        crash = 5.0 if algo in td3_family else 10.0
+        assert (merged["preset"].value, merged["crash_penalty"].value, merged["lidar_range"].value) == ("metadrive_compat", crash, 40.0)
+        assert merged["out_of_road_penalty"].value == crash and merged["lidar_range"].origin == "preset 'metadrive_compat'"
+        family = "td3" if algo in td3_family else "ppo"
+        want = f"dense scale's scenario for the {family} family (seeds experiment, tuning/)" if own else "preset 'metadrive_compat'"
+        assert merged["crash_penalty"].origin == want, (algo, merged["crash_penalty"].origin)
     # the PPO family: the paper's settings, the defaults (sampled in the trial's process: one CPU a trial)
     for algo in ("ippo", "cppo", "mfpo", "copo"):
         assert registry.get(algo).presets["dense"].changes() == {}
@@ -276,10 +283,12 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     cfg = build_trial_config(by_algo["cig_td3"])
     scenario_cfg = cfg.env_config["scenario_config"]
     assert (scenario_cfg.num_agents, scenario_cfg.horizon, scenario_cfg.allow_respawn) == (30, 1000, True)
-    # every method trains in the environment of the authors' code and CoPO's: penalties 10, lidar 40 m
-    for trial in by_algo.values():
+    # every method observes with the lidar of the authors' code and CoPO's (40 m); the PPO family trains with their
+    # penalties (10), the TD3 family with COIN's (5)
+    for algo, trial in by_algo.items():
         env = build_trial_config(trial).env_config["scenario_config"]
-        assert (env.crash_penalty, env.out_of_road_penalty, env.lidar_range) == (10.0, 10.0, 40.0)
+        penalty = 5.0 if algo in td3_family else 10.0
+        assert (env.crash_penalty, env.out_of_road_penalty, env.lidar_range) == (penalty, penalty, 40.0), algo
     cig = registry.get("cig_td3").presets["dense"]
     assert (cfg.updates_per_env_step, cfg.hidden, cfg.node_width, cfg.precision) == (
         cig.updates_per_env_step,
@@ -442,9 +451,11 @@ def test_dense_protocol_runs_end_to_end_at_a_tiny_budget(ray_session, tmp_path, 
     for algo, t in trials.items():
         assert t.finished and t.config["steps"] == 501
         meta = json.loads((t.final_checkpoint / "coin_app.json").read_text())
-        # the dense preset alone, on the scenario's defaults (30 vehicles, horizon 1000) in the metadrive_compat environment
-        assert meta["overrides"] == registry.get(algo).presets["dense"].changes() | {"preset": "metadrive_compat"}
-        assert meta["env_config"] == {"preset": "metadrive_compat"}
+        # the dense preset alone, on the scenario's defaults (30 vehicles, horizon 1000) in the metadrive_compat environment,
+        # the TD3 family with COIN's penalties
+        own = {"crash_penalty": 5.0, "out_of_road_penalty": 5.0} if algo == "cig_td3" else {}
+        assert meta["overrides"] == registry.get(algo).presets["dense"].changes() | {"preset": "metadrive_compat"} | own
+        assert meta["env_config"] == {"preset": "metadrive_compat"} | own
         # every iteration carries the trial's clocks, and its checkpoint the clocks at its save
         cpu, wall = [r["cpu_s"] for r in t.results], [r["wall_s"] for r in t.results]
         assert cpu == sorted(cpu) and wall == sorted(wall) and 0 < cpu[0] and 0 < wall[0]

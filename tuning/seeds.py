@@ -30,16 +30,18 @@ SEEDS = Experiment(
         seeds=tuple(range(5)),
         steps=1_000_000,  # the PPO family's reference budget
         # the TD3 family: what 0.8 core-hours (the pilots' rule) bought P1's settings on the AVX-512 machine of 2026-12-01,
-        # 30.4 ms of CPU per env step (P1h, docs/studies/dense_pilots.md); the pilots' later choices change it here
+        # 30.4 ms of CPU per env step (P1h, docs/studies/dense_pilots.md); kept when later pilots ran on a busier machine
         steps_by_family={"td3": 95_000},
         checkpoint_every=20,
         keep=4,
         keep_best="eval/success_rate",  # iteration_metrics' key of the periodic validation's success (tested)
         made_for=("intersection",),  # the pilots ran there
-        # the environment the authors' code and CoPO's baselines trained in (penalties 10, lidar 40 m), one for every method:
-        # the PPO family learns only with it (docs/studies/ippo_dense.md), the authors' actors are evaluated in it
-        # (docs/decisions.md; the TD3 family's check is a pilot lever, docs/studies/dense_pilots.md)
+        # one world and sensor for every method and the authors' actors: the environment their code and CoPO's baselines
+        # trained in (penalties 10, lidar 40 m), where the PPO family learns (docs/studies/ippo_dense.md); the TD3 family
+        # trains with COIN's penalties (5): with 10 it learned to stand, with 5 and the 40 m lidar it drives (pilots P5,
+        # P5b, P9 of docs/studies/dense_pilots.md; docs/decisions.md §3.1). No metric depends on the reward.
         scenario={"preset": "metadrive_compat"},
+        scenario_by_family={"td3": {"crash_penalty": 5.0, "out_of_road_penalty": 5.0}},
     ),
     smoke=Scale(seeds=(0, 1), steps=1000, checkpoint_every=1, keep=1),
 )
