@@ -110,13 +110,14 @@ class Sources:
     """What the report reads: sweeps to evaluate and results tables already evaluated."""
 
     sweeps: list[dict[str, Any]] = field(default_factory=list)  # {"path", "settings", "runs", "candidates", "skipped", "unfinished"}
+    paths: list[Path] = field(default_factory=list)  # the paths as given
     tables: list[dict[str, Any]] = field(default_factory=list)  # {"path", "table", "settings"}
 
 
 def gather(paths: Sequence[Path]) -> Sources:
     """Classify every source path; a ValueError naming a path that is none of the allowed kinds."""
 
-    out = Sources()
+    out = Sources(paths=[Path(p) for p in paths])
     for raw in paths:
         path = Path(raw)
         if path.is_file():
@@ -464,7 +465,7 @@ def build_report(
 
     context = {
         "options": asdict(options),
-        "sources": [str(p) for p in paths],
+        "sources": [str(p) for p in sources.paths],
         "sweeps": [{"path": str(s["path"]), "settings": s["settings"], "unfinished": s["unfinished"]} for s in sources.sweeps],
         "tables": [{"path": str(t["path"]), "settings": t["settings"]} for t in sources.tables],
         "evaluation": eval_settings,
