@@ -80,6 +80,7 @@ TEST_CLASS: dict[str, str] = {
             "test_report.py::test_report_lists_unreadable_trials_and_still_writes_everything_else",
             "test_report.py::test_validation_selection_scores_the_checkpoint_best_on_validation_seeds",
             "test_report.py::test_report_transfer_pairs_each_model_with_its_own_native_episodes_on_metadrive",
+            "test_report.py::test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_training",
             "test_bad_inputs.py::test_report_killed_with_sigkill_in_its_swap_leaves_the_old_report_whole_and_the_next_report_a_whole_new_one",
             "test_sweeps.py::test_gpu_sweep_on_a_local_ray_without_enough_gpus_is_refused",
             "test_sweeps.py::test_reduced_protocol_runs_end_to_end_at_a_tiny_budget",

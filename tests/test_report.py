@@ -9,7 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from coin_app.algorithms.checkpoint_files import verify
 from coin_app.cli import main
+from coin_app.evaluation.archive import BOOKKEEPING
 from coin_app.evaluation.plots import curve_axes, mean_curve, plot_learning_curves
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
 from coin_app.evaluation.report import learning_curves
@@ -270,6 +272,77 @@ def test_validation_selection_scores_the_checkpoint_best_on_validation_seeds(swe
     assert not (out / "selection.csv").exists()
     assert set(pd.read_csv(out / "results.csv").query("method == 'cig_td3'")["checkpoint"]) == {str(final)}
     assert "(final checkpoints)" in (out / "table_main.md").read_text()
+
+
+def test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_training(sweep_dir, tmp_path, capsys):
+    copy = tmp_path / "runs" / sweep_dir.name
+    shutil.copytree(sweep_dir, copy)
+    trials = {t.config["algo"]: t for t in load_trials(copy)}
+    cig = trials["cig_td3"]
+    # CIG-TD3's trial gets an older checkpoint, a copy of IPPO's model (scored apart on the validation seeds)
+    final = cig.path / "checkpoint_000009"
+    cig.final_checkpoint.rename(final)
+    shutil.copytree(trials["ippo"].final_checkpoint, cig.path / "checkpoint_000004")
+    seeds = validation_seeds(2)
+    older = [EvalRun("cig_td3", "default", 0, str(c)) for c in (cig.path / "checkpoint_000004", final)]
+    score = {c: g["success_rate"].mean() for c, g in run_evaluation(older, seeds, log=lambda _: None).table.groupby("checkpoint")}
+    best = "checkpoint_000004" if score[older[0].checkpoint] > score[older[1].checkpoint] else final.name  # a tie: the later
+    # IPPO's trial stopped short of its budget: it is named and left out
+    result = trials["ippo"].path / "result.json"
+    short = [json.loads(line) | {"done": False, "env_steps": 1} for line in result.read_text().splitlines()]
+    result.write_text("".join(json.dumps(r) + "\n" for r in short))
+    out = tmp_path / "archive"
+    assert main(["archive", str(copy.parent), "--out", str(out), "--validation-episodes", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "1 trial(s) added" in printed and f"not yet: ippo-s0 (1 of {trials['ippo'].config['steps']} env steps)" in printed
+    archived = load_trials(out / copy.name)
+    assert [t.name for t in archived] == ["cig_td3-s0"]
+    cig, kept = load_trials(copy)[0], archived[0]
+    # the final and the validation-selected checkpoints, every kept one's score in selection.csv
+    assert kept.config == cig.config and [c.name for c in kept.checkpoints] == sorted({best, final.name})
+    chosen = pd.read_csv(kept.path / "selection.csv").set_index("checkpoint")
+    assert chosen.index.tolist() == ["checkpoint_000004", final.name] and chosen.index[chosen["selected"]].tolist() == [best]
+    assert chosen.loc["checkpoint_000004", "validation_success"] == pytest.approx(score[older[0].checkpoint])
+    # the results without Tune's bookkeeping, otherwise the same lines; the sweep's command without its machine path
+    assert kept.results == [{k: v for k, v in r.items() if k not in BOOKKEEPING} for r in cig.results]
+    assert not {"hostname", "pid", "config"} & set(kept.results[-1]) and "env_steps" in kept.results[-1]
+    assert str(tmp_path) not in json.loads((out / copy.name / "coin_sweep.json").read_text())["command"]
+    # an actor-only copy: a few percent of the checkpoint, verified by its own manifest, evaluated exactly as the original
+    kept_final = kept.path / final.name
+    size = sum(p.stat().st_size for p in kept_final.rglob("*") if p.is_file())
+    assert size < 0.05 * sum(p.stat().st_size for p in final.rglob("*") if p.is_file())
+    assert verify(kept_final) == verify(final)
+    runs = [EvalRun("cig_td3", "default", 0, str(c)) for c in (final, kept_final)]
+    table = run_evaluation(runs, [TEST_SEED_BASE, TEST_SEED_BASE + 1], counts=[2], log=lambda _: None).table
+    metrics = [c for c in METRIC_COLUMNS if c != "checkpoint"]
+    first, second = (table[table["checkpoint"] == r.checkpoint][metrics].reset_index(drop=True) for r in runs)
+    pd.testing.assert_frame_equal(first, second)
+    curves = [learning_curves(table[(table["checkpoint"] == r.checkpoint) & (table["agent_count"] == 4)]) for r in runs]
+    assert len(curves[0]) == len({r["env_steps"] for r in cig.results})
+    pd.testing.assert_frame_equal(curves[0], curves[1])
+    # training cannot go on from it, and nothing that needs the critics loads it: one line each, before any work
+    assert main(["train", "--algo", "cig_td3", "--resume", str(kept_final), "--out", str(tmp_path / "t")]) == 2
+    assert "holds only its metadata and exported actor" in capsys.readouterr().err
+    assert main(["probe", str(kept_final), "--episodes", "1"]) == 2
+    assert "holds only its exported actor" in capsys.readouterr().err
+    # archiving again adds nothing and keeps what is there; an altered file is still caught
+    actor = kept_final / "actor.pt"
+    before = actor.read_bytes()
+    assert main(["archive", str(copy), "--out", str(out)]) == 0
+    assert "0 trial(s) added" in capsys.readouterr().out and actor.read_bytes() == before
+    altered = shutil.copytree(kept_final, tmp_path / "altered")
+    (altered / "actor.pt").write_bytes(before[:-1] + bytes([before[-1] ^ 1]))
+    with pytest.raises(ValueError, match="actor.pt fails its SHA-256 check"):
+        verify(altered)
+    # another sweep under the same name is refused, and so are an archive inside the sweep and a bad episode count
+    other = json.loads((copy / "coin_sweep.json").read_text()) | {"seeds": [9]}
+    (copy / "coin_sweep.json").write_text(json.dumps(other))
+    assert main(["archive", str(copy), "--out", str(out)]) == 2
+    assert "archives another sweep" in capsys.readouterr().err
+    assert main(["archive", str(copy), "--out", str(copy / "inside")]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert main(["archive", str(copy), "--out", str(tmp_path / "a2"), "--validation-episodes", "0"]) == 2
+    assert "bad --validation-episodes 0" in capsys.readouterr().err
 
 
 def test_report_transfer_pairs_each_model_with_its_own_native_episodes_on_metadrive(sweep_dir, tmp_path, capsys):

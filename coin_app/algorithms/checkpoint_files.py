@@ -34,6 +34,8 @@ MODULE_STATE_FILE = "module_state.pkl"  # the shared module's tensors (RLlib's f
 MODULE_PATH = ("learner_group", "learner", "rl_module", SHARED_MODULE_ID)  # the shared module inside a checkpoint
 PARTIAL_SUFFIX = ".partial"  # a checkpoint being written: <parent>/.<name>.partial
 PREVIOUS_SUFFIX = ".prev"  # the previous checkpoint, kept until the new one is in place
+ACTOR_ONLY = "actor"  # a manifest's "contents" for a checkpoint cut to its metadata and exported actor (coin_app archive)
+ACTOR_FILE = "actor.pt"  # an actor-only checkpoint's actor: the TorchScript export of the shared module's deterministic actor
 
 
 def write_metadata(checkpoint: Path, meta: dict[str, Any]) -> None:
@@ -90,8 +92,11 @@ def _files(checkpoint: Path) -> list[str]:
     return sorted(p.relative_to(checkpoint).as_posix() for p in checkpoint.rglob("*") if p.is_file() and p.name != MANIFEST_FILE)
 
 
-def write_manifest(checkpoint: Path, meta: dict[str, Any]) -> dict[str, Any]:
-    """Write the manifest of a complete checkpoint directory (every file's size and SHA-256, what trained it); returns it."""
+def write_manifest(checkpoint: Path, meta: dict[str, Any], contents: str | None = None) -> dict[str, Any]:
+    """Write the manifest of a complete checkpoint directory (every file's size and SHA-256, what trained it); returns it.
+
+    ``contents``: :data:`ACTOR_ONLY` for an archived actor-only copy (absent: a whole checkpoint, as ``train`` saves it).
+    """
     manifest = {
         "format": "coin_app.checkpoint",
         "version": MANIFEST_VERSION,
@@ -100,7 +105,7 @@ def write_manifest(checkpoint: Path, meta: dict[str, Any]) -> dict[str, Any]:
         "config_hash": config_hash(meta),
         "code_version": code_version(),
         "files": {name: {"size": (checkpoint / name).stat().st_size, "sha256": _sha256(checkpoint / name)} for name in _files(checkpoint)},
-    }
+    } | ({"contents": contents} if contents else {})
     _write_synced(checkpoint / MANIFEST_FILE, json.dumps(manifest, indent=1))
     return manifest
 
@@ -121,9 +126,11 @@ def verify(checkpoint: Path) -> dict[str, Any]:
         hint = _previous_hint(checkpoint)
         raise ValueError(f"checkpoint {checkpoint} does not exist or is not a directory{hint}")
     man_path = checkpoint / MANIFEST_FILE
-    if not man_path.is_file() or not (checkpoint / META_FILE).is_file() or not checkpoint.joinpath(*MODULE_PATH).is_dir():
+    actor_only = contents_of(checkpoint) == ACTOR_ONLY
+    body = checkpoint / ACTOR_FILE if actor_only else checkpoint.joinpath(*MODULE_PATH)
+    if not man_path.is_file() or not (checkpoint / META_FILE).is_file() or not body.exists():
         raise ValueError(
-            f"{checkpoint} is not a complete coin_app checkpoint (missing {MANIFEST_FILE}, {META_FILE} or {'/'.join(MODULE_PATH)}): "
+            f"{checkpoint} is not a complete coin_app checkpoint (missing {MANIFEST_FILE}, {META_FILE} or {body.relative_to(checkpoint)}): "
             f"torn during a save, or not written by coin_app's train{_previous_hint(checkpoint)}"
         )
     stat = man_path.stat()
@@ -164,7 +171,7 @@ def verify(checkpoint: Path) -> dict[str, Any]:
                 f"checkpoint {checkpoint}: {META_FILE} says {field_name} {value!r}, its manifest "
                 f"{manifest.get(field_name)!r} (files of two checkpoints mixed)"
             )
-    if SHAPES_KEY in meta:
+    if SHAPES_KEY in meta and not actor_only:
         recorded = {k: tuple(v) for k, v in meta[SHAPES_KEY].items()}
         differ = shape_difference(recorded, module_shapes(checkpoint), "in its metadata", "in its tensors")
         if differ:
@@ -246,6 +253,24 @@ def save_checkpoint(algo: Any, checkpoint: Path, meta: dict[str, Any], atomic: b
     _sync_dir(checkpoint.parent)
     shutil.rmtree(prev, ignore_errors=True)
     return checkpoint
+
+
+def contents_of(checkpoint: Path) -> str | None:
+    """A checkpoint's manifest ``contents``: :data:`ACTOR_ONLY` for an archived actor-only copy, None for a whole checkpoint
+    (or a directory without a readable manifest, which :func:`verify` refuses)."""
+    try:
+        return json.loads((Path(checkpoint) / MANIFEST_FILE).read_text()).get("contents")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def check_resumable(checkpoint: Path) -> None:
+    """A ValueError in one line when ``checkpoint`` is an actor-only copy, which holds no state to train on from."""
+    if contents_of(checkpoint) == ACTOR_ONLY:
+        raise ValueError(
+            f"checkpoint {checkpoint} holds only its metadata and exported actor (an archived copy: no critics, replay, optimizer "
+            "or env-runner state); allowed: --resume with a whole checkpoint written by train or a sweep"
+        )
 
 
 def _sync_dir(path: Path) -> None:

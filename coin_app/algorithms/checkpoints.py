@@ -23,7 +23,7 @@ from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPP
 from ray.rllib.core.rl_module.rl_module import RLModule
 
 from coin_app.adapters.lcf import SampledLCFPolicy
-from coin_app.algorithms.checkpoint_files import MODULE_PATH, read_metadata
+from coin_app.algorithms.checkpoint_files import ACTOR_ONLY, MODULE_PATH, contents_of, read_metadata
 from coin_app.algorithms.ppo_family.rl_module import PPOActorModule
 from coin_app.algorithms.spec import LCF_MODES, ActorModule, CoordinatedActorModule
 from coin_app.sim.arena.config import ArenaConfig
@@ -48,8 +48,13 @@ def actor_module(module: Any) -> ActorModule:
 
 
 def load_module(checkpoint: Path) -> ActorModule:
-    """The shared RLModule stored in a coin_app checkpoint."""
+    """The shared RLModule stored in a coin_app checkpoint; a ValueError for an actor-only copy, which has none."""
     read_metadata(checkpoint)
+    if contents_of(checkpoint) == ACTOR_ONLY:
+        raise ValueError(
+            f"checkpoint {checkpoint} holds only its exported actor (an archived copy), not the RLModule with its critics; "
+            "allowed: a whole checkpoint written by train or a sweep"
+        )
     return actor_module(RLModule.from_checkpoint(str(Path(checkpoint).resolve().joinpath(*MODULE_PATH))))
 
 

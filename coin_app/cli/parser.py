@@ -6,7 +6,7 @@ import argparse
 from typing import Any, NoReturn
 
 from coin_app.algorithms.choices import ALGORITHM_NAMES, ARENA
-from coin_app.evaluation.limits import CONNECT_TIMEOUT_S, MAX_EPISODES, MAX_SCENARIOS_PER_CASE
+from coin_app.evaluation.limits import CONNECT_TIMEOUT_S, MAX_EPISODES, MAX_SCENARIOS_PER_CASE, VALIDATION_EPISODES
 from coin_app.sim.arena.config import GENERATORS, PROTOCOLS
 from coin_app.sim.config import PRESETS
 from coin_app.sim.scenes import DRIVING_SCENARIOS as DRIVING
@@ -278,11 +278,27 @@ def build_parser() -> argparse.ArgumentParser:
     ge.add_argument("--test-seeds", type=int, default=None, help="episodes per checkpoint and count (default: the sweep's, 20)")
     ge.set_defaults(run="sweeps.cmd_generalize")
 
+    ar = sub.add_parser(
+        "archive",
+        help="copy a sweep's finished trials (results, curves, the final and the validation-selected checkpoints' actors) into "
+        "a small directory that report reads as the sweep: a result that outlives the machine",
+    )
+    ar.add_argument("sweeps", nargs="+", help="sweep directories or directories of sweeps")
+    ar.add_argument("--out", required=True, help="archive root: each sweep goes to <out>/<sweep name>/ (run again to add trials)")
+    ar.add_argument(
+        "--validation-episodes",
+        type=int,
+        default=VALIDATION_EPISODES,
+        help="validation seeds per kept checkpoint: the one best on them is archived beside the final one (report --select's)",
+    )
+    ar.set_defaults(run="sweeps.cmd_archive")
+
     rp = sub.add_parser("report", help="evaluate sweeps on the test seeds; tables, t-tests, figures, marl-eval JSON, report.html")
     rp.add_argument(
         "sources",
         nargs="+",
-        help="sweep directories, directories of sweeps, results.csv files of earlier reports, or evaluate-arena output directories",
+        help="sweep directories (or their archives), directories of sweeps, results.csv files of earlier reports, or "
+        "evaluate-arena output directories",
     )
     rp.add_argument("--out", required=True, help="output directory")
     rp.add_argument("--method", default="cig_td3", help="the method tested against every baseline (default cig_td3)")
@@ -301,7 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
         default="final",
         help="the checkpoint of each trial scored on the test seeds: final (default) | validation (the one best on validation seeds)",
     )
-    rp.add_argument("--validation-episodes", type=int, default=10, help="validation seeds per checkpoint with --select validation")
+    rp.add_argument(
+        "--validation-episodes", type=int, default=VALIDATION_EPISODES, help="validation seeds per checkpoint with --select validation"
+    )
     rp.add_argument(
         "--reference-actors",
         default=None,

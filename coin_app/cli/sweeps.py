@@ -1,4 +1,4 @@
-"""``sweep``, ``generalize`` and ``report``: Tune sweeps of the paper's experiments and the report made from them."""
+"""``sweep``, ``generalize``, ``archive`` and ``report``: Tune sweeps of the paper's experiments and the report made from them."""
 
 from __future__ import annotations
 
@@ -6,10 +6,12 @@ import argparse
 from pathlib import Path
 
 from coin_app.cli.flags import overrides_of
+from coin_app.evaluation.archive import archive_sweep
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
 from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, write_arena_html
 from coin_app.evaluation.outputs import OutputLock, check_dir_output, staged_outputs
 from coin_app.evaluation.report import ReportOptions, build_report, gather
+from coin_app.evaluation.sweep_results import sweep_dirs
 from tuning.sweep import run_sweep, write_generalization
 
 
@@ -65,6 +67,20 @@ def cmd_generalize(args: argparse.Namespace) -> int:
 
     out = write_generalization(Path(args.experiment_dir), counts=args.counts, test_seeds=args.test_seeds)
     print(f"generalization table: {out}")
+    return 0
+
+
+def cmd_archive(args: argparse.Namespace) -> int:
+    """Archive every finished trial of the sweeps given under ``--out``; print what was added and what was left out."""
+    out = Path(args.out)
+    sweeps = [d for p in args.sweeps for d in sweep_dirs(Path(p))]  # every path checked before any write
+    check_dir_output(out, sweeps, what="a sweep it archives")
+    with OutputLock(out, getattr(args, "command_line", None), "the archive directory"):
+        records = [archive_sweep(d, out, args.validation_episodes) for d in sweeps]
+    added = sum(len(r["added"]) for r in records)
+    print(f"\narchive summary: {added} trial(s) added to {out}, {sum(len(r['trials']) for r in records)} archived in all")
+    for r in records:
+        print(f"  {r['path']}: {len(r['trials'])} trial(s), {r['bytes'] / 1e6:.1f} MB; not yet: {', '.join(r['left_out']) or 'none'}")
     return 0
 
 

@@ -13,6 +13,7 @@ CONNECT_TIMEOUT_S = 5.0  # seconds train and sweep wait for a cluster at --addre
 MAX_EPISODES = 1000  # evaluate: seeds in one call (the paper: 20); all of them run at once in one batched simulator
 MAX_CASE_VEHICLES = 64  # evaluate-arena: vehicles in one case (the paper's largest: 20); scenes are drawn point by point
 MAX_CASE_OBSTACLES = 64  # evaluate-arena: obstacles in one case (the paper's largest: 12)
+VALIDATION_EPISODES = 10  # report --select validation and archive: validation seeds per checkpoint
 MAX_SCENARIOS_PER_CASE = 10_000  # evaluate-arena: test scenarios per case (the paper: 4062)
 
 

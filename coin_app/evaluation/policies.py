@@ -14,11 +14,21 @@ from pathlib import Path
 from typing import Any
 
 from coin_app.adapters.lcf import with_lcf
+from coin_app.algorithms.checkpoint_files import ACTOR_FILE, ACTOR_ONLY, contents_of, read_metadata
 from coin_app.algorithms.checkpoints import load_checkpoint_policy
 from coin_app.inference import load_policy as load_exported_policy
 from coin_app.inference.shipped import resolve
 from coin_app.inference.switching import load_pair
 from coin_app.sim.rollout import AgentPolicy, Policy
+
+
+def checkpoint_policy(checkpoint: Path) -> Policy | AgentPolicy:
+    """A checkpoint's evaluation policy: its module's deterministic actor (:func:`load_checkpoint_policy`), or an archived
+    actor-only copy's exported actor (CoPO's with the same per-vehicle LCF draws)."""
+    read_metadata(checkpoint)  # verified first, whichever kind
+    if contents_of(checkpoint) == ACTOR_ONLY:
+        return with_lcf(load_exported_policy(Path(checkpoint) / ACTOR_FILE))
+    return load_checkpoint_policy(Path(checkpoint))
 
 
 def as_policy(source: Any) -> Policy | AgentPolicy:
@@ -32,7 +42,7 @@ def as_policy(source: Any) -> Policy | AgentPolicy:
         )
     path = Path(source)
     if path.is_dir():
-        return load_checkpoint_policy(path)
+        return checkpoint_policy(path)
     if path.is_file() and path.suffix == ".json":
         return load_pair(path, as_policy)
     if path.is_file():
@@ -42,4 +52,4 @@ def as_policy(source: Any) -> Policy | AgentPolicy:
     )
 
 
-__all__ = ["AgentPolicy", "Policy", "as_policy", "with_lcf"]
+__all__ = ["AgentPolicy", "Policy", "as_policy", "checkpoint_policy", "with_lcf"]

@@ -33,9 +33,10 @@ import pandas as pd
 import torch
 
 from coin_app.algorithms.checkpoint_files import read_metadata
-from coin_app.algorithms.checkpoints import load_checkpoint_policy, scenario_of
+from coin_app.algorithms.checkpoints import scenario_of
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import METRIC_KEYS
+from coin_app.evaluation.policies import checkpoint_policy
 from coin_app.sim.config import BACKENDS, DEFAULT_NUM_AGENTS
 from coin_app.sim.scenarios import config_from_dict
 
@@ -99,7 +100,7 @@ def evaluate_run(
     """
 
     meta = read_metadata(Path(run.checkpoint))
-    policy = load_checkpoint_policy(Path(run.checkpoint))
+    policy = checkpoint_policy(Path(run.checkpoint))
     trained = scenario_of(Path(run.checkpoint))
     env_steps = run.trained_env_steps if run.trained_env_steps is not None else meta.get("env_steps")
     rows = []

@@ -36,18 +36,20 @@ import numpy as np
 import pandas as pd
 
 from coin_app.algorithms.checkpoint_files import META_FILE
-from coin_app.algorithms.checkpoints import load_checkpoint_policy, scenario_of
+from coin_app.algorithms.checkpoints import scenario_of
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation import paper_table, plots, statistics, tables
 from coin_app.evaluation.embedding import kmeans, tsne
 from coin_app.evaluation.evaluate import run_episode
 from coin_app.evaluation.html_report import write_html
 from coin_app.evaluation.latents import collect_latents
+from coin_app.evaluation.limits import VALIDATION_EPISODES
 from coin_app.evaluation.marl_eval import run_label, write_marl_eval
+from coin_app.evaluation.policies import checkpoint_policy
 from coin_app.evaluation.protocol import EVALUATION_FILE, EvalRun, Evaluation, read_results, run_evaluation, write_results
 from coin_app.evaluation.reference import REFERENCE_METHOD, test_seed_rows
 from coin_app.evaluation.selection import FINAL, SELECTION_FILE, SELECTIONS, VALIDATION, Candidates, select_checkpoints, selection_caption
-from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings
+from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings, sweep_dirs
 from coin_app.evaluation.transfer import transfer_table, write_transfer
 from coin_app.sim.config import BACKENDS
 from coin_app.sim.driving_env import DrivingEnv
@@ -72,7 +74,7 @@ class ReportOptions:
     transfer: str | None = None  # another backend every model is also evaluated on (metadrive), at its training count
     transfer_test_seeds: int = 5  # test episodes per model on that backend (the first of the native test seeds)
     select: str = FINAL  # the checkpoint of a trial scored: its final one, or the one best on validation seeds (COIN's "best_model")
-    validation_episodes: int = 10  # validation seeds per checkpoint for select="validation"
+    validation_episodes: int = VALIDATION_EPISODES  # validation seeds per checkpoint for select="validation"
     reference_actors: str | None = None  # the COIN authors' actors' directory: their row on the same test seeds (reference.py)
     command: str | None = None  # the command line, recorded in the page
 
@@ -125,10 +127,11 @@ def gather(paths: Sequence[Path]) -> Sources:
             settings = json.loads(meta.read_text()) if meta.is_file() else {}
             out.tables.append({"path": path, "table": read_results(path), "settings": settings})
             continue
-        sweep_dirs = [path] if (path / SETTINGS_FILE).is_file() else sorted(p.parent for p in path.glob(f"*/{SETTINGS_FILE}"))
-        if not path.is_dir() or not sweep_dirs:
-            raise ValueError(f"{path} is not a results file, a sweep directory (with {SETTINGS_FILE}) or a directory of sweeps")
-        for d in sweep_dirs:
+        try:
+            found = sweep_dirs(path)
+        except ValueError:
+            raise ValueError(f"{path} is not a results file, a sweep directory (with {SETTINGS_FILE}) or a directory of sweeps") from None
+        for d in found:
             runs, candidates, skipped, unfinished = [], [], [], []
             for trial in load_trials(d, unreadable=skipped):  # a corrupt trial is listed, the others reported
                 if not trial.finished:
@@ -309,7 +312,7 @@ def trajectory_plot(checkpoint: str, seed: int, path: Path, title: str) -> Path:
     if config.backend != "native":
         raise ValueError(f"trajectory plots need the native backend; {checkpoint} uses {config.backend!r}")
     env, trace = DrivingEnv(config), EpisodeTrace()
-    m = run_episode(env, load_checkpoint_policy(Path(checkpoint)), seed, config.force_stop_factor * config.horizon + 1, trace=trace)
+    m = run_episode(env, checkpoint_policy(Path(checkpoint)), seed, config.force_stop_factor * config.horizon + 1, trace=trace)
     full = f"{title}: success {m['success_rate']:.2f}, {int(m['num_crashed'])} crashes, {int(m['num_out_of_road'])} off-road"
     return plot_trajectories(trace, env.sim.map, path, title=full, width=6.0, dpi=90)
 

@@ -72,6 +72,15 @@ def read_settings(experiment_dir: Path) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
+def sweep_dirs(path: Path) -> list[Path]:
+    """``path`` if it is a sweep directory, else the sweeps directly under it; a ValueError naming a path that holds none."""
+    path = Path(path)
+    found = [path] if (path / SETTINGS_FILE).is_file() else sorted(p.parent for p in path.glob(f"*/{SETTINGS_FILE}"))
+    if not path.is_dir() or not found:
+        raise ValueError(f"{path} is not a sweep directory (with {SETTINGS_FILE}) or a directory of sweeps")
+    return found
+
+
 def _read_json_lines(path: Path) -> list[dict[str, Any]]:
     """The complete JSON lines of ``result.json``; a trailing line still being written is left out."""
     if not path.is_file():

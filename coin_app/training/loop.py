@@ -20,7 +20,7 @@ from tensorboardX import SummaryWriter
 
 from coin_app.adapters.batched_runner import BatchedEnvRunner
 from coin_app.algorithms import registry
-from coin_app.algorithms.checkpoint_files import latest_complete
+from coin_app.algorithms.checkpoint_files import check_resumable, latest_complete
 from coin_app.algorithms.common import ProgressReporting, scenario_config_of
 from coin_app.evaluation.limits import CONNECT_TIMEOUT_S, check_train_budget
 from coin_app.evaluation.outputs import OutputLock, write_text_atomic
@@ -166,6 +166,7 @@ def train(
             if found != resume:
                 log(f"{resume} is incomplete (a save was interrupted); resuming from the previous checkpoint {found}")
             resume = found
+            check_resumable(resume)
             check_resume(resume, resume_meta, name, scenario, overrides)
         clock = RunClock(resume_meta)  # from here: the run's CPU (its Ray session's included) and wall time
         with OutputLock(out, command, "the run directory") as lock:

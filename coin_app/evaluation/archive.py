@@ -1,0 +1,176 @@
+"""A sweep's finished trials as a small directory that a repository can hold, and that ``report`` reads as it reads the sweep.
+
+A dense trial costs about an hour of CPU and its checkpoints hold its replay (hundreds of MB):
+neither survives a change of machine. :func:`archive_sweep` keeps, per finished trial, what the
+report reads: ``params.json``, ``result.json`` and ``progress.csv`` without Tune's bookkeeping
+(host, PID, dates, the config repeated per line), and two of its checkpoints as actor-only copies
+(metadata and the deterministic actor as TorchScript, ``ACTOR_FILE``): the final one and the one
+best on the validation seeds (:func:`~coin_app.evaluation.selection.select_checkpoints`, the
+report's ``--select validation``), with every kept checkpoint's validation score in
+``selection.csv``. Layout: ``<out>/<sweep name>/`` with the sweep's ``coin_sweep.json``,
+:data:`ARCHIVE_FILE` and one ``<algo>[-<variant>]-s<seed>/`` per trial. Archiving again adds the
+trials finished since; a trial already archived stays as it is.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from coin_app.algorithms.checkpoint_files import (
+    ACTOR_FILE,
+    ACTOR_ONLY,
+    META_FILE,
+    PARTIAL_SUFFIX,
+    code_version,
+    verify,
+    write_manifest,
+)
+from coin_app.algorithms.checkpoints import export_actor, load_module
+from coin_app.evaluation.outputs import fsync_dir, write_text_atomic
+from coin_app.evaluation.protocol import EvalRun
+from coin_app.evaluation.selection import SELECTION_FILE, Candidates, select_checkpoints
+from coin_app.evaluation.sweep_results import SETTINGS_FILE, TrialRecord, load_trials, read_settings
+from coin_app.inference import export_policy
+
+ARCHIVE_FILE = "coin_archive.json"  # beside coin_sweep.json: what was archived, from where, by which code
+BOOKKEEPING = ("config", "date", "timestamp", "pid", "hostname", "node_ip", "trial_id", "time_since_restore", "iterations_since_restore")
+STORAGE_MARK = "<storage>"  # stands for the sweep's storage directory in the archived settings' command (no machine paths)
+
+
+def is_archive(path: Path) -> bool:
+    """Whether ``path`` is an archived sweep (it has :data:`ARCHIVE_FILE`)."""
+    return (Path(path) / ARCHIVE_FILE).is_file()
+
+
+def _without_bookkeeping(line: dict[str, Any]) -> dict[str, Any]:
+    """A result line without Tune's per-line bookkeeping (:data:`BOOKKEEPING`)."""
+    return {k: v for k, v in line.items() if k not in BOOKKEEPING}
+
+
+def _progress_without_bookkeeping(path: Path) -> str:
+    """``progress.csv``'s text without the :data:`BOOKKEEPING` columns ("" when there is none)."""
+    if not path.is_file():
+        return ""
+    rows = list(csv.reader(io.StringIO(path.read_text())))
+    if not rows:
+        return ""
+    keep = [i for i, name in enumerate(rows[0]) if name not in BOOKKEEPING]
+    out = io.StringIO()
+    csv.writer(out, lineterminator="\n").writerows([[row[i] for i in keep if i < len(row)] for row in rows])
+    return out.getvalue()
+
+
+def actor_only_copy(checkpoint: Path, dest: Path) -> Path:
+    """Write ``checkpoint``'s metadata and its evaluation actor (TorchScript, as ``export`` writes it) to ``dest``, with a
+    manifest of its own (``"contents": "actor"``); the critics, replay and optimizer stay behind, so it cannot resume."""
+    meta = verify(checkpoint)
+    actor, _, extra = export_actor(load_module(checkpoint))
+    keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
+    dest.mkdir(parents=True)
+    export_policy(actor, dest / ACTOR_FILE, "torchscript", meta=keep | extra | {"checkpoint": Path(checkpoint).name})
+    shutil.copy2(Path(checkpoint) / META_FILE, dest / META_FILE)
+    write_manifest(dest, meta, contents=ACTOR_ONLY)
+    return dest
+
+
+def archive_trial(trial: TrialRecord, dest: Path, validation_episodes: int, log: Callable[[str], None]) -> dict[str, Any]:
+    """Write one finished trial's archive to ``dest`` (which must not exist), whole or not at all; returns its record."""
+    partial = dest.with_name("." + dest.name + PARTIAL_SUFFIX)
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    final = trial.final_checkpoint
+    assert final is not None  # archive_sweep archives trials with a checkpoint only
+    cfg = trial.config
+    run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(final), trial.checkpoint_env_steps(final))
+    candidates = Candidates(run, tuple(str(c) for c in trial.checkpoints), tuple(trial.checkpoint_env_steps(c) for c in trial.checkpoints))
+    chosen, table, failures = select_checkpoints([candidates], validation_episodes, log=log)
+    if failures or not chosen:
+        raise ValueError(
+            f"{trial.name}: a checkpoint failed its validation evaluation ({failures[:1]}); allowed: a trial whose checkpoints load"
+        )
+    selected = Path(chosen[0].checkpoint)
+    for checkpoint in sorted({selected, final}, key=lambda c: int(c.name.split("_")[-1])):
+        actor_only_copy(checkpoint, partial / checkpoint.name)
+    table.assign(checkpoint=[Path(c).name for c in table["checkpoint"]]).to_csv(partial / SELECTION_FILE, index=False)
+    (partial / "params.json").write_text(json.dumps(cfg, indent=2, sort_keys=True))
+    (partial / "result.json").write_text("".join(json.dumps(_without_bookkeeping(r)) + "\n" for r in trial.results))
+    (partial / "progress.csv").write_text(_progress_without_bookkeeping(trial.path / "progress.csv"))
+    partial.rename(dest)
+    fsync_dir(dest.parent)
+    return {
+        "source": trial.path.name,
+        "final": final.name,
+        "selected": selected.name,
+        "kept": [c.name for c in trial.checkpoints],
+        "validation_episodes": validation_episodes,
+        "env_steps": int(trial.last.get("env_steps", 0)),
+        "cpu_s": trial.last.get("cpu_s"),
+        "archived": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "code_version": code_version(),
+    }
+
+
+def _scrubbed(settings: dict[str, Any], storage: Path) -> dict[str, Any]:
+    """The sweep's settings with its storage directory in the command replaced by :data:`STORAGE_MARK`."""
+    command = settings.get("command")
+    if not isinstance(command, str):
+        return settings
+    for form in {str(storage), str(storage.resolve())}:
+        command = command.replace(form, STORAGE_MARK)
+    return settings | {"command": command}
+
+
+def archive_sweep(sweep: Path, out: Path, validation_episodes: int, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Archive a sweep's finished trials under ``out/<sweep name>/``; returns the archive's record (:data:`ARCHIVE_FILE`).
+
+    ``validation_episodes``: validation seeds per kept checkpoint for the selection. Refused in one line
+    before any write: a bad ``validation_episodes``, a path that is not a sweep, an ``out`` inside the sweep,
+    and an existing archive of another sweep (other settings) under the same name. Unfinished
+    trials, and trials without a checkpoint, are named and left out; they are added by a later run.
+    """
+    sweep, out = Path(sweep), Path(out)
+    if isinstance(validation_episodes, bool) or not isinstance(validation_episodes, int) or validation_episodes < 1:
+        raise ValueError(f"bad --validation-episodes {validation_episodes!r}; allowed: an integer >= 1")
+    settings = read_settings(sweep)
+    if out.resolve().is_relative_to(sweep.resolve()):
+        raise ValueError(f"bad --out {out}: inside the sweep {sweep} it archives; allowed: a directory outside it")
+    dest = out / sweep.resolve().name
+    settings = _scrubbed(settings, sweep.resolve().parent)
+    record: dict[str, Any] = {"trials": {}}
+    if (dest / SETTINGS_FILE).is_file():
+        earlier = json.loads((dest / SETTINGS_FILE).read_text())
+        if earlier != settings:
+            raise ValueError(
+                f"{dest} archives another sweep (its {SETTINGS_FILE} differs from {sweep}'s); allowed: the same sweep again, or "
+                "another --out"
+            )
+        record = json.loads((dest / ARCHIVE_FILE).read_text())
+    trials = load_trials(sweep)
+    added, left_out = [], []
+    dest.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(dest / SETTINGS_FILE, json.dumps(settings, indent=2))
+    for trial in trials:
+        if trial.name in record["trials"] and (dest / trial.name).is_dir():
+            continue
+        if not trial.finished or trial.final_checkpoint is None:
+            left_out.append(f"{trial.name} ({trial.last.get('env_steps', 0)} of {trial.config.get('steps')} env steps)")
+            continue
+        shutil.rmtree(dest / trial.name, ignore_errors=True)  # a trial dir without its record: an interrupted archive
+        entry = archive_trial(trial, dest / trial.name, validation_episodes, log)
+        record["trials"][trial.name] = entry
+        added.append(trial.name)
+        write_text_atomic(dest / ARCHIVE_FILE, json.dumps(record, indent=2, sort_keys=True))
+        log(f"  {trial.name}: final {entry['final']}, validation-selected {entry['selected']} -> {dest / trial.name}")
+    write_text_atomic(dest / ARCHIVE_FILE, json.dumps(record, indent=2, sort_keys=True))
+    size = sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
+    log(f"archive {dest}: {len(added)} trial(s) added, {len(record['trials'])} in all, {size / 1e6:.1f} MB")
+    if left_out:
+        log(f"  not archived (unfinished or without a checkpoint): {', '.join(left_out)}")
+    return record | {"path": str(dest), "added": added, "left_out": left_out, "bytes": size}
