@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 from coin_app.algorithms.checkpoint_files import verify
+from coin_app.algorithms.checkpoints import load_module
 from coin_app.cli import main
 from coin_app.evaluation.archive import BOOKKEEPING
 from coin_app.evaluation.plots import curve_axes, mean_curve, plot_learning_curves
@@ -292,7 +293,7 @@ def test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_tra
     short = [json.loads(line) | {"done": False, "env_steps": 1} for line in result.read_text().splitlines()]
     result.write_text("".join(json.dumps(r) + "\n" for r in short))
     out = tmp_path / "archive"
-    assert main(["archive", str(copy.parent), "--out", str(out), "--validation-episodes", "2"]) == 0
+    assert main(["archive", str(copy.parent), "--out", str(out), "--validation-episodes", "2", "--modules"]) == 0
     printed = capsys.readouterr().out
     assert "1 trial(s) added" in printed and f"not yet: ippo-s0 (1 of {trials['ippo'].config['steps']} env steps)" in printed
     archived = load_trials(out / copy.name)
@@ -343,6 +344,19 @@ def test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_tra
     assert "--out" in capsys.readouterr().err
     assert main(["archive", str(copy), "--out", str(tmp_path / "a2"), "--validation-episodes", "0"]) == 2
     assert "bad --validation-episodes 0" in capsys.readouterr().err
+    assert main(["archive", str(copy), "--out", str(tmp_path / "a2"), "--modules", "cig_td4"]) == 2
+    assert "bad --modules cig_td4; allowed: methods among" in capsys.readouterr().err
+    # by default CIG-TD3 keeps its whole module (the critics, for the report's latent figure), as the original evaluates
+    assert main(["archive", str(copy), "--out", str(tmp_path / "a3"), "--validation-episodes", "2"]) == 0
+    with_module = load_trials(tmp_path / "a3" / copy.name)[0].path / final.name
+    assert json.loads((with_module / "coin_app_manifest.json").read_text())["contents"] == "module"
+    assert not (with_module / "actor.pt").exists() and type(load_module(with_module)) is type(load_module(final))
+    runs = [EvalRun("cig_td3", "default", 0, str(c)) for c in (final, with_module)]
+    table = run_evaluation(runs, [TEST_SEED_BASE], log=lambda _: None).table
+    first, second = (table[table["checkpoint"] == r.checkpoint][metrics].reset_index(drop=True) for r in runs)
+    pd.testing.assert_frame_equal(first, second)
+    assert main(["train", "--algo", "cig_td3", "--resume", str(with_module), "--out", str(tmp_path / "t")]) == 2
+    assert "holds only its metadata and policy module" in capsys.readouterr().err
 
 
 def test_report_transfer_pairs_each_model_with_its_own_native_episodes_on_metadrive(sweep_dir, tmp_path, capsys):

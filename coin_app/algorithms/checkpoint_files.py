@@ -35,6 +35,7 @@ MODULE_PATH = ("learner_group", "learner", "rl_module", SHARED_MODULE_ID)  # the
 PARTIAL_SUFFIX = ".partial"  # a checkpoint being written: <parent>/.<name>.partial
 PREVIOUS_SUFFIX = ".prev"  # the previous checkpoint, kept until the new one is in place
 ACTOR_ONLY = "actor"  # a manifest's "contents" for a checkpoint cut to its metadata and exported actor (coin_app archive)
+MODULE_ONLY = "module"  # a manifest's "contents" for a checkpoint cut to its metadata and shared module, critics included
 ACTOR_FILE = "actor.pt"  # an actor-only checkpoint's actor: the TorchScript export of the shared module's deterministic actor
 
 
@@ -95,7 +96,8 @@ def _files(checkpoint: Path) -> list[str]:
 def write_manifest(checkpoint: Path, meta: dict[str, Any], contents: str | None = None) -> dict[str, Any]:
     """Write the manifest of a complete checkpoint directory (every file's size and SHA-256, what trained it); returns it.
 
-    ``contents``: :data:`ACTOR_ONLY` for an archived actor-only copy (absent: a whole checkpoint, as ``train`` saves it).
+    ``contents``: :data:`ACTOR_ONLY` or :data:`MODULE_ONLY` for an archived copy (absent: a whole checkpoint, as ``train``
+    saves it).
     """
     manifest = {
         "format": "coin_app.checkpoint",
@@ -256,8 +258,8 @@ def save_checkpoint(algo: Any, checkpoint: Path, meta: dict[str, Any], atomic: b
 
 
 def contents_of(checkpoint: Path) -> str | None:
-    """A checkpoint's manifest ``contents``: :data:`ACTOR_ONLY` for an archived actor-only copy, None for a whole checkpoint
-    (or a directory without a readable manifest, which :func:`verify` refuses)."""
+    """A checkpoint's manifest ``contents``: :data:`ACTOR_ONLY` or :data:`MODULE_ONLY` for an archived copy, None for a
+    whole checkpoint (or a directory without a readable manifest, which :func:`verify` refuses)."""
     try:
         return json.loads((Path(checkpoint) / MANIFEST_FILE).read_text()).get("contents")
     except (OSError, ValueError, AttributeError):
@@ -265,11 +267,13 @@ def contents_of(checkpoint: Path) -> str | None:
 
 
 def check_resumable(checkpoint: Path) -> None:
-    """A ValueError in one line when ``checkpoint`` is an actor-only copy, which holds no state to train on from."""
-    if contents_of(checkpoint) == ACTOR_ONLY:
+    """A ValueError in one line when ``checkpoint`` is an archived copy, which holds no state to train on from."""
+    contents = contents_of(checkpoint)
+    if contents in (ACTOR_ONLY, MODULE_ONLY):
+        what = "exported actor" if contents == ACTOR_ONLY else "policy module"
         raise ValueError(
-            f"checkpoint {checkpoint} holds only its metadata and exported actor (an archived copy: no critics, replay, optimizer "
-            "or env-runner state); allowed: --resume with a whole checkpoint written by train or a sweep"
+            f"checkpoint {checkpoint} holds only its metadata and {what} (an archived copy: no replay, optimizer or env-runner "
+            "state); allowed: --resume with a whole checkpoint written by train or a sweep"
         )
 
 

@@ -291,6 +291,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=VALIDATION_EPISODES,
         help="validation seeds per kept checkpoint: the one best on them is archived beside the final one (report --select's)",
     )
+    ar.add_argument(
+        "--modules",
+        nargs="*",
+        default=["cig_td3"],
+        metavar="METHOD",
+        help="methods whose two checkpoints keep the whole policy module, critics included (the report's CVAE latent figure); "
+        "the others keep their actor only",
+    )
     ar.set_defaults(run="sweeps.cmd_archive")
 
     rp = sub.add_parser("report", help="evaluate sweeps on the test seeds; tables, t-tests, figures, marl-eval JSON, report.html")

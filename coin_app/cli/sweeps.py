@@ -76,7 +76,7 @@ def cmd_archive(args: argparse.Namespace) -> int:
     sweeps = [d for p in args.sweeps for d in sweep_dirs(Path(p))]  # every path checked before any write
     check_dir_output(out, sweeps, what="a sweep it archives")
     with OutputLock(out, getattr(args, "command_line", None), "the archive directory"):
-        records = [archive_sweep(d, out, args.validation_episodes) for d in sweeps]
+        records = [archive_sweep(d, out, args.validation_episodes, tuple(args.modules)) for d in sweeps]
     added = sum(len(r["added"]) for r in records)
     print(f"\narchive summary: {added} trial(s) added to {out}, {sum(len(r['trials']) for r in records)} archived in all")
     for r in records:

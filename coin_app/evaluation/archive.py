@@ -4,8 +4,9 @@ A dense trial costs about an hour of CPU and its checkpoints hold its replay (hu
 neither survives a change of machine. :func:`archive_sweep` keeps, per finished trial, what the
 report reads: ``params.json``, ``result.json`` and ``progress.csv`` without Tune's bookkeeping
 (host, PID, dates, the config repeated per line), and two of its checkpoints as actor-only copies
-(metadata and the deterministic actor as TorchScript, ``ACTOR_FILE``): the final one and the one
-best on the validation seeds (:func:`~coin_app.evaluation.selection.select_checkpoints`, the
+(metadata and the deterministic actor as TorchScript, ``ACTOR_FILE``), or for the methods named in
+``modules`` as module-only copies (the shared module with its critics, for the report's latent
+figure): the final one and the one best on the validation seeds (:func:`~coin_app.evaluation.selection.select_checkpoints`, the
 report's ``--select validation``), with every kept checkpoint's validation score in
 ``selection.csv``. Layout: ``<out>/<sweep name>/`` with the sweep's ``coin_sweep.json``,
 :data:`ARCHIVE_FILE` and one ``<algo>[-<variant>]-s<seed>/`` per trial. Archiving again adds the
@@ -27,12 +28,15 @@ from coin_app.algorithms.checkpoint_files import (
     ACTOR_FILE,
     ACTOR_ONLY,
     META_FILE,
+    MODULE_ONLY,
+    MODULE_PATH,
     PARTIAL_SUFFIX,
     code_version,
     verify,
     write_manifest,
 )
 from coin_app.algorithms.checkpoints import export_actor, load_module
+from coin_app.algorithms.choices import ALGORITHM_NAMES
 from coin_app.evaluation.outputs import fsync_dir, write_text_atomic
 from coin_app.evaluation.protocol import EvalRun
 from coin_app.evaluation.selection import SELECTION_FILE, Candidates, select_checkpoints
@@ -80,8 +84,22 @@ def actor_only_copy(checkpoint: Path, dest: Path) -> Path:
     return dest
 
 
-def archive_trial(trial: TrialRecord, dest: Path, validation_episodes: int, log: Callable[[str], None]) -> dict[str, Any]:
-    """Write one finished trial's archive to ``dest`` (which must not exist), whole or not at all; returns its record."""
+def module_only_copy(checkpoint: Path, dest: Path) -> Path:
+    """Copy ``checkpoint``'s metadata and shared module (actor and critics) to ``dest``, with a manifest of its own
+    (``"contents": "module"``); the replay, optimizer and env-runner state stay behind, so it cannot resume."""
+    meta = verify(checkpoint)
+    shutil.copytree(Path(checkpoint).joinpath(*MODULE_PATH), dest.joinpath(*MODULE_PATH))
+    shutil.copy2(Path(checkpoint) / META_FILE, dest / META_FILE)
+    write_manifest(dest, meta, contents=MODULE_ONLY)
+    return dest
+
+
+def archive_trial(
+    trial: TrialRecord, dest: Path, validation_episodes: int, log: Callable[[str], None], module: bool = False
+) -> dict[str, Any]:
+    """Write one finished trial's archive to ``dest`` (which must not exist), whole or not at all; returns its record.
+
+    ``module``: module-only copies of the two checkpoints (critics included) instead of actor-only ones."""
     partial = dest.with_name("." + dest.name + PARTIAL_SUFFIX)
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
@@ -97,7 +115,7 @@ def archive_trial(trial: TrialRecord, dest: Path, validation_episodes: int, log:
         )
     selected = Path(chosen[0].checkpoint)
     for checkpoint in sorted({selected, final}, key=lambda c: int(c.name.split("_")[-1])):
-        actor_only_copy(checkpoint, partial / checkpoint.name)
+        (module_only_copy if module else actor_only_copy)(checkpoint, partial / checkpoint.name)
     table.assign(checkpoint=[Path(c).name for c in table["checkpoint"]]).to_csv(partial / SELECTION_FILE, index=False)
     (partial / "params.json").write_text(json.dumps(cfg, indent=2, sort_keys=True))
     (partial / "result.json").write_text("".join(json.dumps(_without_bookkeeping(r)) + "\n" for r in trial.results))
@@ -108,6 +126,7 @@ def archive_trial(trial: TrialRecord, dest: Path, validation_episodes: int, log:
         "source": trial.path.name,
         "final": final.name,
         "selected": selected.name,
+        "contents": MODULE_ONLY if module else ACTOR_ONLY,
         "kept": [c.name for c in trial.checkpoints],
         "validation_episodes": validation_episodes,
         "env_steps": int(trial.last.get("env_steps", 0)),
@@ -127,10 +146,13 @@ def _scrubbed(settings: dict[str, Any], storage: Path) -> dict[str, Any]:
     return settings | {"command": command}
 
 
-def archive_sweep(sweep: Path, out: Path, validation_episodes: int, log: Callable[[str], None] = print) -> dict[str, Any]:
+def archive_sweep(
+    sweep: Path, out: Path, validation_episodes: int, modules: tuple[str, ...] = (), log: Callable[[str], None] = print
+) -> dict[str, Any]:
     """Archive a sweep's finished trials under ``out/<sweep name>/``; returns the archive's record (:data:`ARCHIVE_FILE`).
 
-    ``validation_episodes``: validation seeds per kept checkpoint for the selection. Refused in one line
+    ``validation_episodes``: validation seeds per kept checkpoint for the selection; ``modules``: the methods whose
+    checkpoints are archived with their critics. Refused in one line
     before any write: a bad ``validation_episodes``, a path that is not a sweep, an ``out`` inside the sweep,
     and an existing archive of another sweep (other settings) under the same name. Unfinished
     trials, and trials without a checkpoint, are named and left out; they are added by a later run.
@@ -138,6 +160,9 @@ def archive_sweep(sweep: Path, out: Path, validation_episodes: int, log: Callabl
     sweep, out = Path(sweep), Path(out)
     if isinstance(validation_episodes, bool) or not isinstance(validation_episodes, int) or validation_episodes < 1:
         raise ValueError(f"bad --validation-episodes {validation_episodes!r}; allowed: an integer >= 1")
+    unknown = sorted(set(modules) - set(ALGORITHM_NAMES))
+    if unknown:
+        raise ValueError(f"bad --modules {' '.join(unknown)}; allowed: methods among {', '.join(ALGORITHM_NAMES)}")
     settings = read_settings(sweep)
     if out.resolve().is_relative_to(sweep.resolve()):
         raise ValueError(f"bad --out {out}: inside the sweep {sweep} it archives; allowed: a directory outside it")
@@ -163,7 +188,7 @@ def archive_sweep(sweep: Path, out: Path, validation_episodes: int, log: Callabl
             left_out.append(f"{trial.name} ({trial.last.get('env_steps', 0)} of {trial.config.get('steps')} env steps)")
             continue
         shutil.rmtree(dest / trial.name, ignore_errors=True)  # a trial dir without its record: an interrupted archive
-        entry = archive_trial(trial, dest / trial.name, validation_episodes, log)
+        entry = archive_trial(trial, dest / trial.name, validation_episodes, log, module=trial.config["algo"] in modules)
         record["trials"][trial.name] = entry
         added.append(trial.name)
         write_text_atomic(dest / ARCHIVE_FILE, json.dumps(record, indent=2, sort_keys=True))
