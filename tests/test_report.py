@@ -335,11 +335,21 @@ def test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_tra
     (altered / "actor.pt").write_bytes(before[:-1] + bytes([before[-1] ^ 1]))
     with pytest.raises(ValueError, match="actor.pt fails its SHA-256 check"):
         verify(altered)
-    # another sweep under the same name is refused, and so are an archive inside the sweep and a bad episode count
-    other = json.loads((copy / "coin_sweep.json").read_text()) | {"seeds": [9]}
-    (copy / "coin_sweep.json").write_text(json.dumps(other))
+    # another run of the same protocol (other seeds, another day) joins the archive; another protocol is refused
+    settings = json.loads((copy / "coin_sweep.json").read_text())
+    (copy / "coin_sweep.json").write_text(json.dumps(settings | {"seeds": [9], "started": "2026-12-24 00:00:00"}))
+    assert main(["archive", str(copy), "--out", str(out)]) == 0
+    joined = json.loads((out / copy.name / "coin_sweep.json").read_text())
+    assert joined["seeds"] == sorted({*settings["seeds"], 9}) and joined["started"] == settings["started"]
+    assert [s["started"] for s in json.loads((out / copy.name / "coin_archive.json").read_text())["sources"]] == [
+        settings["started"],
+        "2026-12-24 00:00:00",
+    ]
+    (copy / "coin_sweep.json").write_text(json.dumps(settings | {"steps": 5}))
     assert main(["archive", str(copy), "--out", str(out)]) == 2
-    assert "archives another sweep" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "archives another sweep than" in err and "(steps differ)" in err
+    # refused too: an archive inside the sweep, a bad episode count, an unknown method
     assert main(["archive", str(copy), "--out", str(copy / "inside")]) == 2
     assert "--out" in capsys.readouterr().err
     assert main(["archive", str(copy), "--out", str(tmp_path / "a2"), "--validation-episodes", "0"]) == 2

@@ -45,6 +45,9 @@ from coin_app.inference import export_policy
 
 ARCHIVE_FILE = "coin_archive.json"  # beside coin_sweep.json: what was archived, from where, by which code
 BOOKKEEPING = ("config", "date", "timestamp", "pid", "hostname", "node_ip", "trial_id", "time_since_restore", "iterations_since_restore")
+RESOLVED = "resolved"  # coin_sweep.json: every trial's resolved settings (tuning.sweep writes it)
+# what a sweep run records of itself: two runs of one protocol (other seeds, another machine) differ only in these
+RUN_KEYS = ("seeds", "trials", "started", "command", RESOLVED, "accepted_changes", "restart_pending", "restarts")
 STORAGE_MARK = "<storage>"  # stands for the sweep's storage directory in the archived settings' command (no machine paths)
 
 
@@ -146,6 +149,24 @@ def _scrubbed(settings: dict[str, Any], storage: Path) -> dict[str, Any]:
     return settings | {"command": command}
 
 
+def merged_settings(earlier: dict[str, Any], now: dict[str, Any], dest: Path, sweep: Path) -> dict[str, Any]:
+    """An archive's settings with a further run of the same protocol (e.g. the remaining seeds on another machine) added:
+    the seeds and resolved trial settings joined, the first run's record kept. A ValueError in one line when the two differ in
+    anything but what a run records of itself (:data:`RUN_KEYS`), or resolve one trial's settings differently."""
+    keys = (earlier.keys() | now.keys()) - set(RUN_KEYS)
+    differ = sorted(k for k in keys if earlier.get(k) != now.get(k))
+    both = earlier.get(RESOLVED, {}).keys() & now.get(RESOLVED, {}).keys()
+    differ += sorted(f"{RESOLVED}[{t}]" for t in both if earlier[RESOLVED][t] != now[RESOLVED][t])
+    if differ:
+        raise ValueError(
+            f"{dest} archives another sweep than {sweep} ({', '.join(differ[:4])} differ); allowed: runs of the same sweep "
+            "settings and code, or another --out"
+        )
+    resolved = {**earlier.get(RESOLVED, {}), **now.get(RESOLVED, {})}
+    seeds = sorted({*earlier.get("seeds", []), *now.get("seeds", [])})
+    return earlier | {"seeds": seeds, RESOLVED: resolved, "trials": len(resolved)}
+
+
 def archive_sweep(
     sweep: Path, out: Path, validation_episodes: int, modules: tuple[str, ...] = (), log: Callable[[str], None] = print
 ) -> dict[str, Any]:
@@ -154,7 +175,8 @@ def archive_sweep(
     ``validation_episodes``: validation seeds per kept checkpoint for the selection; ``modules``: the methods whose
     checkpoints are archived with their critics. Refused in one line
     before any write: a bad ``validation_episodes``, a path that is not a sweep, an ``out`` inside the sweep,
-    and an existing archive of another sweep (other settings) under the same name. Unfinished
+    and an existing archive of another protocol under the same name (:func:`merged_settings`; a run of the same one,
+    e.g. the remaining seeds on another machine, joins it). Unfinished
     trials, and trials without a checkpoint, are named and left out; they are added by a later run.
     """
     sweep, out = Path(sweep), Path(out)
@@ -168,15 +190,13 @@ def archive_sweep(
         raise ValueError(f"bad --out {out}: inside the sweep {sweep} it archives; allowed: a directory outside it")
     dest = out / sweep.resolve().name
     settings = _scrubbed(settings, sweep.resolve().parent)
-    record: dict[str, Any] = {"trials": {}}
+    record: dict[str, Any] = {"trials": {}, "sources": []}
+    source = {k: settings.get(k) for k in ("started", "command", "code_version")}
     if (dest / SETTINGS_FILE).is_file():
-        earlier = json.loads((dest / SETTINGS_FILE).read_text())
-        if earlier != settings:
-            raise ValueError(
-                f"{dest} archives another sweep (its {SETTINGS_FILE} differs from {sweep}'s); allowed: the same sweep again, or "
-                "another --out"
-            )
         record = json.loads((dest / ARCHIVE_FILE).read_text())
+        settings = merged_settings(json.loads((dest / SETTINGS_FILE).read_text()), settings, dest, sweep)
+    if source not in record["sources"]:
+        record["sources"].append(source)
     trials = load_trials(sweep)
     added, left_out = [], []
     dest.mkdir(parents=True, exist_ok=True)
