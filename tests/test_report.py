@@ -290,7 +290,8 @@ def test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_tra
     best = "checkpoint_000004" if score[older[0].checkpoint] > score[older[1].checkpoint] else final.name  # a tie: the later
     # IPPO's trial stopped short of its budget: it is named and left out
     result = trials["ippo"].path / "result.json"
-    short = [json.loads(line) | {"done": False, "env_steps": 1} for line in result.read_text().splitlines()]
+    original = result.read_text()
+    short = [json.loads(line) | {"done": False, "env_steps": 1} for line in original.splitlines()]
     result.write_text("".join(json.dumps(r) + "\n" for r in short))
     out = tmp_path / "archive"
     assert main(["archive", str(copy.parent), "--out", str(out), "--validation-episodes", "2", "--modules"]) == 0
@@ -329,8 +330,20 @@ def test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_tra
     # archiving again adds nothing and keeps what is there; an altered file is still caught
     actor = kept_final / "actor.pt"
     before = actor.read_bytes()
-    assert main(["archive", str(copy), "--out", str(out)]) == 0
+    assert main(["archive", str(copy), "--out", str(out), "--modules"]) == 0
     assert "0 trial(s) added" in capsys.readouterr().out and actor.read_bytes() == before
+    # IPPO's trial finished, its final checkpoint still being written (no manifest yet): left for the next run
+    result.write_text(original)
+    manifest = trials["ippo"].final_checkpoint / "coin_app_manifest.json"
+    saved = manifest.read_bytes()
+    manifest.unlink()
+    assert main(["archive", str(copy), "--out", str(out), "--modules"]) == 0
+    steps = trials["ippo"].last["env_steps"]
+    assert f"ippo-s0 (finished at {steps} env steps, its final checkpoint being written)" in capsys.readouterr().out
+    manifest.write_bytes(saved)
+    assert main(["archive", str(copy), "--out", str(out), "--modules"]) == 0
+    assert "1 trial(s) added" in capsys.readouterr().out
+    assert [t.name for t in load_trials(out / copy.name)] == ["cig_td3-s0", "ippo-s0"]
     altered = shutil.copytree(kept_final, tmp_path / "altered")
     (altered / "actor.pt").write_bytes(before[:-1] + bytes([before[-1] ^ 1]))
     with pytest.raises(ValueError, match="actor.pt fails its SHA-256 check"):

@@ -149,6 +149,23 @@ def _scrubbed(settings: dict[str, Any], storage: Path) -> dict[str, Any]:
     return settings | {"command": command}
 
 
+def not_ready(trial: TrialRecord) -> str | None:
+    """Why a trial cannot be archived yet (None: it can): unfinished, or its final checkpoint not yet saved whole (Tune
+    saves it after the last result is written, so a running sweep's finished trial may lag it by a moment)."""
+    steps = int(trial.last.get("env_steps", 0))
+    if not trial.finished:
+        return f"{steps} of {trial.config.get('steps')} env steps"
+    final = trial.final_checkpoint
+    saved = None if final is None else trial.checkpoint_env_steps(final)
+    if saved is None or saved < steps:
+        return f"finished at {steps} env steps, its final checkpoint not saved yet"
+    try:
+        verify(final)
+    except ValueError:
+        return f"finished at {steps} env steps, its final checkpoint being written"
+    return None
+
+
 def merged_settings(earlier: dict[str, Any], now: dict[str, Any], dest: Path, sweep: Path) -> dict[str, Any]:
     """An archive's settings with a further run of the same protocol (e.g. the remaining seeds on another machine) added:
     the seeds and resolved trial settings joined, the first run's record kept. A ValueError in one line when the two differ in
@@ -197,15 +214,16 @@ def archive_sweep(
         settings = merged_settings(json.loads((dest / SETTINGS_FILE).read_text()), settings, dest, sweep)
     if source not in record["sources"]:
         record["sources"].append(source)
-    trials = load_trials(sweep)
+    trials = load_trials(sweep, live=True)  # the sweep may be running: a trial being created is left for the next run
     added, left_out = [], []
     dest.mkdir(parents=True, exist_ok=True)
     write_text_atomic(dest / SETTINGS_FILE, json.dumps(settings, indent=2))
     for trial in trials:
         if trial.name in record["trials"] and (dest / trial.name).is_dir():
             continue
-        if not trial.finished or trial.final_checkpoint is None:
-            left_out.append(f"{trial.name} ({trial.last.get('env_steps', 0)} of {trial.config.get('steps')} env steps)")
+        why = not_ready(trial)
+        if why:
+            left_out.append(f"{trial.name} ({why})")
             continue
         shutil.rmtree(dest / trial.name, ignore_errors=True)  # a trial dir without its record: an interrupted archive
         entry = archive_trial(trial, dest / trial.name, validation_episodes, log, module=trial.config["algo"] in modules)
