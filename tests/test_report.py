@@ -296,6 +296,7 @@ def test_an_archived_sweep_is_small_evaluates_as_the_sweep_and_cannot_resume_tra
     out = tmp_path / "archive"
     assert main(["archive", str(copy.parent), "--out", str(out), "--validation-episodes", "2", "--modules"]) == 0
     printed = capsys.readouterr().out
+    assert "at the training agent count, 2 validation seeds, 1 workers" in printed  # the selection's seeds, named as such
     assert "1 trial(s) added" in printed and f"not yet: ippo-s0 (1 of {trials['ippo'].config['steps']} env steps)" in printed
     archived = load_trials(out / copy.name)
     assert [t.name for t in archived] == ["cig_td3-s0"]

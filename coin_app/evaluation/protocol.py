@@ -39,6 +39,7 @@ from coin_app.evaluation.metrics import METRIC_KEYS
 from coin_app.evaluation.policies import checkpoint_policy
 from coin_app.sim.config import BACKENDS, DEFAULT_NUM_AGENTS
 from coin_app.sim.scenarios import config_from_dict
+from coin_app.sim.seeds import TEST_SEED_BASE, VALIDATION_SEED_BASE
 
 EPISODE_METRICS = (*METRIC_KEYS, "avg_travel_steps_arrived", "episode_return", "num_vehicles")
 KEYS = ("method", "variant", "trained_seed", "test_seed", "scenario", "agent_count", "trained_agent_count")
@@ -169,7 +170,8 @@ def run_evaluation(
     grid = f"agent counts {counts} and the training count" if counts else "the training agent count"
     where = f"scenarios {scenarios}" if scenarios else "the training scenario"
     on = f" on the {backend} backend" if backend else ""
-    log(f"evaluating {len(runs)} runs{on} on {where} at {grid}, {len(seeds)} test seeds, {min(workers, max(len(runs), 1))} workers")
+    kind = "test" if min(seeds) >= TEST_SEED_BASE else "validation" if min(seeds) >= VALIDATION_SEED_BASE else "episode"
+    log(f"evaluating {len(runs)} runs{on} on {where} at {grid}, {len(seeds)} {kind} seeds, {min(workers, max(len(runs), 1))} workers")
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
     failures: list[dict[str, Any]] = []
