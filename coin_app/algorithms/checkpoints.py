@@ -102,6 +102,12 @@ def export_actor(module: Any) -> tuple[torch.nn.Module, Callable[[np.ndarray], n
     return module.deterministic_actor(), lambda obs: inference_actions(module, obs), {}
 
 
+def export_metadata(meta: dict[str, Any], extra: dict[str, Any], checkpoint: str) -> dict[str, Any]:
+    """What an exported actor file records: the checkpoint's algorithm, scenario, seed and env config, ``export_actor``'s
+    extra metadata, and the checkpoint's name as given (no machine path unless given one)."""
+    return {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta} | extra | {"checkpoint": checkpoint}
+
+
 def network_policy(network: torch.nn.Module) -> Callable[[np.ndarray], np.ndarray]:
     """An observation -> action torch network as a numpy function (N, obs_dim) -> (N, 2), in eval mode."""
     actor = network.eval()

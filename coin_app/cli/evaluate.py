@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from coin_app.algorithms.checkpoint_files import read_metadata
-from coin_app.algorithms.checkpoints import export_actor, load_module
+from coin_app.algorithms.checkpoints import export_actor, export_metadata, load_module
 from coin_app.cli.drive import drive
 from coin_app.cli.flags import overrides_of
 from coin_app.cli.output import CONSOLE_ROWS, shown
@@ -147,9 +147,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     meta = read_metadata(checkpoint)
     module = load_module(checkpoint)
     actor, reference, extra = export_actor(module)
-    keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
     # the checkpoint as named on the command line: a relative path stays relative (no machine path in a shipped file)
-    out = export_policy(actor, args.out, args.format, meta=keep | extra | {"checkpoint": str(checkpoint)})
+    out = export_policy(actor, args.out, args.format, meta=export_metadata(meta, extra, str(checkpoint)))
     exported = load_policy(out)
     obs = np.random.default_rng(0).uniform(0.0, 1.0, (256, exported.obs_dim)).astype(np.float32)
     gap = float(np.abs(reference(obs) - exported(obs)).max())

@@ -35,11 +35,10 @@ from coin_app.algorithms.checkpoint_files import (
     verify,
     write_manifest,
 )
-from coin_app.algorithms.checkpoints import export_actor, load_module
+from coin_app.algorithms.checkpoints import export_actor, export_metadata, load_module
 from coin_app.algorithms.choices import ALGORITHM_NAMES
 from coin_app.evaluation.outputs import fsync_dir, write_text_atomic
-from coin_app.evaluation.protocol import EvalRun
-from coin_app.evaluation.selection import SELECTION_FILE, Candidates, select_checkpoints
+from coin_app.evaluation.selection import SELECTION_FILE, select_checkpoints, trial_candidates
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, TrialRecord, load_trials, read_settings
 from coin_app.inference import export_policy
 
@@ -79,9 +78,8 @@ def actor_only_copy(checkpoint: Path, dest: Path) -> Path:
     manifest of its own (``"contents": "actor"``); the critics, replay and optimizer stay behind, so it cannot resume."""
     meta = verify(checkpoint)
     actor, _, extra = export_actor(load_module(checkpoint))
-    keep = {k: meta[k] for k in ("algo", "scenario", "seed", "env_config") if k in meta}
     dest.mkdir(parents=True)
-    export_policy(actor, dest / ACTOR_FILE, "torchscript", meta=keep | extra | {"checkpoint": Path(checkpoint).name})
+    export_policy(actor, dest / ACTOR_FILE, "torchscript", meta=export_metadata(meta, extra, Path(checkpoint).name))
     shutil.copy2(Path(checkpoint) / META_FILE, dest / META_FILE)
     write_manifest(dest, meta, contents=ACTOR_ONLY)
     return dest
@@ -109,9 +107,7 @@ def archive_trial(
     final = trial.final_checkpoint
     assert final is not None  # archive_sweep archives trials with a checkpoint only
     cfg = trial.config
-    run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(final), trial.checkpoint_env_steps(final))
-    candidates = Candidates(run, tuple(str(c) for c in trial.checkpoints), tuple(trial.checkpoint_env_steps(c) for c in trial.checkpoints))
-    chosen, table, failures = select_checkpoints([candidates], validation_episodes, log=log)
+    chosen, table, failures = select_checkpoints([trial_candidates(trial)], validation_episodes, log=log)
     if failures or not chosen:
         raise ValueError(
             f"{trial.name}: a checkpoint failed its validation evaluation ({failures[:1]}); allowed: a trial whose checkpoints load"

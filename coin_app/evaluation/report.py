@@ -48,7 +48,15 @@ from coin_app.evaluation.marl_eval import run_label, write_marl_eval
 from coin_app.evaluation.policies import checkpoint_policy
 from coin_app.evaluation.protocol import EVALUATION_FILE, EvalRun, Evaluation, read_results, run_evaluation, write_results
 from coin_app.evaluation.reference import REFERENCE_METHOD, test_seed_rows
-from coin_app.evaluation.selection import FINAL, SELECTION_FILE, SELECTIONS, VALIDATION, Candidates, select_checkpoints, selection_caption
+from coin_app.evaluation.selection import (
+    FINAL,
+    SELECTION_FILE,
+    SELECTIONS,
+    VALIDATION,
+    select_checkpoints,
+    selection_caption,
+    trial_candidates,
+)
 from coin_app.evaluation.sweep_results import SETTINGS_FILE, load_trials, read_settings, sweep_dirs
 from coin_app.evaluation.transfer import transfer_table, write_transfer
 from coin_app.sim.config import BACKENDS
@@ -140,11 +148,9 @@ def gather(paths: Sequence[Path]) -> Sources:
                 if ckpt is None:
                     skipped.append({"trial": trial.name, "path": str(trial.path), "error": "no checkpoint"})
                     continue
-                cfg = trial.config
-                run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(ckpt), trial.checkpoint_env_steps(ckpt))
-                runs.append(run)
-                steps = tuple(trial.checkpoint_env_steps(c) for c in trial.checkpoints)
-                candidates.append(Candidates(run, tuple(str(c) for c in trial.checkpoints), steps))
+                found = trial_candidates(trial)
+                runs.append(found.run)
+                candidates.append(found)
             out.sweeps.append(
                 {
                     "path": d,

@@ -19,6 +19,7 @@ from pathlib import Path
 import pandas as pd
 
 from coin_app.evaluation.protocol import EvalRun, run_evaluation
+from coin_app.evaluation.sweep_results import TrialRecord
 from coin_app.sim.seeds import validation_seeds
 
 FINAL, VALIDATION = "final", "validation"
@@ -40,6 +41,14 @@ class Candidates:
         """Refuse env steps that do not match the checkpoints one to one."""
         if len(self.env_steps) != len(self.checkpoints):
             raise ValueError(f"{len(self.env_steps)} env-step counts for {len(self.checkpoints)} checkpoints; allowed: one per checkpoint")
+
+
+def trial_candidates(trial: TrialRecord) -> Candidates:
+    """A sweep trial's model (its final checkpoint, which it must have) and every checkpoint it kept, with their env steps."""
+    cfg, final = trial.config, trial.final_checkpoint
+    assert final is not None  # callers pass trials with a checkpoint
+    run = EvalRun(cfg["algo"], cfg["variant"], int(cfg["seed"]), str(final), trial.checkpoint_env_steps(final))
+    return Candidates(run, tuple(str(c) for c in trial.checkpoints), tuple(trial.checkpoint_env_steps(c) for c in trial.checkpoints))
 
 
 def best_index(successes: Sequence[float]) -> int:

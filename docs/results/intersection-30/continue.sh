@@ -1,4 +1,3 @@
-#!/usr/bin/env bash
 # The dense comparison, continued wherever it stands (docs/results/intersection-30/README.md):
 #   bash docs/results/intersection-30/continue.sh            # from the repository root; runs until stopped
 # Two lanes, one per core: the TD3 family's methods in turn, and the PPO family's. Each method is one sweep
