@@ -475,7 +475,7 @@ def _respawn(self, vacated: np.ndarray, env_ok: np.ndarray) -> np.ndarray:
         avail = np.nonzero(~blocked[e])[0]
         rows = self.env_slots(int(e))
         slots = rows[free[rows]]
-        k = min(int(allowed[e]), len(avail), len(slots))
+        k = min(int(allowed[e]), len(avail), len(slots), cfg.respawns_per_step or len(slots))  # the per-step cap came later
         if k == 0:
             continue
         places = self.rngs[e].choice(avail, size=k, replace=False)

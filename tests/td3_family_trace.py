@@ -167,6 +167,17 @@ def run_case(algo: str, settings: dict[str, Any]) -> tuple[dict[str, Any], dict[
     return trace, tensors
 
 
+def cpu_model() -> str:
+    """The processor's vendor, family, model and stepping (``/proc/cpuinfo``; "" where it is not there): two processors
+    with the same SIMD capability can still block their matrix products otherwise (two AVX2 AMD EPYCs did)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().split("\n\n")[0].splitlines()
+    except OSError:
+        return ""
+    info = {k.strip(): v.strip() for k, _, v in (line.partition(":") for line in lines)}
+    return " ".join(info.get(k, "?") for k in ("vendor_id", "cpu family", "model", "stepping"))
+
+
 def record(cases: list[str] | None = None) -> tuple[dict[str, Any], dict[str, dict[str, torch.Tensor]]]:
     """The trace of every case (or of ``cases``) and their tensors."""
     torch.set_num_threads(1)
@@ -174,7 +185,7 @@ def record(cases: list[str] | None = None) -> tuple[dict[str, Any], dict[str, di
     for name in cases or CASES:
         algo, settings = CASES[name]
         traces[name], tensors[name] = run_case(algo, settings)
-    meta = {"cpu_capability": torch.backends.cpu.get_cpu_capability(), "torch": torch.__version__, "updates": UPDATES}
+    meta = {"cpu_capability": torch.backends.cpu.get_cpu_capability(), "cpu": cpu_model(), "torch": torch.__version__, "updates": UPDATES}
     return {"meta": meta, "cases": traces}, tensors
 
 

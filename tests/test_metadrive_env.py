@@ -254,3 +254,25 @@ def test_native_observations_of_metadrive_poses_match_metadrive(scenario):
     assert np.abs(native[:, detectors] - md[:, detectors]).max(initial=0.0) < 0.03
     lidar = np.abs(native[:, ego:] - md[:, ego:])
     assert (lidar > 0.01).mean() < 0.03 and lidar.mean() < 0.02  # a few edge beams hit / miss differently
+
+
+def test_metadrive_lets_one_vehicle_enter_per_step():
+    """MetaDrive's spawn manager marks every place it finds free as used at its first query of a step, so one vehicle
+    enters per step even when several left together with entry places free: the native default (``respawns_per_step``
+    1) follows it."""
+    env = MetaDriveDrivingEnv(make_config("intersection", backend="metadrive", num_agents=8, horizon=80, max_agent_steps=80, delay_done=0))
+    try:
+        env.reset(seed=3)
+        rng = np.random.default_rng(0)
+        backlog, entered = 0, []
+        while not env.episode_over and env.md.episode_step < 80:
+            acts = {a: np.array([0.8 if int(a[5:]) % 2 else -0.8, rng.uniform(0.6, 1.0)]) for a in env.agents}
+            obs, _, term, trunc, _ = env.step(acts)
+            backlog += sum(bool(term[a] or trunc[a]) for a in acts)  # vehicles gone, to be replaced
+            new = len(set(obs) - set(acts))
+            backlog -= new
+            entered.append((new, backlog))
+    finally:
+        env.close()
+    assert max(n for n, _ in entered) == 1
+    assert sum(n for n, _ in entered) >= 4 and max(b for _, b in entered) >= 2  # replacements queued behind the one per step

@@ -10,9 +10,9 @@ import pytest
 from coin_app.adapters.pettingzoo_env import CoinParallelEnv
 from coin_app.sim.config import make_config
 
-# every vehicle times out after 10 own steps and vanishes at once (delay_done=0), so
-# replacements spawn mid-episode at env steps 10 and 20 whatever the random actions do
-RESPAWN_CFG = {"num_agents": 4, "horizon": 30, "max_agent_steps": 10, "delay_done": 0}
+# every vehicle times out after 10 own steps and vanishes at once (delay_done=0), so replacements spawn mid-episode
+# at env steps 10 and 20 whatever the random actions do, all in the same step (no cap on respawns per step)
+RESPAWN_CFG = {"num_agents": 4, "horizon": 30, "max_agent_steps": 10, "delay_done": 0, "respawns_per_step": 0}
 
 
 def _num(aid):

@@ -19,7 +19,8 @@ from coin_app.backends.factory import make_driving_env
 from coin_app.sim.scenarios import config_from_dict
 from coin_app.sim.scenes import ARENA, DRIVING_SCENARIOS, SCENARIOS
 
-# every vehicle times out after 10 own steps and vanishes at once (delay_done=0), so replacements spawn at env steps 10 and 20
+# every vehicle times out after 10 own steps and vanishes at once (delay_done=0), so replacements enter one per step
+# (MetaDrive's respawn rule) from env steps 10 and 20
 DRIVING_SMALL = {"num_agents": 4, "horizon": 30, "max_agent_steps": 10, "delay_done": 0}
 ARENA_SMALL = {"num_vehicles": 3, "num_obstacles": 1, "max_steps": 30}
 EXPECTED_WARNING = "No agents present but not all possible_agents are terminated or truncated"  # most pool ids never appear
@@ -101,7 +102,8 @@ def test_a_driving_scene_respawns_fresh_ids_within_its_cap(name):
     cap = env.config.num_agents
     steps = play(env, seed=2)
     spawned_at = [len(set(obs) - set(acting)) for acting, obs, *_ in steps[1:]]
-    assert spawned_at[9] == spawned_at[19] == cap and sum(spawned_at) == 2 * cap  # every vehicle times out at 10 own steps
+    # every vehicle times out at 10 own steps; one replacement enters per step
+    assert spawned_at[9 : 9 + cap] == spawned_at[19 : 19 + cap] == [1] * cap and sum(spawned_at) == 2 * cap
     assert all(len(acting) <= cap for acting, *_ in steps[1:])
     assert spawned_at[29:] == [0] * len(spawned_at[29:])  # none after the horizon
 

@@ -121,6 +121,50 @@ def test_dying_vehicles_block_then_disappear_after_delay_done():
     assert statuses == [DYING, DYING, DYING, EMPTY, EMPTY]
 
 
+@pytest.mark.parametrize("delay", [1, 3, 25])
+def test_a_wreck_is_an_obstacle_to_the_crash_test_for_delay_done_minus_one_steps(delay):
+    """MetaDrive's agent manager counts a wreck down before the physics (``before_step``): one that became dying at
+    step t is in the crash test at steps t+1 .. t+delay_done-1 only. A vehicle put onto the wreck before step t+k
+    crashes exactly for k < delay_done."""
+    got = []
+    for k in range(1, delay + 2):
+        sim = DrivingSimulator(make_config("intersection", num_agents=2, allow_respawn=False, delay_done=delay))
+        sim.reset(0)
+        route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+        sim.place(0, (30.0, -0.9), 0.0, route=route)  # off road at once: dying from step 1 (t = 1)
+        sim.place(1, (-20.0, 0.0), 0.0, speed=0.0, route=route)  # far behind, at rest
+        hold = np.zeros((sim.num_slots, 2))
+        hold[1] = 0.0, -1.0
+        assert sim.step(hold).out_of_road[0] and sim.status[0] == DYING
+        for _ in range(k - 1):
+            sim.step(hold)
+        sim.place(1, (float(sim.pos[0, 0]) + 1.0, float(sim.pos[0, 1])), float(sim.heading[0]), route=route)
+        got.append(bool(sim.step(hold).crash_vehicle[1]))  # step t + k
+    assert got == [k < delay for k in range(1, delay + 2)]
+
+
+@pytest.mark.parametrize("per_step", [1, 2, 0])
+def test_respawns_per_step_caps_how_many_vehicles_enter_in_one_step(per_step):
+    """Six vehicles stand still and time out together at step 3 (vanishing at once, delay_done 0); their replacements
+    enter ``respawns_per_step`` per step (MetaDrive: one), or all at once with 0 (the intersection has 8 entry places),
+    and time out 3 steps after they entered."""
+    sim = DrivingSimulator(
+        make_config("intersection", num_agents=6, horizon=50, max_agent_steps=3, delay_done=0, respawns_per_step=per_step)
+    )
+    sim.reset(0)
+    hold = np.zeros((sim.num_slots, 2))
+    hold[:, 1] = -1.0
+    counts = [int(sim.step(hold).spawned.sum()) for _ in range(6)]
+    want = {1: [0, 0, 1, 1, 1, 1], 2: [0, 0, 2, 2, 2, 2], 0: [0, 0, 6, 0, 0, 6]}[per_step]
+    assert counts == want
+
+
+def test_respawns_per_step_is_checked():
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="respawns_per_step"):
+            make_config("intersection", respawns_per_step=bad)
+
+
 def drive_off_policy(sim, t):
     act = np.zeros((sim.num_slots, 2))
     act[:, 0] = 1.0  # full left lock and throttle: off the road within a few seconds

@@ -76,6 +76,7 @@ class ScenarioConfig:
     max_agent_steps: int = 1000  # a vehicle is truncated (max_step) after this many own steps
     delay_done: int = 25  # steps a crashed / off-road vehicle stays as a static obstacle
     allow_respawn: bool = True  # respawn at free entry places while the episode step is below the horizon
+    respawns_per_step: int = 1  # at most this many respawns per env step and env (MetaDrive 0.4.3: one); 0: no limit
     own_arm_destinations: bool = True  # MetaDrive also draws the spawn arm's exit (U-turn / full loop)
     # the bottleneck's neck has a solid yellow centre line: touching it is off-road and the side detectors see it (COIN's
     # patched MetaDrive); MetaDrive 0.4.3 builds it broken (metadrive_compat). The other scenes' centre lines are solid
@@ -156,6 +157,7 @@ METADRIVE_FIXED = (
     "vehicle_width",
     "navi_point_dist",
     "own_arm_destinations",
+    "respawns_per_step",
 )
 
 
@@ -211,6 +213,8 @@ def make_config(scenario: str = "intersection", preset: str = "paper", **overrid
         ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
         ok = ok and (v > 0 if k in _POSITIVE else v >= 0)
         _check(k, v, ok, "a finite number > 0" if k in _POSITIVE else "a finite number >= 0")
+    v = values.get("respawns_per_step", ScenarioConfig.respawns_per_step)
+    _check("respawns_per_step", v, isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0 (0: no limit)")
     n = values["num_agents"]
     _check("num_agents", n, n <= SPAWN_CAPACITY, f"an integer from 1 to {SPAWN_CAPACITY} (the map's spawn slots)")
     layout = values.get("obs_layout", "standard")

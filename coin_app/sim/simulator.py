@@ -265,6 +265,12 @@ class DrivingSimulator:
             raise ValueError(f"non-finite action for agent(s) {names}: {a[bad].tolist()}; actions must be finite numbers in [-1, 1]")
         a = np.clip(a, -1.0, 1.0)
         self.env_step += 1
+        # wrecks count down before the physics, as MetaDrive's agent manager does (its ``before_step``): one that
+        # became dying at step t is an obstacle to the crash test at steps t+1 .. t+delay_done-1, seen by the
+        # observations up to step t+delay_done-1, and its slot is free for the respawn at step t+delay_done
+        dying = self.status == DYING
+        self.dying_left[dying] -= 1
+        self.status[dying & (self.dying_left <= 0)] = EMPTY
 
         # dynamics
         self.prev_pos[idx] = self.pos[idx]
@@ -303,10 +309,7 @@ class DrivingSimulator:
         reward = rules.reward(cfg, r_step, arrive, oor, crash)
         terminated, truncated = rules.done(arrive, oor, crash, max_step, force)
 
-        # retire: dying vehicles count down; arrived ones vanish, other done ones linger
-        dying = self.status == DYING
-        self.dying_left[dying] -= 1
-        self.status[dying & (self.dying_left <= 0)] = EMPTY
+        # retire: arrived vehicles vanish, other done ones linger as obstacles
         done_idx = idx[terminated | truncated]
         linger = ~arrive[terminated | truncated] & (cfg.delay_done > 0)
         self.status[done_idx[linger]] = DYING
@@ -405,7 +408,9 @@ class DrivingSimulator:
         return same_env_overlaps(self.pos, self.heading, self.status != EMPTY, self.slots_per_env, self.half, 2 * self.half_diag)
 
     def _respawn(self, vacated: np.ndarray, env_ok: np.ndarray) -> np.ndarray:
-        """Spawn new agents on free respawn places while under each env's cap; new slots."""
+        """Spawn new agents on free respawn places while under each env's cap, at most ``respawns_per_step`` per env
+        (MetaDrive's spawn manager marks every place it finds free as used at its first query of a step, so its respawn
+        loop spawns one vehicle per step); new slots."""
         cfg, m = self.cfg, self.map
         if not cfg.allow_respawn:
             return np.zeros(0, dtype=np.int64)
@@ -424,7 +429,7 @@ class DrivingSimulator:
             avail = np.nonzero(~blocked[e])[0]
             rows = self.env_slots(int(e))
             slots = rows[free[rows]]
-            k = min(int(allowed[e]), len(avail), len(slots))
+            k = min(int(allowed[e]), len(avail), len(slots), cfg.respawns_per_step or len(slots))
             if k == 0:
                 continue
             places = self.rngs[e].choice(avail, size=k, replace=False)
