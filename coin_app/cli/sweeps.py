@@ -6,10 +6,10 @@ import argparse
 from pathlib import Path
 
 from coin_app.cli.flags import overrides_of
-from coin_app.evaluation.archive import archive_sweep
+from coin_app.evaluation.archive import STATUS_FILE, archive_sweep, archive_table
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
 from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, write_arena_html
-from coin_app.evaluation.outputs import OutputLock, check_dir_output, staged_outputs
+from coin_app.evaluation.outputs import OutputLock, check_dir_output, staged_outputs, write_text_atomic
 from coin_app.evaluation.report import ReportOptions, build_report, gather
 from coin_app.evaluation.sweep_results import sweep_dirs
 from tuning.sweep import run_sweep, write_generalization
@@ -77,8 +77,10 @@ def cmd_archive(args: argparse.Namespace) -> int:
     check_dir_output(out, sweeps, what="a sweep it archives")
     with OutputLock(out, getattr(args, "command_line", None), "the archive directory"):
         records = [archive_sweep(d, out, args.validation_episodes, tuple(args.modules)) for d in sweeps]
+        write_text_atomic(out / STATUS_FILE, archive_table(out))
     added = sum(len(r["added"]) for r in records)
     print(f"\narchive summary: {added} trial(s) added to {out}, {sum(len(r['trials']) for r in records)} archived in all")
+    print(f"  every archived trial's cost and validation scores: {out / STATUS_FILE}")
     for r in records:
         print(f"  {r['path']}: {len(r['trials'])} trial(s), {r['bytes'] / 1e6:.1f} MB; not yet: {', '.join(r['left_out']) or 'none'}")
     return 0

@@ -48,6 +48,7 @@ RESOLVED = "resolved"  # coin_sweep.json: every trial's resolved settings (tunin
 # what a sweep run records of itself: two runs of one protocol (other seeds, another machine) differ only in these
 RUN_KEYS = ("seeds", "trials", "started", "command", RESOLVED, "accepted_changes", "restart_pending", "restarts")
 STORAGE_MARK = "<storage>"  # stands for the sweep's storage directory in the archived settings' command (no machine paths)
+STATUS_FILE = "table.md"  # in the archive directory: every archived trial's cost and validation scores (archive_table)
 
 
 def is_archive(path: Path) -> bool:
@@ -233,3 +234,27 @@ def archive_sweep(
     if left_out:
         log(f"  not archived (unfinished or without a checkpoint): {', '.join(left_out)}")
     return record | {"path": str(dest), "added": added, "left_out": left_out, "bytes": size}
+
+
+def archive_table(out: Path) -> str:
+    """Markdown of every trial archived under ``out`` (sweeps in name order, trials in seed order): env steps, CPU hours,
+    the final and the validation-selected checkpoints' validation success (``selection.csv``), and per method the mean
+    and range of the selected ones. Validation seeds only: the test seeds are the report's."""
+    rows, by_method = [], {}
+    for record_file in sorted(Path(out).glob(f"*/{ARCHIVE_FILE}")):
+        trials = json.loads(record_file.read_text())["trials"]
+        for name, entry in sorted(trials.items(), key=lambda kv: (kv[0].rsplit("-s", 1)[0], int(kv[0].rsplit("-s", 1)[1]))):
+            with open(record_file.parent / name / SELECTION_FILE, newline="") as f:
+                table = list(csv.DictReader(f))
+            score = {row["checkpoint"]: (int(row["trained_env_steps"]), float(row["validation_success"])) for row in table}
+            steps, selected = score[entry["selected"]]
+            cpu = "" if entry.get("cpu_s") is None else f"{entry['cpu_s'] / 3600:.3f}"
+            rows.append(f"| {name} | {entry['env_steps']:,} | {cpu} | {score[entry['final']][1]:.3f} | {steps:,}: {selected:.3f} |")
+            by_method.setdefault(name.rsplit("-s", 1)[0], []).append(selected)
+    head = [
+        "| trial | env steps | CPU hours | final checkpoint's validation success | selected checkpoint (env steps): validation success |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    means = ["| method | trials | selected checkpoints' validation success: mean (range) |", "|---|---:|---:|"]
+    means += [f"| {m} | {len(v)} | {sum(v) / len(v):.3f} ({min(v):.3f}–{max(v):.3f}) |" for m, v in by_method.items()]
+    return "\n".join(["# Archived trials", "", *head, *rows, "", *means, ""]) + "\n"
