@@ -52,6 +52,11 @@ def summary(out: dict[str, Any]) -> None:
         print(f"    step {t:4d}: MetaDrive spawned at {md_new}, native at {nat_new} (MetaDrive active + dying after: {live})")
     ego, lid, act = (np.array(out[k]) for k in ("ego_err", "lidar_err", "action_err"))
     flips = np.array(out["lidar_flips"]).sum() / len(act)
+    exact = np.array(out["flip_exact"], bool).reshape(-1, 2)
+    print(
+        f"  of the {len(exact)} beams off by more than 0.2, exact ray-rectangle geometry on MetaDrive's poses agrees with the "
+        f"native beam on {int(exact[:, 0].sum())} and with MetaDrive's on {int(exact[:, 1].sum())}"
+    )
     print(
         f"  observations: ego and navigation max error {ego.max():.4f}; lidar mean error per step median {np.median(lid):.4f}, "
         f"max {lid.max():.4f}; beams off by more than 0.2 (a grazed box seen by one simulator only): {flips:.3f} per vehicle step"

@@ -65,6 +65,36 @@ def transplant(env: MetaDriveDrivingEnv, sim: DrivingSimulator, last: dict[str, 
     return ids
 
 
+def ray_box_distance(origin: np.ndarray, angle: float, center: np.ndarray, heading: float, length: float, width: float) -> float:
+    """Distance along the ray from ``origin`` at ``angle`` to the rectangle (``center``, ``heading``, ``length`` x
+    ``width``), by the slab method; ``inf`` when the ray misses it."""
+    c, s = np.cos(heading), np.sin(heading)
+    rel = np.asarray(origin, float) - np.asarray(center, float)
+    o = np.array([c * rel[0] + s * rel[1], -s * rel[0] + c * rel[1]])
+    d = np.array([c * np.cos(angle) + s * np.sin(angle), -s * np.cos(angle) + c * np.sin(angle)])
+    t_near, t_far = -np.inf, np.inf
+    for k, half in ((0, length / 2), (1, width / 2)):
+        if abs(d[k]) < 1e-12:
+            if abs(o[k]) > half:
+                return np.inf
+            continue
+        t1, t2 = (-half - o[k]) / d[k], (half - o[k]) / d[k]
+        t_near, t_far = max(t_near, min(t1, t2)), min(t_far, max(t1, t2))
+    return max(t_near, 0.0) if t_far >= max(t_near, 0.0) else np.inf
+
+
+def _exact_beam(env: MetaDriveDrivingEnv, vehicles: list[Any], j: int, beam: int, config: ScenarioConfig) -> float:
+    """Beam ``beam`` of vehicle ``j``'s lidar by exact ray-rectangle geometry on MetaDrive's own poses (range-normalised)."""
+    v = vehicles[j]
+    origin, angle = np.asarray(v.position)[:2], float(v.heading_theta) + 2 * np.pi * beam / config.lidar_beams
+    hits = [
+        ray_box_distance(origin, angle, np.asarray(w.position)[:2], float(w.heading_theta), config.vehicle_length, config.vehicle_width)
+        for k, w in enumerate(vehicles)
+        if k != j
+    ]
+    return min(1.0, min(hits, default=np.inf) / config.lidar_range)
+
+
 def shadow_episode(
     config: ScenarioConfig, policy: Any, seed: int, steps: int, native_overrides: dict[str, Any] | None = None
 ) -> dict[str, Any]:
@@ -74,7 +104,8 @@ def shadow_episode(
     ``pos_err`` (m), ``heading_err`` (rad), ``speed_err`` (km/h) of vehicles active before and after the step in both;
     ``<flag>_md`` / ``<flag>_native`` per acting vehicle for each of :data:`FLAGS`, and ``events`` where they differ;
     ``spawned_md`` / ``spawned_native`` per step and ``spawn_events`` where the counts differ; ``ego_err``, ``lidar_err``
-    (per step), ``lidar_flips`` (beams off by more than 0.2, per step), ``action_err`` (per vehicle step: the policy on
+    (per step), ``lidar_flips`` (beams off by more than 0.2, per step) and ``flip_exact`` (per such beam: whether the native
+    and whether MetaDrive's value equals exact ray-rectangle geometry on MetaDrive's poses), ``action_err`` (per vehicle step: the policy on
     the native observation against its action on MetaDrive's); ``steps``: steps taken. ``native_overrides``: settings
     of the native twin that differ (e.g. a rule as it was before a fix)."""
     env = MetaDriveDrivingEnv(replace(config, backend="metadrive"))
@@ -99,6 +130,10 @@ def shadow_episode(
             lidar_err = np.abs(nat_obs[:, ego:] - md_obs[:, ego:])
             out["lidar_err"].append(lidar_err.mean())
             out["lidar_flips"].append(int((lidar_err > 0.2).sum()))
+            vehicles = [env.md.agents[a] for a in ids] + [v for v, _ in env.md.agent_manager._dying_objects.values()]
+            for j, b in zip(*np.nonzero(lidar_err > 0.2)):
+                exact = _exact_beam(env, vehicles, int(j), int(b), sim.cfg)
+                out["flip_exact"].append((abs(exact - nat_obs[j, ego + b]) < 0.02, abs(exact - md_obs[j, ego + b]) < 0.02))
             out["action_err"].extend(np.abs(policy(nat_obs) - act).max(1))
             full = np.zeros((sim.num_slots, 2))
             full[: len(ids)] = act
