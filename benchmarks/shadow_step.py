@@ -54,7 +54,8 @@ def summary(out: dict[str, Any]) -> None:
     flips = np.array(out["lidar_flips"]).sum() / len(act)
     exact = np.array(out["flip_exact"], bool).reshape(-1, 2)
     print(
-        f"  of the {len(exact)} beams off by more than 0.2, exact ray-rectangle geometry on MetaDrive's poses agrees with the "
+        f"  of the {len(exact)} beams off by more than 0.2, exact ray-rectangle geometry (MetaDrive's pose against the others' "
+        "chassis) agrees with the "
         f"native beam on {int(exact[:, 0].sum())} and with MetaDrive's on {int(exact[:, 1].sum())}"
     )
     print(

@@ -110,7 +110,9 @@ def vehicle_step(
     friction_sums = np.empty((2, 6, 4, n))  # the forward and side impulses and their torques, per wheel
     friction = np.empty((2, 4, n))  # the forward and side impulse sizes
     shown_pos, shown_fwd = pos[:, :2], rot[:, :2, 1]
+    self.path = np.empty((n, substeps + 1, 3))
     for k in range(substeps):
+        self.path[:, k, :2], self.path[:, k, 2] = pos[:, :2], np.arctan2(rot[:, 1, 1], rot[:, 0, 1])
         if k == substeps - 1:  # Bullet's motion state shows the pose before the last integration
             shown_pos, shown_fwd = pos[:, :2].copy(), rot[:, :2, 1].copy()
         vw[:3] -= gdt * rot[:, 2, :].T  # gravity
@@ -190,6 +192,7 @@ def vehicle_step(
         total = friction_sums.sum(2) * inv_mass
         vw += total[0]
         vw += total[1]
+    self.path[:, substeps, :2], self.path[:, substeps, 2] = pos[:, :2], np.arctan2(rot[:, 1, 1], rot[:, 0, 1])
     self.pos[slots], self.rot[slots] = pos, rot
     self.vel[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[:3].T))
     self.ang[slots] = np.einsum("nij,nj->ni", rot, np.ascontiguousarray(vw[3:].T))
@@ -432,15 +435,25 @@ def _on_sidewalk(self, pos: np.ndarray, heading: np.ndarray) -> np.ndarray:
     return out
 
 
-def _crashes(self) -> np.ndarray:
-    """``DrivingSimulator._crashes`` before the kernels. Per slot: whether its box overlaps another active or dying vehicle's box."""
+def _crashes(self, poses: np.ndarray) -> np.ndarray:
+    """``DrivingSimulator._crashes`` before the kernels. Per slot: whether its box overlaps another active or dying vehicle's box
+    at one of the instants of ``poses`` (N, K, 3)."""
     out = np.zeros(self.num_slots, bool)
-    i, j = self._same_env_pairs(2 * self.half_diag)
-    if len(i):
-        hb = np.broadcast_to(self.half, (len(i), 2))
-        hit = boxes_overlap(self.pos[i], self.heading[i], hb, self.pos[j], self.heading[j], hb)
-        out[i[hit]] = True
-        out[j[hit]] = True
+    e, s = self.num_envs, self.slots_per_env
+    live = (self.status != EMPTY).reshape(e, s)
+    for k in range(poses.shape[1]):
+        p = poses[:, k].reshape(e, s, 3)
+        dx = p[:, :, None, 0] - p[:, None, :, 0]
+        dy = p[:, :, None, 1] - p[:, None, :, 1]
+        close = (dx * dx + dy * dy < (2 * self.half_diag) ** 2) & live[:, None, :] & live[:, :, None]
+        ee, i, j = np.nonzero(np.triu(close, 1))
+        i, j = ee * s + i, ee * s + j
+        if len(i):
+            hb = np.broadcast_to(self.half, (len(i), 2))
+            flat = poses[:, k]
+            hit = boxes_overlap(flat[i, :2], flat[i, 2], hb, flat[j, :2], flat[j, 2], hb)
+            out[i[hit]] = True
+            out[j[hit]] = True
     return out
 
 
@@ -497,8 +510,17 @@ def observe(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     )  # fmt: skip
     row = np.full(self.num_slots, -1)
     row[slots] = np.arange(len(slots))
-    po, pb = self._same_env_pairs(cfg.lidar_range + self.half_diag, observers=row >= 0)
-    lidar = lidar_scan(pos, hd, row[po], self.pos[pb], self.heading[pb], tuple(self.half), cfg.lidar_beams, cfg.lidar_range)
+    boxes = self._chassis_poses()  # rays from the shown poses, against the others' chassis
+    e, s = self.num_envs, self.slots_per_env
+    live = (self.status != EMPTY).reshape(e, s)
+    p, b = self.pos.reshape(e, s, 2), boxes[:, :2].reshape(e, s, 2)
+    dx = p[:, :, None, 0] - b[:, None, :, 0]
+    dy = p[:, :, None, 1] - b[:, None, :, 1]
+    close = (dx * dx + dy * dy < (cfg.lidar_range + self.half_diag) ** 2) & live[:, None, :]
+    close &= (row >= 0).reshape(e, s)[:, :, None] & ~np.eye(s, dtype=bool)[None]
+    ee, i, j = np.nonzero(close)
+    po, pb = ee * s + i, ee * s + j
+    lidar = lidar_scan(pos, hd, row[po], boxes[pb, :2], boxes[pb, 2], tuple(self.half), cfg.lidar_beams, cfg.lidar_range)
     if cfg.obs_layout == "bottleneck96":  # MetaDrive's bottleneck observation
         hw = m.solid_half_width
         side = line_detector(pos, hd, m.line_p1[m.line_solid], m.line_p2[m.line_solid], hw, cfg.side_detector_range)

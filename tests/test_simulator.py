@@ -5,10 +5,12 @@ import math
 import numpy as np
 import pytest
 
+from coin_app.sim.collision import boxes_overlap
 from coin_app.sim.config import make_config
 from coin_app.sim.driving_env import DrivingEnv
 from coin_app.sim.scenes import DRIVING_SCENARIOS
 from coin_app.sim.simulator import ACTIVE, DYING, EMPTY, DrivingSimulator
+from coin_app.sim.vehicle import RaycastVehicles
 
 L = 4.515
 
@@ -141,6 +143,99 @@ def test_a_wreck_is_an_obstacle_to_the_crash_test_for_delay_done_minus_one_steps
         sim.place(1, (float(sim.pos[0, 0]) + 1.0, float(sim.pos[0, 1])), float(sim.heading[0]), route=route)
         got.append(bool(sim.step(hold).crash_vehicle[1]))  # step t + k
     assert got == [k < delay for k in range(1, delay + 2)]
+
+
+def physics_poses(sim, slots, actions, env_steps):
+    """(env_steps * 5 + 1, n, 3): the chassis pose (x, y, heading) of ``slots`` before the first physics step and after each,
+    from a copy of their chassis stepped one physics step at a time (the crash and line tests' instants, independently)."""
+    twin = RaycastVehicles(len(slots))
+    for name in ("pos", "rot", "vel", "ang"):
+        getattr(twin, name)[:] = getattr(sim.bodies, name)[slots]
+    poses = []
+    for m in range(env_steps * 5 + 1):
+        if m:
+            twin.step(np.arange(len(slots)), actions, substeps=1)
+        poses.append(np.column_stack([twin.pos[:, :2], np.arctan2(twin.rot[:, 1, 1], twin.rot[:, 0, 1])]))
+    return np.array(poses)
+
+
+def first_step_at(instants_hit, shown=False):
+    """The env step (1-based) whose instants include the first hit: the chassis before each of its 5 physics steps and after
+    the last (poses 5 (t - 1) .. 5 t), or with ``shown`` only the pose MetaDrive shows after it (pose 5 t - 1)."""
+    m = int(np.argmax(instants_hit))
+    assert instants_hit[m], "no hit in the poses computed"
+    return next(t for t in range(1, 100) if (5 * t - 1 >= m if shown else 5 * t >= m))
+
+
+def test_a_car_crashes_in_the_step_where_its_chassis_first_touches_during_the_physics_steps():
+    """MetaDrive's crash test is Bullet's: a contact callback in every physics step's collision detection and a contact test
+    after the last one, on the chassis, which is one physics step ahead of the pose MetaDrive shows. A car coasting at 12 m/s
+    onto one at rest crashes in the step whose chassis poses (before each physics step and after the last) first overlap,
+    computed from a copy of both chassis stepped one physics step at a time; for some gaps that is a step earlier than the
+    shown poses would say."""
+    differs = 0
+    for gap in np.arange(0.3, 2.4, 0.1):
+        sim = DrivingSimulator(make_config("intersection", num_agents=2, allow_respawn=False))
+        sim.reset(0)
+        route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+        sim.place(0, (10.0, 0.0), 0.0, speed=12.0, route=route)
+        sim.place(1, (10.0 + L + gap, 0.0), 0.0, speed=0.0, route=route)
+        act = np.zeros((sim.num_slots, 2))
+        act[1] = 0.0, -1.0
+        poses = physics_poses(sim, np.array([0, 1]), act[:2], 4)
+        hit = boxes_overlap(
+            poses[:, 0, :2],
+            poses[:, 0, 2],
+            np.broadcast_to(sim.half, (len(poses), 2)),
+            poses[:, 1, :2],
+            poses[:, 1, 2],
+            np.broadcast_to(sim.half, (len(poses), 2)),
+        )
+        want = first_step_at(hit)
+        got = next(t for t in range(1, 5) if sim.step(act).crash_vehicle[0])
+        assert got == want, gap
+        differs += want != first_step_at(hit, shown=True)
+    assert differs >= 2
+
+
+def test_the_lidar_sees_the_others_chassis_from_the_shown_pose():
+    """MetaDrive casts its lidar from the pose it shows against the other bodies where Bullet has them: one physics step
+    ahead of their shown pose. A car at rest sees one driving away at 15 m/s ahead of it at the front of that one's chassis
+    after the step's last physics step (from a copy stepped one physics step at a time), 0.3 m beyond its shown tail."""
+    sim = DrivingSimulator(make_config("intersection", num_agents=2, allow_respawn=False))
+    sim.reset(0)
+    route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+    sim.place(0, (10.0, 0.0), 0.0, speed=0.0, route=route)
+    sim.place(1, (25.0, 0.0), 0.0, speed=15.0, route=route)
+    act = np.zeros((sim.num_slots, 2))
+    act[0] = 0.0, -1.0
+    chassis = physics_poses(sim, np.array([0, 1]), act[:2], 1)[5, 1]
+    lidar = sim.step(act).obs[0, 19:].astype(float) * 50.0
+    assert lidar[0] == pytest.approx(chassis[0] - L / 2 - sim.pos[0, 0], abs=1e-4)
+    assert lidar[0] - (sim.pos[1, 0] - L / 2 - sim.pos[0, 0]) == pytest.approx(15.0 * 0.02, abs=0.01)
+
+
+def test_a_car_leaves_the_road_in_the_step_after_which_its_chassis_touches_a_solid_line():
+    """Line contacts are Bullet's contact test after the physics steps: the chassis after the last one, not the pose shown. A
+    car drifting at 2 degrees toward the side line (its inner edge at y = -1.7125: the line at -1.75, 0.075 m wide) leaves
+    the road in the first step after which the lowest corner of its footprint is at or below that edge."""
+    differs = 0
+    half = np.array([L / 2, 1.852 / 2])
+    for y0 in np.arange(-0.6, -0.4, 0.005):
+        sim = lone_vehicle()
+        route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+        sim.place(0, (10.0, y0), math.radians(-2.0), speed=10.0, route=route)
+        poses = physics_poses(sim, np.array([0]), np.zeros((1, 2)), 16)[:, 0]
+        lowest = poses[:, 1] - half[0] * np.abs(np.sin(poses[:, 2])) - half[1] * np.cos(poses[:, 2])
+        touch = lowest <= -1.7125
+        touch[np.arange(len(touch)) % 5 != 0] = False  # tested only after the last physics step of a step
+        want = first_step_at(touch)
+        got = next(t for t in range(1, 13) if step_one(sim).out_of_road[0])
+        assert got == want, y0
+        shown = lowest <= -1.7125
+        shown[np.arange(len(shown)) % 5 != 4] = False
+        differs += want != first_step_at(shown, shown=True)
+    assert differs >= 2
 
 
 @pytest.mark.parametrize("per_step", [1, 2, 0])

@@ -83,13 +83,14 @@ def ray_box_distance(origin: np.ndarray, angle: float, center: np.ndarray, headi
     return max(t_near, 0.0) if t_far >= max(t_near, 0.0) else np.inf
 
 
-def _exact_beam(env: MetaDriveDrivingEnv, vehicles: list[Any], j: int, beam: int, config: ScenarioConfig) -> float:
-    """Beam ``beam`` of vehicle ``j``'s lidar by exact ray-rectangle geometry on MetaDrive's own poses (range-normalised)."""
+def _exact_beam(vehicles: list[Any], boxes: np.ndarray, j: int, beam: int, config: ScenarioConfig) -> float:
+    """Beam ``beam`` of vehicle ``j``'s lidar by exact ray-rectangle geometry (range-normalised): from MetaDrive's shown pose
+    of ``j``, against the other vehicles' chassis poses ``boxes`` (x, y, heading per vehicle, in ``vehicles`` order)."""
     v = vehicles[j]
     origin, angle = np.asarray(v.position)[:2], float(v.heading_theta) + 2 * np.pi * beam / config.lidar_beams
     hits = [
-        ray_box_distance(origin, angle, np.asarray(w.position)[:2], float(w.heading_theta), config.vehicle_length, config.vehicle_width)
-        for k, w in enumerate(vehicles)
+        ray_box_distance(origin, angle, boxes[k, :2], float(boxes[k, 2]), config.vehicle_length, config.vehicle_width)
+        for k in range(len(vehicles))
         if k != j
     ]
     return min(1.0, min(hits, default=np.inf) / config.lidar_range)
@@ -105,7 +106,8 @@ def shadow_episode(
     ``<flag>_md`` / ``<flag>_native`` per acting vehicle for each of :data:`FLAGS`, and ``events`` where they differ;
     ``spawned_md`` / ``spawned_native`` per step and ``spawn_events`` where the counts differ; ``ego_err``, ``lidar_err``
     (per step), ``lidar_flips`` (beams off by more than 0.2, per step) and ``flip_exact`` (per such beam: whether the native
-    and whether MetaDrive's value equals exact ray-rectangle geometry on MetaDrive's poses), ``action_err`` (per vehicle step: the policy on
+    and whether MetaDrive's value equals exact ray-rectangle geometry from MetaDrive's pose against the chassis the
+    transplant gave the others), ``action_err`` (per vehicle step: the policy on
     the native observation against its action on MetaDrive's); ``steps``: steps taken. ``native_overrides``: settings
     of the native twin that differ (e.g. a rule as it was before a fix)."""
     env = MetaDriveDrivingEnv(replace(config, backend="metadrive"))
@@ -132,7 +134,7 @@ def shadow_episode(
             out["lidar_flips"].append(int((lidar_err > 0.2).sum()))
             vehicles = [env.md.agents[a] for a in ids] + [v for v, _ in env.md.agent_manager._dying_objects.values()]
             for j, b in zip(*np.nonzero(lidar_err > 0.2)):
-                exact = _exact_beam(env, vehicles, int(j), int(b), sim.cfg)
+                exact = _exact_beam(vehicles, sim._chassis_poses(), int(j), int(b), sim.cfg)
                 out["flip_exact"].append((abs(exact - nat_obs[j, ego + b]) < 0.02, abs(exact - md_obs[j, ego + b]) < 0.02))
             out["action_err"].extend(np.abs(policy(nat_obs) - act).max(1))
             full = np.zeros((sim.num_slots, 2))

@@ -263,6 +263,50 @@ def summary_table(results: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def gap_table(results: pd.DataFrame) -> pd.DataFrame:
+    """One row per scene run on both backends: native minus MetaDrive on the episodes both ran (paired by training seed and
+    episode seed), in points of success and of time-outs: the mean over training seeds of each seed's mean paired
+    difference, and its standard error over seeds (sd / sqrt(seeds); NaN with one seed)."""
+    rows = []
+    for scene in [s for s in SCENES if s in set(results.scene)]:
+        part = results[results.scene == scene]
+        pair = ["train_seed", "episode_seed"]
+        native = part[part.backend == "native"].set_index(pair)
+        metadrive = part[part.backend == "metadrive"].set_index(pair)
+        both = native.index.intersection(metadrive.index)
+        if both.empty:
+            continue
+        row: dict[str, Any] = {"scene": scene, "vehicles": SCENES[scene].default_vehicles, "seeds": both.get_level_values(0).nunique()}
+        row["episodes"] = len(both)
+        for rate in ("success_rate", "timeout_rate"):
+            diff = (native.loc[both, rate] - metadrive.loc[both, rate]) * 100
+            per_seed = diff.groupby(level="train_seed").mean().to_numpy()
+            row[f"{rate}_gap"] = per_seed.mean()
+            row[f"{rate}_se"] = per_seed.std(ddof=1) / np.sqrt(len(per_seed)) if len(per_seed) > 1 else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def gap_markdown(gaps: pd.DataFrame) -> str:
+    """The paired gaps as a markdown table, with whether the success gap is within 2 points (issue 57's bar)."""
+    lines = [
+        "| scene (vehicles) | paired episodes (seeds × episodes) | native − MetaDrive, success points (SE) "
+        "| time-out points (SE) | within 2 points |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for _, row in gaps.iterrows():
+        cells = []
+        for rate in ("success_rate", "timeout_rate"):
+            se = row[f"{rate}_se"]
+            cells.append(f"{row[f'{rate}_gap']:+.1f}" + (f" ({se:.1f})" if np.isfinite(se) else ""))
+        within = "yes" if abs(row["success_rate_gap"]) <= 2 else "no"
+        lines.append(
+            f"| {row['scene']} ({row['vehicles']}) | {row['episodes']} ({row['seeds']} seed{'s' if row['seeds'] > 1 else ''}) "
+            f"| {cells[0]} | {cells[1]} | {within} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def _cell(row: pd.Series, rate: str, spread: bool) -> str:
     text = f"{row[f'{rate}_mean']:.1f}"
     if spread and row["seeds"] > 1:
@@ -293,6 +337,7 @@ def write_tables(results: pd.DataFrame, out: Path, settings: dict[str, Any]) -> 
     """``table.csv``, ``table.md`` (with the protocol and the actors' source and licence) and ``settings.json`` in ``out``."""
     table = summary_table(results)
     _write_csv(table, out / TABLE_CSV)
+    gaps = gap_table(results)
     text = (
         "# The COIN authors' actors (reference)\n\n"
         f"{to_markdown(table)}\n"
@@ -300,8 +345,14 @@ def write_tables(results: pd.DataFrame, out: Path, settings: dict[str, Any]) -> 
         "bottleneck's solid neck centre line (the authors' patched MetaDrive). Rates are the mean over training seeds of "
         "each seed's mean over its episodes; time-outs are vehicles that reached their own step limit; wall: the "
         "episodes' wall time on the machine that ran them; paper: COIN's Table 5.1 success.\n\n"
-        f"Actors: {SOURCE}.\n\nCommand: `{settings.get('command', '')}`\n"
     )
+    if not gaps.empty:
+        text += (
+            "Native minus MetaDrive on the episodes both simulators ran, paired by training seed and episode seed (the "
+            "mean over seeds of each seed's mean difference; SE: its standard error over seeds):\n\n"
+            f"{gap_markdown(gaps)}\n"
+        )
+    text += f"Actors: {SOURCE}.\n\nCommand: `{settings.get('command', '')}`\n"
     write_text_atomic(out / TABLE_MD, text)
     write_text_atomic(out / SETTINGS, json.dumps(settings, indent=2) + "\n")
     return [out / TABLE_CSV, out / TABLE_MD, out / SETTINGS]

@@ -226,14 +226,13 @@ def box_circle_overlap(center: np.ndarray, heading: np.ndarray, half: np.ndarray
 
 
 @numba.njit(cache=True, error_model="numpy")
-def same_env_overlaps(
-    pos: np.ndarray, heading: np.ndarray, live: np.ndarray, slots_per_env: int, half: np.ndarray, max_dist: float
-) -> np.ndarray:
-    """(N,) whether each live slot's box (``half`` extents) overlaps another live box of its env (slots ``e S .. e S + S - 1``).
+def same_env_overlaps(poses: np.ndarray, live: np.ndarray, slots_per_env: int, half: np.ndarray, max_dist: float) -> np.ndarray:
+    """(N,) whether each live slot's box (``half`` extents) overlaps another live box of its env (slots ``e S .. e S + S - 1``)
+    at one of the instants of ``poses`` (N, K, 3): x, y and heading of every slot at each of K instants.
 
-    Only pairs with centres closer than ``max_dist`` are tested.
+    Only pairs with centres closer than ``max_dist`` at that instant are tested.
     """
-    n = len(heading)
+    n, instants = poses.shape[0], poses.shape[1]
     out = np.zeros(n, np.bool_)
     for base in range(0, n, slots_per_env):
         for i in range(base, base + slots_per_env):
@@ -242,12 +241,15 @@ def same_env_overlaps(
             for j in range(i + 1, base + slots_per_env):
                 if not live[j]:
                     continue
-                dx, dy = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1]
-                if dx * dx + dy * dy < max_dist**2 and _box_overlap(
-                    pos[i, 0], pos[i, 1], heading[i], half[0], half[1], pos[j, 0], pos[j, 1], heading[j], half[0], half[1]
-                ):
-                    out[i] = True
-                    out[j] = True
+                for k in range(instants):
+                    a, b = poses[i, k], poses[j, k]
+                    dx, dy = a[0] - b[0], a[1] - b[1]
+                    if dx * dx + dy * dy < max_dist**2 and _box_overlap(
+                        a[0], a[1], a[2], half[0], half[1], b[0], b[1], b[2], half[0], half[1]
+                    ):
+                        out[i] = True
+                        out[j] = True
+                        break
     return out
 
 

@@ -143,28 +143,31 @@ def lidar_same_env(
     slots: np.ndarray,
     pos: np.ndarray,
     heading: np.ndarray,
+    box_pos: np.ndarray,
+    box_heading: np.ndarray,
     live: np.ndarray,
     slots_per_env: int,
     half: np.ndarray,
     n_beams: int,
     max_range: float,
 ) -> np.ndarray:
-    """``lidar_scan`` of the vehicles ``slots`` (per-slot arrays) against every other live vehicle of their env closer than the
-    range plus the box's half diagonal (env e: slots ``e S .. e S + S - 1``); (len(slots), n_beams)."""
+    """``lidar_scan`` of the vehicles ``slots`` from their poses ``pos``, ``heading`` (per-slot arrays) against the boxes
+    (``box_pos``, ``box_heading``) of every other live vehicle of their env closer than the range plus the box's half
+    diagonal (env e: slots ``e S .. e S + S - 1``); (len(slots), n_beams)."""
     out = np.full((len(slots), n_beams), max_range)
     rad_b = np.hypot(half[0], half[1])
     reach = max_range + rad_b
     beams = _beam_table(n_beams)
-    cos_h, sin_h = np.cos(heading), np.sin(heading)  # each box's axes, once per slot
+    cos_h, sin_h = np.cos(box_heading), np.sin(box_heading)  # each box's axes, once per slot
     for q in range(len(slots)):
         i = slots[q]
         base = i - i % slots_per_env
         for j in range(base, base + slots_per_env):
             if j == i or not live[j]:
                 continue
-            dx, dy = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1]
+            dx, dy = pos[i, 0] - box_pos[j, 0], pos[i, 1] - box_pos[j, 1]
             if dx * dx + dy * dy < reach**2:
-                box = pos[j, 0], pos[j, 1], heading[j], (cos_h[j], sin_h[j])
+                box = box_pos[j, 0], box_pos[j, 1], box_heading[j], (cos_h[j], sin_h[j])
                 _scan_box(out[q], beams, pos[i, 0], pos[i, 1], heading[i], *box, half[0], half[1], rad_b, max_range)
     return out
 

@@ -298,8 +298,10 @@ class DrivingSimulator:
         s_all, r_all = m.local_coordinates(np.concatenate([fl, rw_lane, rw_lane]), np.concatenate([pos, pos, self.prev_pos[idx]]))
         n_idx = len(idx)
         arrive = rules.arrived(s_all[:n_idx], r_all[:n_idx], m.length[fl], m.width[fl], m.road_nlanes[ref_road])
-        oor = rules.off_road(on_lane, self._touches_solid_line(pos, hd), self._on_sidewalk(pos, hd))
-        crash = self._crashes()[idx]
+        poses = self._crash_poses(idx)
+        line_pose = poses[idx, -1]  # Bullet's contact test after the physics steps: the chassis, one step past the shown pose
+        oor = rules.off_road(on_lane, self._touches_solid_line(line_pose[:, :2], line_pose[:, 2]), self._on_sidewalk(pos, hd))
+        crash = self._crashes(poses)[idx]
         self.ep_len[idx] += 1
         max_step = rules.step_limit_reached(self.ep_len[idx], cfg)
         force_env = rules.force_stopped(self.env_step, cfg)
@@ -403,9 +405,31 @@ class DrivingSimulator:
             ee, i, j = np.nonzero(close)
         return ee * s + i, ee * s + j
 
-    def _crashes(self) -> np.ndarray:
-        """Per slot: whether its box overlaps another active or dying vehicle's box."""
-        return same_env_overlaps(self.pos, self.heading, self.status != EMPTY, self.slots_per_env, self.half, 2 * self.half_diag)
+    def _chassis_poses(self) -> np.ndarray:
+        """(N, 3) every slot's chassis pose (x, y, heading): with MetaDrive's car where Bullet has the body, one physics
+        step ahead of the pose MetaDrive shows (``pos``, ``heading``) while it moves; without it the shown pose."""
+        if self.bodies is None:
+            return np.column_stack([self.pos, self.heading])
+        b = self.bodies
+        return np.column_stack([b.pos[:, :2], np.arctan2(b.rot[:, 1, 1], b.rot[:, 0, 1])])
+
+    def _crash_poses(self, idx: np.ndarray) -> np.ndarray:
+        """(N, K, 3) every slot's pose (x, y, heading) at the K instants the crash test sees.
+
+        With MetaDrive's car, Bullet's: the chassis before each physics step of this env step (its contact callback, in
+        the collision detection of every physics step) and after the last (its contact test after the step); the
+        vehicles not stepped (``idx`` are) where their chassis stands. Without it, K = 1: the end-of-step pose.
+        """
+        chassis = self._chassis_poses()
+        if self.bodies is None:
+            return chassis[:, None, :]
+        poses = np.repeat(chassis[:, None, :], self.bodies.path.shape[1], axis=1)
+        poses[idx] = self.bodies.path
+        return poses
+
+    def _crashes(self, poses: np.ndarray) -> np.ndarray:
+        """Per slot: whether its box overlaps another active or dying vehicle's box at one of the instants of ``poses``."""
+        return same_env_overlaps(poses, self.status != EMPTY, self.slots_per_env, self.half, 2 * self.half_diag)
 
     def _respawn(self, vacated: np.ndarray, env_ok: np.ndarray) -> np.ndarray:
         """Spawn new agents on free respawn places while under each env's cap, at most ``respawns_per_step`` per env
@@ -449,9 +473,10 @@ class DrivingSimulator:
             m, pos, hd, self.heading_prev[slots], self.speed[slots], self.action[slots], self.lane[slots], ref_road, next_road,
             cfg.dynamics.max_speed_kmh, cfg.navi_point_dist, cfg.dynamics.dt,
         )  # fmt: skip
+        boxes = self._chassis_poses()  # MetaDrive's lidar: rays from the shown pose, against the others' chassis
         lidar = lidar_same_env(
-            np.asarray(slots, dtype=np.int64), self.pos, self.heading, self.status != EMPTY, self.slots_per_env, self.half,
-            cfg.lidar_beams, cfg.lidar_range,
+            np.asarray(slots, dtype=np.int64), self.pos, self.heading, boxes[:, :2], boxes[:, 2], self.status != EMPTY,
+            self.slots_per_env, self.half, cfg.lidar_beams, cfg.lidar_range,
         )  # fmt: skip
         if cfg.obs_layout == "bottleneck96":  # MetaDrive's bottleneck observation
             hw = m.solid_half_width

@@ -139,6 +139,7 @@ class RaycastVehicles:
         self.vel = np.zeros((n, 3))
         self.ang = np.zeros((n, 3))
         self.inv_inertia = 1.0 / np.asarray(self.p.inertia)
+        self.path = np.zeros((0, 1, 3))
 
     def place(self, slots: np.ndarray, xy: np.ndarray, heading: np.ndarray, speed: np.ndarray | float = 0.0, settled: bool = False) -> None:
         """Put vehicles at ``xy`` and ``heading``, driving straight at ``speed``.
@@ -164,11 +165,14 @@ class RaycastVehicles:
         """Advance ``slots`` by one env step of ``substeps`` physics steps with ``action`` (n, 2) = [steering, throttle_brake].
 
         Returns the reported pose of each: position (n, 2) and heading (n,), as MetaDrive reads them.
+        Sets :attr:`path` (n, substeps + 1, 3): each one's chassis pose (x, y, heading) before each
+        physics step and after the last, the poses Bullet's collision tests see.
         The physics runs in the chassis frame (constant connection points, diagonal inertia); the
         state is kept in the world frame (``_raycast_step``, compiled).
         """
         slots = np.ascontiguousarray(np.atleast_1d(slots), dtype=np.int64)
         action = np.ascontiguousarray(action, dtype=np.float64).reshape(len(slots), 2)
+        self.path = np.empty((len(slots), int(substeps) + 1, 3))
         return _raycast_step(
             self.pos,
             self.rot,
@@ -176,6 +180,7 @@ class RaycastVehicles:
             self.ang,
             slots,
             action,
+            self.path,
             int(substeps),
             float(max_speed_kmh),
             float(max_steer_deg),
@@ -203,12 +208,14 @@ def _raycast_step(
     ang_all: np.ndarray,
     slots: np.ndarray,
     action: np.ndarray,
+    path: np.ndarray,
     substeps: int,
     max_speed_kmh: float,
     max_steer_deg: float,
     c: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Bullet's vehicle step (module doc) for the vehicles ``slots``, in place; their reported poses (n, 2) and headings (n,).
+    ``path`` (n, substeps + 1, 3) receives each one's pose (x, y, heading) before every physics step and after the last.
 
     One vehicle at a time, in Bullet's order; per wheel: the ray, the suspension impulse, then the friction impulses.
     """
@@ -254,6 +261,7 @@ def _raycast_step(
             vw[3 + a] = rot[0, a] * ang_all[sl, 0] + rot[1, a] * ang_all[sl, 1] + rot[2, a] * ang_all[sl, 2]
         shown_px, shown_py, shown_fx, shown_fy = px, py, rot[0, 1], rot[1, 1]
         for k in range(substeps):
+            path[i, k, 0], path[i, k, 1], path[i, k, 2] = px, py, np.arctan2(rot[1, 1], rot[0, 1])
             if k == substeps - 1:  # Bullet's motion state shows the pose before the last integration
                 shown_px, shown_py, shown_fx, shown_fy = px, py, rot[0, 1], rot[1, 1]
             for a in range(3):  # gravity
@@ -363,6 +371,7 @@ def _raycast_step(
             for a in range(6):
                 vw[a] += side_sums[a] * inv_mass[a]
         pos_all[sl, 0], pos_all[sl, 1], pos_all[sl, 2] = px, py, pz
+        path[i, substeps, 0], path[i, substeps, 1], path[i, substeps, 2] = px, py, np.arctan2(rot[1, 1], rot[0, 1])
         rot_all[sl] = rot
         for a in range(3):
             vel_all[sl, a] = rot[a, 0] * vw[0] + rot[a, 1] * vw[1] + rot[a, 2] * vw[2]
