@@ -15,8 +15,10 @@ from one state says it exactly. Printed at the end:
 * outcomes: per flag (arrival, crash, off-road, step limit), how often MetaDrive and the native step disagree, and
   each disagreement (step, agent, speed, what each said);
 * respawns: vehicles spawned by the step in each (the places are drawn by different generators, the count should agree);
-* observations at MetaDrive's poses before the step: ego and navigation error, lidar error, and how far the actor's
-  action on the native observation is from its action on MetaDrive's.
+* observations at MetaDrive's poses before the step: ego and navigation error (per column), lidar error, the beams
+  off by more than 0.2 sorted by cause (a vehicle the last step spawned or retired, a grazed outline), and how far
+  the actor's action on the native observation is from its action on MetaDrive's;
+* each simulator's own observations after the step: the lidar beams off by more than 0.2.
 """
 
 from __future__ import annotations
@@ -58,9 +60,31 @@ def summary(out: dict[str, Any]) -> None:
         "chassis) agrees with the "
         f"native beam on {int(exact[:, 0].sum())} and with MetaDrive's on {int(exact[:, 1].sum())}"
     )
+    detail = np.array(out["flip_detail"], float).reshape(-1, 7)
+    for name, rows in (("MetaDrive's beam longer", detail[:, 1] > detail[:, 0]), ("MetaDrive's beam shorter", detail[:, 1] < detail[:, 0])):
+        d = detail[rows]
+        if len(d):
+            near = np.abs(d[:, 3]) < 0.05
+            print(
+                f"    {name}: {len(d)}; the nearer hit's distance from the nearest box outline median {np.median(d[:, 2]):.3f} m; "
+                f"the beam's clearance with that box (chord if it hits, minus the miss) median {np.median(d[:, 3]):+.3f} m, "
+                f"within 5 cm of grazing {int(near.sum())}; the box a vehicle spawned by the last step {int(d[:, 4].sum())}; "
+                f"MetaDrive's hit within 0.3 m of a vehicle the last step retired {int((d[:, 5] < 0.3).sum())}; "
+                f"seen by a vehicle spawned by the last step {int(d[:, 6].sum())}"
+            )
     print(
         f"  observations: ego and navigation max error {ego.max():.4f}; lidar mean error per step median {np.median(lid):.4f}, "
         f"max {lid.max():.4f}; beams off by more than 0.2 (a grazed box seen by one simulator only): {flips:.3f} per vehicle step"
+    )
+    sf, sb = np.sum(out["step_lidar_flips"]), np.sum(out["step_lidar_beams"])
+    print(
+        f"  the step's own observations of the vehicles that acted (each simulator's poses after the step): {sf} of {sb} "
+        f"lidar beams off by more than 0.2 ({sf / max(sb, 1) * 72:.3f} per vehicle step)"
+    )
+    cols = np.sum(out["ego_columns_off"], 0)
+    print(
+        "  ego and navigation columns off by more than 0.01 (vehicle steps): "
+        + (", ".join(f"column {c}: {int(cols[c])}" for c in np.nonzero(cols)[0]) or "none")
     )
     for t, aid, c, a, b in out["ego_events"][:20]:
         print(f"    step {t:4d} {aid:<9} column {c:2d}: native {a:.4f}, MetaDrive {b:.4f}")

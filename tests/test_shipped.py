@@ -76,3 +76,17 @@ def test_the_shipped_arena_pair_parks_lone_vehicles_as_recorded(name):
     record = shipped_policies()[name]
     rows = evaluate_suite(name, [(1, 0)], 10, workers=1, log=lambda s: None)
     assert summarize(rows).success_to_goal_rate[0] >= record["test"]["success_to_goal_rate_1x0"] - 0.2
+
+
+@pytest.mark.parametrize("name", [n for n in DRIVING if "onnx" in shipped_policies()[n]])
+def test_a_shipped_onnx_twin_acts_as_its_numpy_file(name):
+    # the record's ONNX file is the same actor: on observations spread over [0, 1] both act alike to float32 round-off
+    pytest.importorskip("onnxruntime")
+    numpy_policy = load_policy(name)
+    onnx_policy = load_policy(SHIPPED_DIR / shipped_policies()[name]["onnx"])
+    assert onnx_policy.obs_dim == numpy_policy.obs_dim == 91
+    assert onnx_policy.meta["checkpoint"] == numpy_policy.meta["checkpoint"]
+    obs = np.random.default_rng(0).uniform(0.0, 1.0, (256, 91)).astype(np.float32)
+    a, b = numpy_policy(obs), onnx_policy(obs)
+    assert np.abs(a).max() > 0.1  # the actor acts (a zeroed file would pass the parity below)
+    np.testing.assert_allclose(a, b, atol=1e-5)

@@ -462,3 +462,79 @@ def test_own_arm_destinations_switch():
             sim.reset(seed)
             seen |= set(m.route_returns[sim.route[:48]].tolist())
         assert (True in seen) is expect_returns and False in seen
+
+
+def test_the_step_observes_an_arrival_at_its_final_pose_and_the_next_step_does_not():
+    """MetaDrive observes the acting vehicles before it retires the finished ones: the car behind one that arrives sees
+    it, at its chassis after the step, in that step's observation, and an empty road in the next."""
+    sim = DrivingSimulator(make_config("intersection", num_agents=2, allow_respawn=False))
+    sim.reset(0)
+    route = route_of(sim, (">>", ">>>", 1), "1X1_1_")
+    end = sim.map.end[sim.map.route_final_lane[route]]  # (150.5, 0)
+    sim.place(0, (end[0] - 5.5, end[1]), 0.0, speed=10.0, route=route)  # arrives in this step (test above)
+    sim.ref_idx[0] = 2
+    sim.place(1, (end[0] - 20.0, end[1]), 0.0, speed=0.0, route=route)
+    sim.ref_idx[1] = 2
+    act = np.zeros((sim.num_slots, 2))
+    act[:2, 1] = 0.5, -1.0
+    res = sim.step(act)
+    assert res.arrive_dest[0] and sim.status[0] == EMPTY and sim.status[1] == ACTIVE
+    chassis = sim._chassis_poses()[0]  # the retired car's body where the step left it
+    front = res.obs[1, 19] * sim.cfg.lidar_range
+    assert front == pytest.approx(chassis[0] - L / 2 - sim.pos[1, 0], abs=0.02)  # its tail, straight ahead
+    act[0] = 0.0
+    assert sim.step(act).obs[1, 19] == 1.0 and sim.step(act).obs[1, 19] == 1.0
+
+
+def test_the_step_observes_before_the_respawn_and_a_new_agent_after_it():
+    """Along a dense seeded episode: each acting vehicle's observation after a step is what the lidar sees with the
+    vehicles retired by the step still there and the ones it spawned not yet (MetaDrive's order); a new agent's first
+    observation sees the traffic after both. The order matters: some steps' observations differ from the traffic after
+    the step."""
+    from coin_app.sim.heuristic import HeuristicDriver
+
+    sim = DrivingSimulator(make_config("intersection", num_agents=30, horizon=200))
+    sim.reset(1)
+    driver = HeuristicDriver(sim)
+    mattered = checked = 0
+    for _ in range(200):
+        before = sim.status.copy()
+        res = sim.step(driver.act_all())
+        acted, new = np.nonzero(res.acted)[0], np.nonzero(res.spawned)[0]
+        retired = acted[sim.status[acted] == EMPTY]
+        if len(new):
+            np.testing.assert_array_equal(res.obs[new], sim.observe(new)[0])
+        if len(new) or len(retired):
+            after = sim.observe(acted)[0]
+            status = sim.status.copy()
+            sim.status[new], sim.status[retired] = EMPTY, before[retired]
+            want = sim.observe(acted)[0]
+            sim.status[:] = status
+            np.testing.assert_array_equal(res.obs[acted, 19:], want[:, 19:])  # the lidar
+            going = sim.status[acted] == ACTIVE  # (the done ones' speeds are zeroed after their observation)
+            np.testing.assert_array_equal(res.obs[acted[going]], want[going])
+            checked += 1
+            mattered += int(not np.array_equal(after[:, 19:], res.obs[acted, 19:]))
+    assert checked >= 10 and mattered > 0
+
+
+def test_line_detector_meets_line_boxes_as_bullet_does():
+    """The side / lane-line detector against one 20 m line along x = 0 (a box 0.075 m wide, MetaDrive's), by hand:
+    straight on, obliquely (the box's face, not the centre line), along it (the end of the box), from inside it."""
+    from coin_app.sim.sensors import line_detector
+
+    p1, p2, hw, rng = np.array([[0.0, -10.0]]), np.array([[0.0, 10.0]]), 0.0375, 20.0
+    pos = np.array([[-5.0, 0.0], [-5.0, 0.0], [0.01, -12.0], [0.01, 0.0], [5.0, 30.0]])
+    heading = np.array([0.0, -math.pi / 3, math.pi / 2, 0.0, 0.0])
+    got = line_detector(pos, heading, p1, p2, hw, rng) * rng  # beams [left, back, right, front]
+    # straight on: the front beam meets the near face at x = -hw
+    np.testing.assert_allclose(got[0], [rng, rng, rng, 5.0 - hw])
+    # at -60 deg the front beam reaches x = -hw after (5 - hw) / cos 60 (at y = -8.6, on the box) and the left beam (at
+    # +30 deg) after (5 - hw) / cos 30 (at y = 2.9); the others point away
+    np.testing.assert_allclose(got[1], [(5.0 - hw) / math.cos(math.pi / 6), rng, rng, (5.0 - hw) / 0.5])
+    # facing along the line from 2 m short of its end, 1 cm off its centre: the front beam meets the end face
+    np.testing.assert_allclose(got[2], [rng, rng, rng, 2.0])
+    # inside the box: Bullet's ray test sees no line it starts in
+    np.testing.assert_allclose(got[3], [rng] * 4)
+    # beyond the line's end, out of range: nothing
+    np.testing.assert_allclose(got[4], [rng] * 4)

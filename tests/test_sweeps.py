@@ -314,12 +314,28 @@ def test_dense_scale_is_the_default_intersection_with_each_familys_dense_preset_
     assert rows["num_agents"] == "intersection's default" and rows["horizon"] == "ScenarioConfig default"
     assert rows["updates_per_env_step"] == "preset 'dense' (coin_app.algorithms.cig_td3.settings)"
     assert rows["preset"].startswith("dense scale's scenario") and rows["lidar_range"] == "preset 'metadrive_compat'"
-    # made for the intersection: another scene is refused in one line before any work
-    argv = ["sweep", "seeds", "--scenario", "roundabout", "--scale", "dense", "--algos", "cig_td3", "--seeds", "0"]
+    # the reduced scale, made for the intersection, refuses another scene in one line before any work, naming the
+    # scales made for every scene (the dense one among them)
+    argv = ["sweep", "seeds", "--scenario", "roundabout", "--scale", "reduced", "--algos", "cig_td3", "--seeds", "0"]
     assert main([*argv, "--storage", str(tmp_path / "sweeps")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "the dense scale was made for the intersection" in err
-    assert "not the roundabout; allowed: --scenario intersection" in err
+    assert err.count("\n") == 1 and "the reduced scale was made for the intersection" in err
+    assert "not the roundabout; allowed: --scenario intersection, or a scale for every scene: paper, dense, smoke" in err
+
+
+@pytest.mark.parametrize(("scene", "vehicles"), [("roundabout", 40), ("bottleneck", 20)])
+def test_dense_scale_runs_the_other_scenes_at_their_density_the_bottleneck_as_the_authors_did(scene, vehicles):
+    seeds = get_experiment("seeds")
+    space = seeds.param_space(scene, "dense", methods=DENSE_METHODS, seeds=(0,))
+    trials = validate_trials(space)  # each method's config builds on the scene
+    assert len(trials) == 7
+    authors = scene == "bottleneck"  # their patched MetaDrive's solid neck centre line, MetaDrive's 96 numbers
+    for trial in trials:
+        env = build_trial_config(trial).env_config["scenario_config"]
+        assert (env.num_agents, env.horizon, env.allow_respawn, env.lidar_range) == (vehicles, 1000, True, 40.0)
+        assert (env.solid_center_line, env.obs_dim) == ((True, 96) if authors else (False, 91)), trial["algo"]
+        penalty = 5.0 if registry.get(trial["algo"]).family == "td3" else 10.0
+        assert env.crash_penalty == penalty, trial["algo"]
 
 
 def test_a_scales_scenario_by_family_reaches_only_that_familys_trials(monkeypatch, capsys):

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from coin_app.algorithms import registry
+from coin_app.sim.scenes import DRIVING_SCENARIOS
 
 # the scales an experiment may have, largest first, with what each is for (sweep --scale's help)
 SCALES = {
@@ -57,22 +58,29 @@ class Scale:
     scenario: dict[str, Any] = field(default_factory=dict)
     # algorithm family -> scenario settings its trials take over `scenario` (a family's own training penalties)
     scenario_by_family: dict[str, dict[str, Any]] = field(default_factory=dict)
+    # scene -> scenario settings its trials take over `scenario`, below a family's (a scene's own road or observation)
+    scenario_by_scene: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def budget(self, algo: str) -> int:
         """Env steps per trial of method ``algo``: its family's budget, else ``steps``."""
         return self.steps_by_family.get(registry.get(algo).family, self.steps)
 
     def __post_init__(self) -> None:
-        """Refuse a family name no algorithm has (a typo would be ignored silently)."""
+        """Refuse a family or scene name that does not exist (a typo would be ignored silently)."""
         families = {spec.family for spec in registry.ALGORITHMS.values()}
         for by in (self.steps_by_family, self.scenario_by_family):
             unknown = sorted(set(by) - families)
             if unknown:
                 raise ValueError(f"unknown algorithm families {unknown}; allowed: {', '.join(sorted(families))}")
+        unknown = sorted(set(self.scenario_by_scene) - set(DRIVING_SCENARIOS))
+        if unknown:
+            raise ValueError(f"unknown scenes {unknown}; allowed: {', '.join(DRIVING_SCENARIOS)}")
 
-    def scenario_for(self, algo: str) -> dict[str, Any]:
-        """The scenario settings of method ``algo``'s trials: ``scenario``, then its family's ``scenario_by_family``."""
-        return dict(self.scenario) | dict(self.scenario_by_family.get(registry.get(algo).family, {}))
+    def scenario_for(self, algo: str, scene: str | None = None) -> dict[str, Any]:
+        """The scenario settings of method ``algo``'s trials on ``scene``: ``scenario``, then the scene's
+        ``scenario_by_scene``, then the method's family's ``scenario_by_family``."""
+        family = registry.get(algo).family
+        return dict(self.scenario) | dict(self.scenario_by_scene.get(scene or "", {})) | dict(self.scenario_by_family.get(family, {}))
 
 
 @dataclass(frozen=True)
@@ -153,7 +161,7 @@ class Experiment:
         methods = tuple(methods or self.methods)
         self.check(scenario, methods, seeds)
         budgets = per_method({m: int(steps or sc.budget(m)) for m in methods})
-        settings = per_method({m: sc.scenario_for(m) for m in methods})
+        settings = per_method({m: sc.scenario_for(m, scenario) for m in methods})
         return self.base_config(scenario, scale, budgets, overrides or {}, settings) | {
             "algo": grid_search(methods),
             "variant": grid_search(self.variant_names(scale)),

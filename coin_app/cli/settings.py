@@ -24,7 +24,7 @@ def run_layers(args: argparse.Namespace) -> tuple[str, list[tuple[str, dict]]]:
     if args.variant not in experiment.variants:
         raise ValueError(f"unknown variant {args.variant!r} of {args.experiment}; allowed: {', '.join(experiment.variants)}")
     steps = args.steps or scale.budget(args.algo)
-    trial = experiment.base_config(args.scenario, args.scale, steps, overrides, scale.scenario_for(args.algo))
+    trial = experiment.base_config(args.scenario, args.scale, steps, overrides, scale.scenario_for(args.algo, args.scenario))
     trial |= {"algo": args.algo, "variant": args.variant}
     trial["variant_overrides"] = {args.variant: dict(experiment.variants[args.variant])}
     what = f"sweep {args.experiment} --scale {args.scale}: one {args.algo} trial on {args.scenario}, {steps:,} env steps"

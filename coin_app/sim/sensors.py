@@ -12,6 +12,7 @@ import math
 import numba
 import numpy as np
 
+from coin_app.sim.collision import ray_box_distance
 from coin_app.sim.road_map import RoadMap, _lane_position, _lane_right_normal, _lane_sr
 
 MAX_LANE_SPAN = 18.0  # (MAX_LANE_NUM 3 + 1) * MAX_LANE_WIDTH 4.5
@@ -184,8 +185,10 @@ def line_detector(
     """MetaDrive's side / lane-line detector: distances (N, n_beams) / range to line segments.
 
     Beam k points at ``heading + pi/2 + k * 2 pi / n_beams`` ([left, back, right, front] for
-    4 beams); the value is the distance to the line's centre minus its half width, over
-    ``max_range`` (1 = no line within range). Gaps between broken-line dashes let beams through.
+    4 beams); the value is the distance along it to the nearest line box (the segment, ``half_width``
+    to each side, as MetaDrive's Bullet body of the line), over ``max_range`` (1 = no line within range).
+    Gaps between broken-line dashes let beams through; a beam along a line meets the end of a dash; a beam
+    starting inside a line's box does not see that line (Bullet's ray test reports no hit from inside a convex body).
     """
     n = len(pos)
     out = np.full((n, n_beams), max_range)
@@ -193,21 +196,22 @@ def line_detector(
         return out / max_range
     e = p2 - p1
     mid = 0.5 * (p1 + p2)
-    reach = max_range + 0.5 * np.hypot(e[:, 0], e[:, 1])
+    seg_len = np.hypot(e[:, 0], e[:, 1])
+    reach = max_range + 0.5 * seg_len + half_width
     vi, si = np.nonzero(((pos[:, None, :] - mid[None]) ** 2).sum(-1) < reach[None] ** 2)
-    ang = heading[vi][:, None] + np.pi / 2 + np.arange(n_beams)[None, :] * (2 * np.pi / n_beams)
-    ux, uy = np.cos(ang), np.sin(ang)  # (C, B)
-    ex, ey = e[si, 0:1], e[si, 1:2]
-    ax, ay = p1[si, 0:1] - pos[vi, 0:1], p1[si, 1:2] - pos[vi, 1:2]
-    denom = ux * ey - uy * ex
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (ax * ey - ay * ex) / denom
-        lam = (ax * uy - ay * ux) / denom
-    ok = (np.abs(denom) > 1e-12) & (t >= 0) & (lam >= 0) & (lam <= 1)
-    dist = np.where(ok, np.maximum(t - half_width, 0.0), np.inf)
+    ang = (heading[vi][:, None] + np.pi / 2 + np.arange(n_beams)[None, :] * (2 * np.pi / n_beams)).ravel()
+    rep = np.repeat(np.arange(len(vi)), n_beams)  # candidate (vehicle, segment) of each ray
+    half = np.column_stack([0.5 * seg_len[si], np.full(len(si), half_width)])
+    dist = ray_box_distance(
+        pos[vi][rep], np.column_stack([np.cos(ang), np.sin(ang)]), mid[si][rep], np.arctan2(e[si, 1], e[si, 0])[rep], half[rep]
+    )
+    fwd, left = np.cos(np.arctan2(e[si, 1], e[si, 0])), np.sin(np.arctan2(e[si, 1], e[si, 0]))
+    rel = pos[vi] - mid[si]
+    inside = (np.abs(rel[:, 0] * fwd + rel[:, 1] * left) <= half[:, 0]) & (np.abs(-rel[:, 0] * left + rel[:, 1] * fwd) <= half[:, 1])
+    dist[inside[rep]] = np.inf
     flat = out.reshape(-1)
-    rows = np.broadcast_to(vi[:, None] * n_beams + np.arange(n_beams)[None, :], dist.shape)
-    np.minimum.at(flat, rows.ravel(), dist.ravel())
+    rows = vi[rep] * n_beams + np.tile(np.arange(n_beams), len(vi))
+    np.minimum.at(flat, rows, dist)
     return np.minimum(out, max_range) / max_range
 
 

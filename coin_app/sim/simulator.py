@@ -10,7 +10,10 @@ Python loops run over respawn *events*. Each env has its own random generator, s
 
 Step order (as MetaDrive): clip actions -> dynamics -> lane localisation and reference
 road update -> arrival / out-of-road / crash tests -> rewards (the rules: ``rules.py``) ->
-retire done vehicles -> respawn -> observations of every agent that acted or spawned.
+observations of every agent that acted -> retire done vehicles -> respawn -> observations of the new agents. So, as in
+MetaDrive (whose ``step`` observes before its ``_after_vehicle_done`` and respawn), the observation after a step sees the
+vehicles that arrived in it at their final poses and not the ones spawned by it; a new agent's first observation sees
+the traffic after both.
 """
 
 from __future__ import annotations
@@ -310,6 +313,7 @@ class DrivingSimulator:
         r_step = rules.step_reward(cfg, s_all[n_idx : 2 * n_idx], s_all[2 * n_idx :], v, sign)
         reward = rules.reward(cfg, r_step, arrive, oor, crash)
         terminated, truncated = rules.done(arrive, oor, crash, max_step, force)
+        acted_obs = self.observe(idx)  # before the retirement and the respawn (module doc)
 
         # retire: arrived vehicles vanish, other done ones linger as obstacles
         done_idx = idx[terminated | truncated]
@@ -346,6 +350,7 @@ class DrivingSimulator:
             rules.global_reward(reward, self.env_of[idx], self.num_envs),
             terminated=scatter(terminated),
             truncated=scatter(truncated),
+            observed=(idx, *acted_obs),
         )
         if force_env.any():  # after the observations, so that final observations see the traffic
             self.status[force_env[self.env_of]] = EMPTY
@@ -499,11 +504,18 @@ class DrivingSimulator:
         global_reward: np.ndarray,
         terminated: np.ndarray | None = None,
         truncated: np.ndarray | None = None,
+        observed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> StepResult:
+        """The step's result; ``observed``: (slots, observations, local states) already taken (the acting vehicles'),
+        the others of ``acted | spawned`` are observed now."""
         n = self.num_slots
-        out_slots = np.nonzero(acted | spawned)[0]
         obs = np.zeros((n, self.cfg.obs_dim), np.float32)
         state = np.zeros((n, schema.STATE_DIM), np.float32)
+        out = acted | spawned
+        if observed is not None:
+            obs[observed[0]], state[observed[0]] = observed[1], observed[2]
+            out[observed[0]] = False
+        out_slots = np.nonzero(out)[0]
         if len(out_slots):
             obs[out_slots], state[out_slots] = self.observe(out_slots)
         zeros = np.zeros(n, bool)

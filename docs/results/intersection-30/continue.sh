@@ -1,23 +1,46 @@
-# The dense comparison, continued wherever it stands (docs/results/intersection-30/README.md):
+# The dense comparisons, continued wherever they stand (docs/results/intersection-30/README.md):
 #   bash docs/results/intersection-30/continue.sh            # from the repository root; runs until stopped
-# Two lanes, one per core: the TD3 family's methods in turn, and the PPO family's. Each method is one sweep
-# (`sweep seeds --scale dense --algos METHOD`) of the seeds not yet archived, run by the code of $CODE (every trial of the
-# comparison by the same code: the archive refuses another), resumed with --resume where its directory exists. Every
-# 10 minutes the finished trials are archived into trials/ (python -m coin_app archive), which is what gets committed.
+# The scenes in turn (the intersection, then the roundabout and the bottleneck: issue 57's item 6). Two lanes, one per
+# core, each taking the next method no lane is running (a lock per sweep). Each method of a scene is one sweep
+# (`sweep seeds --scale dense --scenario SCENE --algos METHOD`) of the seeds not yet archived, run by the code of the
+# scene's commit (every trial of a comparison by the same code: the archive refuses another), resumed with --resume
+# where its directory exists. Every 10 minutes the finished trials are archived into each scene's trials/ (python -m
+# coin_app archive), which is what gets committed.
 set -uo pipefail
 cd "$(dirname "$0")/../../.."
-CODE=${CODE:-ba6517f}                      # the commit every trial runs (the one the first trials ran)
+SCENES=(${SCENES:-intersection roundabout bottleneck})
 RUNS=${RUNS:-../runs}                      # sweeps, logs: outside git
-WORKTREE=${WORKTREE:-../wt-dense}          # a checkout of $CODE
-ARCHIVE=docs/results/intersection-30/trials
 PY=${PY:-$PWD/.venv/bin/python}
-mkdir -p "$RUNS/sweeps"
+METHODS=(cig_td3 itd3 traco ippo cppo mfpo copo)
+mkdir -p "$RUNS"
 RUNS=$(cd "$RUNS" && pwd)
-[ -d "$WORKTREE" ] || git worktree add --detach "$WORKTREE" "$CODE"
-WORKTREE=$(cd "$WORKTREE" && pwd)
 
-remaining() {  # the seeds 0..4 of method $1 not archived yet
-  "$PY" - "$ARCHIVE/dense-$1/coin_archive.json" "$1" <<'PY'
+code() {  # the commit every trial of scene $1 runs (the one its first trials ran)
+  case $1 in
+    intersection) echo "${CODE_INTERSECTION:-ba6517f}" ;;
+    *) echo "${CODE_SCENES:-HEAD}" ;;
+  esac
+}
+archive() {  # where scene $1's finished trials are committed
+  case $1 in
+    intersection) echo docs/results/intersection-30/trials ;;
+    roundabout) echo docs/results/roundabout-40/trials ;;
+    bottleneck) echo docs/results/bottleneck-20/trials ;;
+  esac
+}
+storage() { [ "$1" = intersection ] && echo "$RUNS/sweeps" || echo "$RUNS/sweeps-$1"; }
+sweep_name() { [ "$1" = intersection ] && echo "dense-$2" || echo "dense-$1-$2"; }
+worktree() {  # a checkout of scene $1's commit
+  local rev dir
+  rev=$(git rev-parse --short "$(code "$1")")
+  dir=${WORKTREE_ROOT:-..}/wt-dense-$rev
+  [ "$1" = intersection ] && [ -z "${WORKTREE_ROOT:-}" ] && dir=../wt-dense
+  [ -d "$dir" ] || git worktree add --detach "$dir" "$rev" >&2
+  (cd "$dir" && pwd)
+}
+
+remaining() {  # the seeds 0..4 of sweep $2 not archived yet in $1
+  "$PY" - "$1/$2/coin_archive.json" "$3" <<'PY'
 import json, sys
 from pathlib import Path
 path, algo = Path(sys.argv[1]), sys.argv[2]
@@ -26,21 +49,31 @@ print(" ".join(str(s) for s in range(5) if f"{algo}-s{s}" not in done))
 PY
 }
 
-lane() {  # the methods of one lane, one after another
-  for algo in "$@"; do
-    seeds=$(remaining "$algo")
-    [ -z "$seeds" ] && continue
-    dir="$RUNS/sweeps/dense-$algo"
-    if [ -f "$dir/coin_sweep.json" ]; then args=(--resume); else args=(--seeds $seeds); fi
-    (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" PYTHONHASHSEED=0 OMP_NUM_THREADS=1 nice -n 10 "$PY" -m coin_app sweep seeds \
-      --scale dense --algos "$algo" --name "dense-$algo" --storage "$RUNS/sweeps" --max-concurrent 1 --num-cpus 1 "${args[@]}")
+lane() {  # every scene's methods one after another, skipping any another lane holds
+  for scene in "${SCENES[@]}"; do
+    wt=$(worktree "$scene")
+    store=$(storage "$scene")
+    mkdir -p "$store"
+    for algo in "$@"; do
+      name=$(sweep_name "$scene" "$algo")
+      seeds=$(remaining "$(archive "$scene")" "$name" "$algo")
+      [ -z "$seeds" ] && continue
+      if [ -f "$store/$name/coin_sweep.json" ]; then args=(--resume); else args=(--seeds $seeds); fi
+      (cd "$wt" && PYTHONPATH="$wt" PYTHONHASHSEED=0 OMP_NUM_THREADS=1 flock -n -E 75 "$RUNS/.lock-$name" \
+        nice -n 10 "$PY" -m coin_app sweep seeds --scale dense --scenario "$scene" \
+        --algos "$algo" --name "$name" --storage "$store" --max-concurrent 1 --num-cpus 1 "${args[@]}")
+    done
   done
 }
 
-lane cig_td3 itd3 traco >> "$RUNS/dense-td3.log" 2>&1 &
+lane "${METHODS[@]}" >> "$RUNS/dense-lane1.log" 2>&1 &
 sleep 20
-lane ippo cppo mfpo copo >> "$RUNS/dense-ppo.log" 2>&1 &
+lane ippo "${METHODS[@]}" >> "$RUNS/dense-lane2.log" 2>&1 &
 while true; do
   sleep 600
-  OMP_NUM_THREADS=1 nice -n 5 "$PY" -m coin_app archive "$RUNS/sweeps" --out "$ARCHIVE" >> "$RUNS/archive.log" 2>&1
+  for scene in "${SCENES[@]}"; do
+    store=$(storage "$scene")
+    [ -d "$store" ] || continue
+    OMP_NUM_THREADS=1 nice -n 5 "$PY" -m coin_app archive "$store" --out "$(archive "$scene")" >> "$RUNS/archive.log" 2>&1
+  done
 done
