@@ -18,7 +18,7 @@ RUNS=$(cd "$RUNS" && pwd)
 code() {  # the commit every trial of scene $1 runs (the one its first trials ran)
   case $1 in
     intersection) echo "${CODE_INTERSECTION:-ba6517f}" ;;
-    *) echo "${CODE_SCENES:-HEAD}" ;;
+    *) echo "${CODE_SCENES:-23699fe}" ;;  # the dense scale for every scene, the native fixes of 2026-12-03
   esac
 }
 archive() {  # where scene $1's finished trials are committed
