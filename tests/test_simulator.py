@@ -8,7 +8,9 @@ import pytest
 from coin_app.sim.collision import boxes_overlap
 from coin_app.sim.config import make_config
 from coin_app.sim.driving_env import DrivingEnv
+from coin_app.sim.heuristic import HeuristicDriver
 from coin_app.sim.scenes import DRIVING_SCENARIOS
+from coin_app.sim.sensors import line_detector
 from coin_app.sim.simulator import ACTIVE, DYING, EMPTY, DrivingSimulator
 from coin_app.sim.vehicle import RaycastVehicles
 
@@ -491,8 +493,6 @@ def test_the_step_observes_before_the_respawn_and_a_new_agent_after_it():
     vehicles retired by the step still there and the ones it spawned not yet (MetaDrive's order); a new agent's first
     observation sees the traffic after both. The order matters: some steps' observations differ from the traffic after
     the step."""
-    from coin_app.sim.heuristic import HeuristicDriver
-
     sim = DrivingSimulator(make_config("intersection", num_agents=30, horizon=200))
     sim.reset(1)
     driver = HeuristicDriver(sim)
@@ -521,8 +521,6 @@ def test_the_step_observes_before_the_respawn_and_a_new_agent_after_it():
 def test_line_detector_meets_line_boxes_as_bullet_does():
     """The side / lane-line detector against one 20 m line along x = 0 (a box 0.075 m wide, MetaDrive's), by hand:
     straight on, obliquely (the box's face, not the centre line), along it (the end of the box), from inside it."""
-    from coin_app.sim.sensors import line_detector
-
     p1, p2, hw, rng = np.array([[0.0, -10.0]]), np.array([[0.0, 10.0]]), 0.0375, 20.0
     pos = np.array([[-5.0, 0.0], [-5.0, 0.0], [0.01, -12.0], [0.01, 0.0], [5.0, 30.0]])
     heading = np.array([0.0, -math.pi / 3, math.pi / 2, 0.0, 0.0])

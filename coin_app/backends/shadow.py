@@ -87,13 +87,7 @@ def ray_box_clearance(origin: np.ndarray, angle: float, center: np.ndarray, head
     if np.isfinite(t_in):  # the exit: where the reversed ray from far beyond meets the box
         far = o + d * (t_in + length + width)
         return float(length + width - ray_box_distance(far, angle + np.pi, center, heading, length, width))
-    c, s = np.cos(heading), np.sin(heading)
-    corners = np.asarray(center, float)[:2] + np.array(
-        [
-            [sx * length / 2 * c - sy * width / 2 * s, sx * length / 2 * s + sy * width / 2 * c]
-            for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))
-        ]
-    )
+    corners = collision.box_corners(np.asarray(center, float)[None, :2], np.array([float(heading)]), length / 2, width / 2)[0]
     t = np.maximum((corners - o) @ d, 0.0)
     miss = np.hypot(*(corners - o - t[:, None] * d).T).min()
     edges = [(corners[k], corners[(k + 1) % 4]) for k in range(4)]

@@ -12,7 +12,7 @@ import math
 import numba
 import numpy as np
 
-from coin_app.sim.collision import ray_box_distance
+from coin_app.sim.collision import box_axes, ray_box_distance
 from coin_app.sim.road_map import RoadMap, _lane_position, _lane_right_normal, _lane_sr
 
 MAX_LANE_SPAN = 18.0  # (MAX_LANE_NUM 3 + 1) * MAX_LANE_WIDTH 4.5
@@ -202,12 +202,11 @@ def line_detector(
     ang = (heading[vi][:, None] + np.pi / 2 + np.arange(n_beams)[None, :] * (2 * np.pi / n_beams)).ravel()
     rep = np.repeat(np.arange(len(vi)), n_beams)  # candidate (vehicle, segment) of each ray
     half = np.column_stack([0.5 * seg_len[si], np.full(len(si), half_width)])
-    dist = ray_box_distance(
-        pos[vi][rep], np.column_stack([np.cos(ang), np.sin(ang)]), mid[si][rep], np.arctan2(e[si, 1], e[si, 0])[rep], half[rep]
-    )
-    fwd, left = np.cos(np.arctan2(e[si, 1], e[si, 0])), np.sin(np.arctan2(e[si, 1], e[si, 0]))
+    seg_heading = np.arctan2(e[si, 1], e[si, 0])
+    dist = ray_box_distance(pos[vi][rep], np.column_stack([np.cos(ang), np.sin(ang)]), mid[si][rep], seg_heading[rep], half[rep])
+    fwd, left = box_axes(seg_heading)
     rel = pos[vi] - mid[si]
-    inside = (np.abs(rel[:, 0] * fwd + rel[:, 1] * left) <= half[:, 0]) & (np.abs(-rel[:, 0] * left + rel[:, 1] * fwd) <= half[:, 1])
+    inside = (np.abs((rel * fwd).sum(1)) <= half[:, 0]) & (np.abs((rel * left).sum(1)) <= half[:, 1])
     dist[inside[rep]] = np.inf
     flat = out.reshape(-1)
     rows = vi[rep] * n_beams + np.tile(np.arange(n_beams), len(vi))
