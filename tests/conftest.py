@@ -75,6 +75,7 @@ TEST_CLASS: dict[str, str] = {
             "test_ppo_reference.py::test_advantages_are_standardized_over_the_real_rows_only",
             "test_report.py::test_generalization_table_from_a_finished_sweep",
             "test_report.py::test_evaluation_is_deterministic_in_process_and_in_workers",
+            "test_report.py::test_an_evaluation_stopped_and_run_again_with_its_cache_evaluates_only_the_runs_it_had_not",
             "test_report.py::test_missing_or_corrupt_checkpoint_is_reported_by_name_and_the_rest_still_runs",
             "test_report.py::test_report_from_a_real_sweep_writes_every_output",
             "test_report.py::test_report_lists_unreadable_trials_and_still_writes_everything_else",

@@ -90,7 +90,7 @@ def test_a_report_at_the_papers_density_has_the_paper_beside_it_and_the_authors_
     pd.DataFrame(rows).to_csv(source, index=False)
     asked = []
 
-    def authors(root, scene, test_seeds, workers, log, backend="native"):
+    def authors(root, scene, test_seeds, workers, log, backend="native", cache=None):
         asked.append((scene, list(test_seeds)))
         assert backend == "native"
         return pd.DataFrame(_results(REFERENCE_METHOD, (1000, 2000), [0.95]))
@@ -134,12 +134,12 @@ def test_the_authors_actors_transfer_on_the_same_seeds_beside_the_models(tmp_pat
     native_authors = pd.DataFrame(_results(REFERENCE_METHOD, (1000,), [0.95]))
     asked = []
 
-    def authors(root, scene, test_seeds, workers, log, backend="native"):
+    def authors(root, scene, test_seeds, workers, log, backend="native", cache=None):
         asked.append((backend, list(test_seeds)))
         rows = native_authors[native_authors["test_seed"].isin(test_seeds)]
         return rows.assign(backend=backend, success_rate=0.9 if backend == "metadrive" else 0.95)
 
-    def models(runs, seeds, workers, log, backend):  # the sweep's models on MetaDrive: 10 points lower
+    def models(runs, seeds, workers, log, backend, cache=None):  # the sweep's models on MetaDrive: 10 points lower
         rows = pd.DataFrame(_results("cig_td3", (0,), [0.8]))
         return Evaluation(rows[rows["test_seed"].isin(seeds)].assign(backend=backend), [], 1.0)
 
@@ -163,7 +163,7 @@ def test_a_scene_without_the_authors_actors_is_named_and_the_report_goes_on(tmp_
     source.parent.mkdir()
     pd.DataFrame(_results("cig_td3", (0,), [0.9]) + _results("ippo", (0,), [0.6])).to_csv(source, index=False)
 
-    def missing(root, scene, test_seeds, workers, log, backend="native"):
+    def missing(root, scene, test_seeds, workers, log, backend="native", cache=None):
         raise ValueError(f"no {scene} actors (TD3_{scene}_<seed>_best_model_*_actor) under {root}")
 
     monkeypatch.setattr(report, "test_seed_rows", missing)

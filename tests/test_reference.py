@@ -13,6 +13,7 @@ import pytest
 
 from coin_app.cli import main
 from coin_app.evaluation import reference
+from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.inference.coin_actors import ACTORS_ENV, find_coin_actors, load_coin_actor, read_state_dict
 
 
@@ -277,3 +278,9 @@ def test_the_authors_rows_on_a_reports_test_seeds_are_their_episodes_in_the_resu
         assert set(got["checkpoint"]) == {str(path)}
     with pytest.raises(ValueError, match="no roundabout actors"):
         reference.test_seed_rows(tmp_path, "roundabout", [200000])
+    # with a cache: the same rows, and read back the second time without an episode driven
+    cache = EpisodeCache(tmp_path / "episodes")
+    first = reference.test_seed_rows(tmp_path, "intersection", [200000, 200001], cache=cache)
+    pd.testing.assert_frame_equal(first.drop(columns="wall_time_s"), rows.drop(columns="wall_time_s"))
+    monkeypatch.setattr(reference, "_episodes_of", lambda task: pytest.fail(f"{task} driven again"))
+    pd.testing.assert_frame_equal(reference.test_seed_rows(tmp_path, "intersection", [200000, 200001], cache=cache), first)

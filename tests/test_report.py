@@ -12,7 +12,9 @@ import pytest
 from coin_app.algorithms.checkpoint_files import verify
 from coin_app.algorithms.checkpoints import load_module
 from coin_app.cli import main
+from coin_app.evaluation import protocol
 from coin_app.evaluation.archive import BOOKKEEPING
+from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.evaluation.plots import curve_axes, mean_curve, plot_learning_curves
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
 from coin_app.evaluation.report import learning_curves
@@ -68,6 +70,24 @@ def test_evaluation_is_deterministic_in_process_and_in_workers(sweep_dir):
     assert set(first.table["test_seed"]) == set(seeds) and first.table["test_seed"].min() >= TEST_SEED_BASE > VALIDATION_SEED_BASE
     assert (first.table["episode_length"] > 0).all() and (first.table["wall_time_s"] > 0).all()
     pd.testing.assert_frame_equal(first.table[METRIC_COLUMNS], spread.table[METRIC_COLUMNS])
+
+
+def test_an_evaluation_stopped_and_run_again_with_its_cache_evaluates_only_the_runs_it_had_not(sweep_dir, tmp_path, monkeypatch):
+    runs = _runs(sweep_dir)
+    seeds = [TEST_SEED_BASE + k for k in range(2)]
+    fresh = run_evaluation(runs, seeds, counts=[2], log=lambda _: None)
+    cache = EpisodeCache(tmp_path / "episodes")
+    run_evaluation(runs[:1], seeds, counts=[2], cache=cache, log=lambda _: None)  # stopped after its first model
+    evaluated, real = [], protocol._task
+    monkeypatch.setattr(protocol, "_task", lambda run, *rest: (evaluated.append(run.method), real(run, *rest))[1])
+    lines = []
+    again = run_evaluation(runs, seeds, counts=[2], cache=cache, log=lines.append)
+    assert evaluated == [runs[1].method] and any("1 of the 2 runs' episodes read from" in line for line in lines)
+    pd.testing.assert_frame_equal(again.table[METRIC_COLUMNS], fresh.table[METRIC_COLUMNS])
+    evaluated.clear()
+    third = run_evaluation(runs, seeds, counts=[2], cache=cache, log=lambda _: None)
+    assert evaluated == [] and len(list((tmp_path / "episodes").iterdir())) == 2
+    pd.testing.assert_frame_equal(third.table, again.table)  # wall times included: read back as stored
 
 
 def test_missing_or_corrupt_checkpoint_is_reported_by_name_and_the_rest_still_runs(sweep_dir, tmp_path):
@@ -131,6 +151,11 @@ def test_report_from_a_real_sweep_writes_every_output(sweep_dir, tmp_path, capsy
     assert "<td>torch</td>" in page and '"algo": "ippo"' in page  # versions and each model's metadata
     marl = json.loads((out / "marl_eval.json").read_text())
     assert set(marl["coin_app"]) == {"intersection", "intersection_2agents"}
+    # the same report again reads every episode from its cache (OUT/episodes): the same results, nothing evaluated
+    assert len(list((out / "episodes").glob("*.json"))) == 2
+    assert main(argv) == 0
+    assert "2 of the 2 runs' episodes read from" in capsys.readouterr().out
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), results)
     # re-plotting from the results file alone evaluates nothing and gives the same main table
     again = tmp_path / "again"
     assert main(["report", str(out / "results.csv"), "--out", str(again), "--tsne-samples", "40", "--tsne-episodes", "1"]) == 0

@@ -49,7 +49,7 @@ def test_select_checkpoints_picks_per_trial_skips_failures_and_carries_env_steps
     }
     seen = []
 
-    def fake(runs, seeds, workers=1, log=print):
+    def fake(runs, seeds, workers=1, log=print, cache=None):
         seen.append((len(runs), list(seeds)))
         rows = [{"checkpoint": r.checkpoint, "success_rate": s} for r in runs if r.checkpoint in episodes for s in episodes[r.checkpoint]]
         failed = [{"checkpoint": r.checkpoint, "error": "cannot load"} for r in runs if r.checkpoint not in episodes]

@@ -334,6 +334,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="also evaluate the COIN authors' released actors (this directory, see evaluate-reference --actors) on the same test "
         "seeds, for every scene the report has at Table 5.1's density: the reference row 'coin_authors' (not in the t-tests)",
     )
+    rp.add_argument(
+        "--cache",
+        default=None,
+        help="evaluated episodes are kept in this directory as each model's evaluation ends and are not evaluated again while "
+        "the checkpoint and the simulator's and evaluator's code stay the same: a stopped report, run again, goes on where it "
+        "stopped (default: the folder episodes of --out)",
+    )
+    rp.add_argument("--no-cache", action="store_true", help="evaluate every episode, keep none")
     rp.set_defaults(run="sweeps.cmd_report")
 
     sb = sub.add_parser("submit", help="submit a coin_app command to a Ray cluster as a job (ray job submit); prints the job id")

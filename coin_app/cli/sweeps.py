@@ -9,6 +9,7 @@ from coin_app.cli.flags import overrides_of
 from coin_app.evaluation.archive import STATUS_FILE, archive_sweep, archive_table
 from coin_app.evaluation.arena_report import PAGE as ARENA_PAGE
 from coin_app.evaluation.arena_report import is_arena_eval, load_arena_eval, write_arena_html
+from coin_app.evaluation.episode_cache import DEFAULT_DIR as CACHE_DIR
 from coin_app.evaluation.outputs import OutputLock, check_dir_output, staged_outputs, write_text_atomic
 from coin_app.evaluation.report import ReportOptions, build_report, gather
 from coin_app.evaluation.sweep_results import sweep_dirs
@@ -102,6 +103,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         select=args.select,
         validation_episodes=args.validation_episodes,
         reference_actors=args.reference_actors,
+        cache=None if args.no_cache else str(args.cache or Path(args.out) / CACHE_DIR),
         command=getattr(args, "command_line", None),
     )
     arena = [Path(p) for p in args.sources if is_arena_eval(p)]  # evaluate-arena outputs: the arena page

@@ -34,6 +34,7 @@ import torch
 
 from coin_app.algorithms.checkpoint_files import read_metadata
 from coin_app.algorithms.checkpoints import scenario_of
+from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.metrics import METRIC_KEYS
 from coin_app.evaluation.policies import checkpoint_policy
@@ -156,8 +157,13 @@ def run_evaluation(
     workers: int = 1,
     log: Callable[[str], None] = print,
     backend: str | None = None,
+    cache: EpisodeCache | None = None,
 ) -> Evaluation:
-    """Evaluate every run on the test seeds x scenarios x agent counts grid (on ``backend``); one row per episode."""
+    """Evaluate every run on the test seeds x scenarios x agent counts grid (on ``backend``); one row per episode.
+
+    ``cache``: runs whose episodes it holds for this grid are read from it, every other run's are stored in it as the run
+    ends (:mod:`~coin_app.evaluation.episode_cache`), so an interrupted evaluation repeated does only what is left.
+    """
 
     seeds = [int(s) for s in test_seeds]
     check_grid(seeds, None if counts is None else list(counts), None if scenarios is None else list(scenarios))
@@ -171,26 +177,38 @@ def run_evaluation(
     where = f"scenarios {scenarios}" if scenarios else "the training scenario"
     on = f" on the {backend} backend" if backend else ""
     kind = "test" if min(seeds) >= TEST_SEED_BASE else "validation" if min(seeds) >= VALIDATION_SEED_BASE else "episode"
-    log(f"evaluating {len(runs)} runs{on} on {where} at {grid}, {len(seeds)} {kind} seeds, {min(workers, max(len(runs), 1))} workers")
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
     failures: list[dict[str, Any]] = []
+    todo = []
+    for run in runs:
+        found = cache.load(run, seeds, counts, scenarios, backend) if cache is not None else None
+        if found is None:
+            todo.append(run)
+        else:
+            rows.extend(found)
+    n_workers = min(workers, max(len(todo), 1))
+    log(f"evaluating {len(runs)} runs{on} on {where} at {grid}, {len(seeds)} {kind} seeds, {n_workers} workers")
+    if cache is not None and len(todo) < len(runs):
+        log(f"  {len(runs) - len(todo)} of the {len(runs)} runs' episodes read from {cache.root}")
 
     def collect(i: int, run: EvalRun, out: list[dict], error: str | None) -> None:
         if error is not None:
             failures.append({**asdict(run), "error": error})
-            log(f"  [{i}/{len(runs)}] FAILED {run.label}: {run.checkpoint}: {error}")
+            log(f"  [{i}/{len(todo)}] FAILED {run.label}: {run.checkpoint}: {error}")
             return
         rows.extend(out)
+        if cache is not None:
+            cache.store(run, seeds, counts, scenarios, backend, out)
         success = sum(r["success_rate"] for r in out) / max(len(out), 1)
-        log(f"  [{i}/{len(runs)}] {run.label}: {len(out)} episodes, mean success {success:.3f} ({time.perf_counter() - t0:.0f} s)")
+        log(f"  [{i}/{len(todo)}] {run.label}: {len(out)} episodes, mean success {success:.3f} ({time.perf_counter() - t0:.0f} s)")
 
-    if workers == 1 or len(runs) <= 1:
-        for i, run in enumerate(runs, 1):
+    if workers == 1 or len(todo) <= 1:
+        for i, run in enumerate(todo, 1):
             collect(i, run, *_task(run, seeds, counts, scenarios, backend))
     else:
-        with ProcessPoolExecutor(max_workers=min(workers, len(runs)), mp_context=get_context("spawn"), initializer=_init_worker) as pool:
-            futures = {pool.submit(_task, run, seeds, counts, scenarios, backend): run for run in runs}
+        with ProcessPoolExecutor(max_workers=n_workers, mp_context=get_context("spawn"), initializer=_init_worker) as pool:
+            futures = {pool.submit(_task, run, seeds, counts, scenarios, backend): run for run in todo}
             for i, fut in enumerate(as_completed(futures), 1):
                 run = futures[fut]
                 try:

@@ -15,18 +15,21 @@ seeds of each seed's mean over its episodes, the standard deviation over seeds a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
+from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.evaluation.evaluate import evaluate_policy
 from coin_app.evaluation.outputs import write_text_atomic
 from coin_app.evaluation.paper_table import AUTHORS, TABLE_5_1
@@ -200,11 +203,13 @@ def test_seed_rows(
     workers: int = 1,
     log: Callable[[str], None] | None = None,
     backend: str = "native",
+    cache: EpisodeCache | None = None,
 ) -> pd.DataFrame:
     """The authors' actors of ``scene`` (every training seed under ``root``) on a report's ``test_seeds`` on ``backend``: one
     row per episode in the report's results layout (method :data:`REFERENCE_METHOD`, the actor file as its checkpoint).
 
     The scene is the authors' (:func:`reference_config`) at COIN's vehicle count; a ValueError if ``root`` has no actors of it.
+    ``cache``: tasks whose rows it holds are read from it, the others stored in it as they end (as ``run_evaluation``'s).
     """
     actors = find_coin_actors(root, scene)
     if not actors:
@@ -216,22 +221,42 @@ def test_seed_rows(
         tasks = [Task(scene, backend, seed, path, (s,)) for seed, path in actors.items() for s in seeds]
     say = log or (lambda _line: None)
     say(f"  the COIN authors' {scene} actors: {len(actors)} training seeds x {len(seeds)} test seeds on {backend}")
-    if workers == 1 or len(tasks) == 1:
-        done = [_episodes_of(t) for t in tasks]
-    else:
-        with mp.get_context("spawn").Pool(min(workers, len(tasks)), maxtasksperchild=1) as pool:
-            done = list(pool.imap(_episodes_of, tasks))
     count = reference_config(scene, backend).num_agents
-    rows = []
-    for task, episodes, wall in done:
-        for seed, m in zip(task.episode_seeds, episodes):
-            rows.append(
-                {"method": REFERENCE_METHOD, "variant": "default", "trained_seed": task.train_seed, "test_seed": seed}
-                | {"scenario": scene, "agent_count": count, "trained_agent_count": count, "backend": task.backend}
-                | {k: float(m[k]) for k in EPISODE_METRICS}
-                | {"episode_length": int(m["env_steps"]), "wall_time_s": wall, "trained_env_steps": np.nan, "checkpoint": str(task.actor)}
-            )
-    return pd.DataFrame(rows)
+
+    def as_run(task: Task) -> SimpleNamespace:  # the cache's view of a task: a model, its seeds (on ``backend``)
+        return SimpleNamespace(
+            method=REFERENCE_METHOD, variant="default", trained_seed=task.train_seed, trained_env_steps=None, checkpoint=str(task.actor)
+        )
+
+    def rows_of(task: Task, episodes: list[dict[str, Any]], wall: float) -> list[dict[str, Any]]:
+        return [
+            {"method": REFERENCE_METHOD, "variant": "default", "trained_seed": task.train_seed, "test_seed": seed}
+            | {"scenario": scene, "agent_count": count, "trained_agent_count": count, "backend": task.backend}
+            | {k: float(m[k]) for k in EPISODE_METRICS}
+            | {"episode_length": int(m["env_steps"]), "wall_time_s": wall, "trained_env_steps": np.nan, "checkpoint": str(task.actor)}
+            for seed, m in zip(task.episode_seeds, episodes)
+        ]
+
+    rows: list[dict[str, Any]] = []
+    todo = []
+    for task in tasks:
+        found = cache.load(as_run(task), task.episode_seeds, None, [scene], backend) if cache is not None else None
+        rows += found if found is not None else []
+        todo += [task] if found is None else []
+    if len(todo) < len(tasks):
+        say(f"  {len(tasks) - len(todo)} of the {len(tasks)} tasks' episodes read from {getattr(cache, 'root', '')}")
+    with contextlib.ExitStack() as stack:
+        if workers == 1 or len(todo) <= 1:
+            done = map(_episodes_of, todo)
+        else:
+            done = stack.enter_context(mp.get_context("spawn").Pool(min(workers, len(todo)), maxtasksperchild=1)).imap(_episodes_of, todo)
+        for task, episodes, wall in done:
+            new = rows_of(task, episodes, wall)
+            if cache is not None:
+                cache.store(as_run(task), task.episode_seeds, None, [scene], backend, new)
+            rows += new
+    frame = pd.DataFrame(rows)
+    return frame.sort_values(["trained_seed", "test_seed"], kind="stable", ignore_index=True) if len(frame) else frame
 
 
 def _episodes_of(task: Task) -> tuple[Task, list[dict[str, Any]], float]:

@@ -40,6 +40,7 @@ from coin_app.algorithms.checkpoints import scenario_of
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
 from coin_app.evaluation import paper_table, plots, statistics, tables
 from coin_app.evaluation.embedding import kmeans, tsne
+from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.evaluation.evaluate import run_episode
 from coin_app.evaluation.html_report import write_html
 from coin_app.evaluation.latents import collect_latents
@@ -84,6 +85,7 @@ class ReportOptions:
     select: str = FINAL  # the checkpoint of a trial scored: its final one, or the one best on validation seeds (COIN's "best_model")
     validation_episodes: int = VALIDATION_EPISODES  # validation seeds per checkpoint for select="validation"
     reference_actors: str | None = None  # the COIN authors' actors' directory: their row on the same test seeds (reference.py)
+    cache: str | None = None  # evaluated episodes kept here and reused (episode_cache.py); None: every episode evaluated again
     command: str | None = None  # the command line, recorded in the page
 
     def check(self) -> None:
@@ -191,6 +193,11 @@ def check_training_counts(sources: Sources) -> None:
             )
 
 
+def episode_cache(options: ReportOptions) -> EpisodeCache | None:
+    """The report's episode cache (``options.cache``), or None."""
+    return None if options.cache is None else EpisodeCache(Path(options.cache))
+
+
 def evaluate_sources(
     sources: Sources, options: ReportOptions, out: Path, log: Log
 ) -> tuple[pd.DataFrame, list[dict[str, Any]], dict[str, Any]]:
@@ -207,7 +214,9 @@ def evaluate_sources(
         n_seeds = options.test_seeds or int(settings.get("test_seeds", 20))
         runs = sweep["runs"]
         if options.select == VALIDATION and sweep["candidates"]:
-            runs, chosen, selection_failures = select_checkpoints(sweep["candidates"], options.validation_episodes, options.workers, log)
+            runs, chosen, selection_failures = select_checkpoints(
+                sweep["candidates"], options.validation_episodes, options.workers, log, episode_cache(options)
+            )
             selections.append(chosen.assign(sweep=str(sweep["path"])))
             failures += [{**f, "sweep": str(sweep["path"]), "stage": "validation selection"} for f in selection_failures]
         for run in runs:
@@ -230,7 +239,7 @@ def evaluate_sources(
         evaluations = []
         for (counts, n_seeds), runs in groups.items():
             seeds = eval_test_seeds(n_seeds)
-            ev = run_evaluation(runs, seeds, counts=counts, workers=options.workers, log=log)
+            ev = run_evaluation(runs, seeds, counts=counts, workers=options.workers, log=log, cache=episode_cache(options))
             evaluations.append(ev)
             failures += ev.failures
             settings["groups"].append({"runs": len(runs), "counts": counts, "test_seeds": seeds, "workers": options.workers})
@@ -247,28 +256,35 @@ def evaluate_sources(
     return combined.reset_index(drop=True), failures, settings
 
 
-def with_reference_rows(table: pd.DataFrame, root: Path, workers: int, log: Log) -> tuple[pd.DataFrame, list[dict[str, Any]]]:
+def with_reference_rows(
+    table: pd.DataFrame, root: Path, workers: int, log: Log, cache: EpisodeCache | None = None
+) -> tuple[pd.DataFrame, list[dict[str, Any]]]:
     """``table`` plus the COIN authors' actors on its test seeds for every scene it has at Table 5.1's density (scenes whose
     reference rows it already holds, from an earlier report's results, are not evaluated again), and the failures: a scene
     without actors under ``root`` or whose evaluation failed is named there and left out, the rest of the report goes on."""
     dense = paper_table.at_paper_density(table[table["method"] != REFERENCE_METHOD])
     have = set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])
     scenes = {str(scene): sorted(int(s) for s in g["test_seed"].unique()) for scene, g in dense.groupby("scenario", sort=True)}
-    frames, failures = reference_rows(root, {k: v for k, v in scenes.items() if k not in have}, workers, log)
+    frames, failures = reference_rows(root, {k: v for k, v in scenes.items() if k not in have}, workers, log, cache=cache)
     if not frames and not failures:
         log("  no scene at Table 5.1's density without its reference rows: the authors' actors are not evaluated")
     return pd.concat([table, *frames], ignore_index=True), failures
 
 
 def reference_rows(
-    root: Path, seeds_by_scene: dict[str, list[int]], workers: int, log: Log, backend: str = "native"
+    root: Path,
+    seeds_by_scene: dict[str, list[int]],
+    workers: int,
+    log: Log,
+    backend: str = "native",
+    cache: EpisodeCache | None = None,
 ) -> tuple[list[pd.DataFrame], list[dict[str, Any]]]:
     """The authors' actors' episodes per scene on its test seeds (``backend``: another simulator), and the failures: a scene
     without actors under ``root`` or whose evaluation failed is named (``{"checkpoint", "error"}``) and left out."""
     frames, failures = [], []
     for scene, seeds in sorted(seeds_by_scene.items()):
         try:
-            frames.append(test_seed_rows(root, scene, seeds, workers, log, backend))
+            frames.append(test_seed_rows(root, scene, seeds, workers, log, backend, cache=cache))
         except Exception as exc:  # noqa: BLE001 - the models' evaluations are kept; the reference row is named as missing
             failures.append({"checkpoint": f"{REFERENCE_METHOD} ({scene}, {root})", "error": f"{type(exc).__name__}: {exc}"})
             log(f"  the COIN authors' {scene} actors were not evaluated{'' if backend == 'native' else f' on {backend}'}: {exc}")
@@ -395,7 +411,7 @@ def build_report(
             log(f"  note: unfinished trials in {sweep['path']}, their newest checkpoints are evaluated: {', '.join(sweep['unfinished'])}")
     table, failures, eval_settings = evaluate_sources(sources, options, out, log)
     if options.reference_actors is not None:
-        table, reference_failures = with_reference_rows(table, Path(options.reference_actors), options.workers, log)
+        table, reference_failures = with_reference_rows(table, Path(options.reference_actors), options.workers, log, episode_cache(options))
         failures += reference_failures
     table.to_csv(out / "results.csv", index=False)  # new evaluations and read tables together
     table = table.assign(label=[run_label(m, v) for m, v in zip(table["method"], table["variant"])])
@@ -508,11 +524,13 @@ def evaluate_transfer(table: pd.DataFrame, options: ReportOptions, out: Path, lo
         for r, n in zip(trained.itertuples(), steps)
     ]
     seeds = sorted(int(s) for s in table["test_seed"].unique())[: options.transfer_test_seeds]
-    ev = run_evaluation(runs, seeds, workers=options.workers, log=log, backend=options.transfer)
+    ev = run_evaluation(runs, seeds, workers=options.workers, log=log, backend=options.transfer, cache=episode_cache(options))
     frames, failures = [ev.table], list(ev.failures)
     if options.reference_actors is not None:  # the authors' actors on the same seeds, on the other simulator too
         scenes = {str(scene): seeds for scene in set(table.loc[table["method"] == REFERENCE_METHOD, "scenario"])}
-        more, missing = reference_rows(Path(options.reference_actors), scenes, options.workers, log, options.transfer)
+        more, missing = reference_rows(
+            Path(options.reference_actors), scenes, options.workers, log, options.transfer, episode_cache(options)
+        )
         frames, failures = frames + more, failures + missing
     other = pd.concat([f for f in frames if not f.empty], ignore_index=True) if len(frames) > 1 else ev.table
     other.to_csv(out / "transfer_results.csv", index=False)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.evaluation.protocol import EvalRun, run_evaluation
 from coin_app.evaluation.sweep_results import TrialRecord
 from coin_app.sim.seeds import validation_seeds
@@ -70,19 +71,23 @@ def selection_caption(select: str, validation_episodes: int | None) -> str:
 
 
 def select_checkpoints(
-    trials: Sequence[Candidates], episodes: int, workers: int = 1, log: Callable[[str], None] = print
+    trials: Sequence[Candidates],
+    episodes: int,
+    workers: int = 1,
+    log: Callable[[str], None] = print,
+    cache: EpisodeCache | None = None,
 ) -> tuple[list[EvalRun], pd.DataFrame, list[dict]]:
     """Per trial the checkpoint best on ``episodes`` validation seeds; the per-checkpoint table; the failures.
 
     A checkpoint that cannot be evaluated never wins (it is among the failures); a trial none of
     whose checkpoints can be evaluated is left out. Each checkpoint's trained env steps are the
-    trial's (``Candidates.env_steps``).
+    trial's (``Candidates.env_steps``). ``cache``: as :func:`~coin_app.evaluation.protocol.run_evaluation`'s.
     """
     if episodes < 1:
         raise ValueError(f"bad validation episodes {episodes}; allowed: an integer >= 1")
     candidates = [replace(t.run, checkpoint=c, trained_env_steps=n) for t in trials for c, n in zip(t.checkpoints, t.env_steps)]
     log(f"validation-seed selection: {len(candidates)} checkpoints of {len(trials)} trials, {episodes} validation seeds each")
-    evaluation = run_evaluation(candidates, validation_seeds(episodes), workers=workers, log=log)
+    evaluation = run_evaluation(candidates, validation_seeds(episodes), workers=workers, log=log, cache=cache)
     means = evaluation.table.groupby("checkpoint", sort=False)["success_rate"].mean()
     selected, rows = [], []
     for trial in trials:
