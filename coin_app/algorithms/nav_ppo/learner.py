@@ -12,12 +12,13 @@ from typing import Any
 from ray.rllib.algorithms.ppo.torch.ppo_torch_learner import PPOTorchLearner
 from ray.rllib.core.columns import Columns
 
+from coin_app.algorithms.gradient_step import FastGradientStep
 from coin_app.algorithms.nav_ppo.warm_start import TeacherLabels, bc_loss, teacher
 from coin_app.algorithms.ppo_family.agent_order import fix_agent_order
 from coin_app.algorithms.ppo_family.precision import MixedPrecisionLearner
 
 
-class NavPPOLearner(MixedPrecisionLearner, PPOTorchLearner):
+class NavPPOLearner(MixedPrecisionLearner, FastGradientStep, PPOTorchLearner):
     """RLlib's PPO-Clip learner; ``learner_config_dict["precision"]`` "bf16" runs each minibatch's forward pass and loss in bf16."""
 
     def build(self) -> None:

@@ -24,7 +24,8 @@ Every learner-connector pipeline starts with ``FixedAgentOrder`` (``agent_order.
 rows do not depend on the Python hash seed.
 
 ``learner_config_dict["precision"]`` "bf16" runs each minibatch's forward pass and losses under
-bfloat16 autocast (``precision.py``); "fp32", the default, is RLlib's update as it is.
+bfloat16 autocast (``precision.py``); "fp32", the default, is RLlib's update as it is. Either steps
+with fused Adam after one finiteness check over all gradients (``gradient_step.py``).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from ray.rllib.core.rl_module.apis.value_function_api import ValueFunctionAPI
 from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.torch_utils import explained_variance
 
+from coin_app.algorithms.gradient_step import FastGradientStep
 from coin_app.algorithms.ppo_family.agent_order import fix_agent_order
 from coin_app.algorithms.ppo_family.losses import clipped_value_loss, last_epoch_mean, surrogate_loss
 from coin_app.algorithms.ppo_family.precision import MixedPrecisionLearner
@@ -92,7 +94,7 @@ class RealRowAdvantages(ConnectorV2):
         return batch
 
 
-class ClippedValuePPOLearner(MixedPrecisionLearner, PPOTorchLearner):
+class ClippedValuePPOLearner(MixedPrecisionLearner, FastGradientStep, PPOTorchLearner):
     """RLlib's PPO learner with Ray 1.x's value clipping, advantage standardization, time-outs, KL signal and precision (module doc)."""
 
     def build(self) -> None:

@@ -28,12 +28,12 @@ import functools
 from typing import Any
 
 import torch
-from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import TargetNetworkAPI
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from coin_app.algorithms.choices import TD3_PRECISIONS
+from coin_app.algorithms.gradient_step import FastGradientStep, fused_adam
 from coin_app.algorithms.td3.connector import JointState
 from coin_app.algorithms.td3.losses import LossConfig, actor_loss, local_critic_loss, td_target
 
@@ -127,7 +127,7 @@ def _cpu_state(net: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.cpu() for k, v in net.state_dict().items()}
 
 
-class Td3TorchLearner(TorchLearner):
+class Td3TorchLearner(FastGradientStep):
     """Torch learner of TD3 with parameter sharing (ITD3); CIG-TD3's and TraCo's extend its networks and losses."""
 
     def build(self) -> None:
@@ -251,14 +251,12 @@ class Td3TorchLearner(TorchLearner):
     def register_adam(self, module_id: str, groups: list[tuple[str, torch.nn.Module, float]]) -> None:
         """One Adam optimizer per (name, network, learning rate) of ``groups``, on the config's decay schedule if any.
 
-        The fused kernel (CPU and CUDA) steps all of a network's tensors at once: the same update
-        as the per-tensor loop up to float rounding, and several times faster for these small
-        networks, whose per-tensor overhead dominated the optimizer step.
+        Each steps with the fused kernel (``gradient_step.py``).
         """
         config = self.config.get_config_for_module(module_id)
         for name, net, lr in groups:
             params = self.get_parameters(net)
-            optimizer = torch.optim.Adam(params, fused=True)
+            optimizer = fused_adam(params)
             schedule = lr_schedule(lr, config)
             self.register_optimizer(
                 module_id=module_id, optimizer_name=name, optimizer=optimizer, params=params, lr_or_lr_schedule=schedule
@@ -273,25 +271,6 @@ class Td3TorchLearner(TorchLearner):
         """Remember the lifetime env-step count (the actor's start after the warm-up depends on it)."""
         super().before_gradient_based_update(timesteps=timesteps)
         self.env_steps = int(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0))
-
-    def apply_gradients(self, gradients_dict: dict[Any, torch.Tensor]) -> None:
-        """RLlib's optimizer steps, with one finiteness check over all gradients instead of two per tensor.
-
-        RLlib's ``TorchLearner.apply_gradients`` checks every gradient twice, each check a host
-        sync: about 300 syncs per update for these networks, a large share of a small update's
-        time. When every gradient is finite (one check) the result is the same as RLlib's: the
-        gradients are set and every optimizer steps. Otherwise, or with grad scalers or lr
-        scheduler classes, RLlib's own method runs (its warning, zeroed non-finite gradients).
-        """
-        if not gradients_dict or self._grad_scalers is not None or self._lr_scheduler_classes is not None:
-            return super().apply_gradients(gradients_dict)
-        if not bool(torch.isfinite(torch.cat([g.reshape(-1) for g in gradients_dict.values()])).all()):
-            return super().apply_gradients(gradients_dict)
-        for pid, grad in gradients_dict.items():
-            self._params[pid].grad = grad
-        for optimizer in self._named_optimizers.values():
-            optimizer.step()
-        return None
 
     # ------------------------------------------------------------------ checkpoints
     def get_state(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
@@ -311,9 +290,6 @@ class Td3TorchLearner(TorchLearner):
     def set_state(self, state: dict[str, Any]) -> None:
         """Restore learner state saved by :meth:`get_state`."""
         super().set_state(state)
-        for optimizer in self._named_optimizers.values():  # a checkpoint from before the fused step brings fused=None
-            for group in optimizer.param_groups:
-                group["fused"], group["foreach"] = True, None
         extra = state.get(STATE_KEY)
         if extra:
             self.num_updates = int(extra["num_updates"])

@@ -11,6 +11,9 @@ cd "$(dirname "$0")/../../.."
 SCENES=(${SCENES:-intersection roundabout bottleneck})
 RUNS=${RUNS:-../runs}                      # sweeps, logs: outside git
 PY=${PY:-$PWD/.venv/bin/python}
+# Ray starts its workers (the trials) 15 nicer than their driver, i.e. at 19 under the lanes' nice 10, level with the
+# report's evaluation (README, "The report, across sessions"); 0 keeps them at the lanes' 10, ahead of it
+export RAY_worker_niceness=${RAY_worker_niceness:-0}
 METHODS=(cig_td3 itd3 traco ippo cppo mfpo copo)
 mkdir -p "$RUNS"
 RUNS=$(cd "$RUNS" && pwd)
