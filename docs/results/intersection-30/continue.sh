@@ -21,7 +21,7 @@ RUNS=$(cd "$RUNS" && pwd)
 code() {  # the commit every trial of scene $1 runs (the one its first trials ran)
   case $1 in
     intersection) echo "${CODE_INTERSECTION:-ba6517f}" ;;
-    *) echo "${CODE_SCENES:-23699fe}" ;;  # the dense scale for every scene, the native fixes of 2026-12-03
+    *) echo "${CODE_SCENES:-d15ca9b}" ;;  # the native fixes of 2026-12-03 and every learner's fused gradient step (2026-12-04)
   esac
 }
 archive() {  # where scene $1's finished trials are committed
