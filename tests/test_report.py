@@ -112,7 +112,8 @@ def test_report_from_a_real_sweep_writes_every_output(sweep_dir, tmp_path, capsy
     argv = ["report", str(sweep_dir), "--out", str(out), "--test-seeds", "2", "--tsne-samples", "40", "--tsne-episodes", "1"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
-    assert "report summary:" in printed and "figures: 8 of 8 drawn" in printed
+    assert "report summary:" in printed and "figures: 9 of 9 drawn" in printed
+    assert "attention: " in printed and "mean share within 15 m" in printed
     expected = [
         "results.csv",
         "evaluation.json",
@@ -129,6 +130,8 @@ def test_report_from_a_real_sweep_writes_every_output(sweep_dir, tmp_path, capsy
         "trajectories_intersection_cig_td3.png",
         "trajectories_intersection_ippo.png",
         "latent_tsne.png",
+        "attention_intersection.png",
+        "attention_intersection.csv",
         "report.html",
     ]
     for name in expected:
@@ -147,7 +150,7 @@ def test_report_from_a_real_sweep_writes_every_output(sweep_dir, tmp_path, capsy
     md = (out / "table_main.md").read_text()
     assert "| cig_td3 |" in md and "| ippo |" in md and "**" in md
     page = html.unescape((out / "report.html").read_text())
-    assert page.count("data:image/png;base64,") == 8 and "python -m coin_app report" in page and '"experiment": "generalization"' in page
+    assert page.count("data:image/png;base64,") == 9 and "python -m coin_app report" in page and '"experiment": "generalization"' in page
     assert "<td>torch</td>" in page and '"algo": "ippo"' in page  # versions and each model's metadata
     marl = json.loads((out / "marl_eval.json").read_text())
     assert set(marl["coin_app"]) == {"intersection", "intersection_2agents"}

@@ -11,6 +11,9 @@
   env steps from Tune's progress files, mean +- std over seeds on a common step grid.
 * :func:`plot_latent_tsne` - App. B.1: t-SNE of CVAE latents, all scenarios coloured by
   scenario, then per scenario coloured by a 6-cluster k-means fitted before the projection.
+* :func:`plot_attention` - where CIG-TD3's GAT looks: one crossing conflict's scene with each
+  neighbour coloured by its attention share, and the mean share by distance, conflict partners
+  beside the other neighbours (:mod:`coin_app.evaluation.attention`).
 """
 
 from __future__ import annotations
@@ -198,4 +201,58 @@ def plot_latent_tsne(
         a.set_xticks([])
         a.set_yticks([])
     fig.suptitle("t-SNE of the CVAE latent means z_ij", fontsize=10)
+    return _save(fig, path)
+
+
+def plot_attention(edges: pd.DataFrame, summary: pd.DataFrame, snapshot: dict | None, road_map: object, path: Path, title: str) -> Path:
+    """(a) The snapshot's scene (if any): the ego, its partner ringed, each neighbour coloured by its share; (b) mean share
+    per distance bin, conflict partners beside the other neighbours, edge counts on the bars; 1 = uniform attention."""
+    from matplotlib.collections import PolyCollection
+
+    from coin_app.sim.rendering import draw_map, vehicle_corners
+
+    fig = _figure(11.0, 5.0)
+    ax = fig.add_subplot(1, 2, 1)
+    if snapshot is not None:
+        draw_map(ax, road_map)
+        boxes = vehicle_corners(snapshot["pos"], snapshot["heading"], snapshot["half"])
+        shares = np.array([snapshot["share"].get(k, np.nan) for k in range(len(boxes))])
+        shares[snapshot["ego"]] = np.nan
+        cars = PolyCollection(list(boxes), cmap="coolwarm", edgecolors="black", linewidths=0.4, zorder=5)
+        cars.set_array(np.where(np.isfinite(shares), shares, 1.0))
+        cars.set_clim(0.0, 2.0)  # white = uniform
+        ax.add_collection(cars)
+        ax.add_collection(PolyCollection([boxes[snapshot["ego"]]], facecolors="#d62728", edgecolors="black", zorder=6))
+        ax.add_collection(PolyCollection([boxes[snapshot["partner"]]], facecolors="none", edgecolors="#d62728", linewidths=2.0, zorder=6))
+        fig.colorbar(cars, ax=ax, shrink=0.8, label="attention share (1 = uniform)")
+        centre = snapshot["pos"][snapshot["ego"]]
+        ax.set_xlim(centre[0] - 45, centre[0] + 45)
+        ax.set_ylim(centre[1] - 45, centre[1] + 45)
+        ax.set_aspect("equal")
+        partner = snapshot["share"][snapshot["partner"]]
+        ax.set_title(
+            f"(a) test seed {snapshot['seed']}, step {snapshot['env_step']}: ego (red), its crossing partner ringed (share {partner:.2f})",
+            fontsize=9,
+        )
+    else:
+        ax.text(0.5, 0.5, "no crossing conflict found", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax = fig.add_subplot(1, 2, 2)
+    bins = list(dict.fromkeys(summary["bin"].astype(str)))
+    x = np.arange(len(bins))
+    for k, (conflict, label, color) in enumerate(((False, "other neighbours", "#7f7f7f"), (True, "crossing partners", "#d62728"))):
+        part = summary[summary["conflict"] == conflict].assign(bin=lambda d: d["bin"].astype(str)).set_index("bin")
+        means = [float(part["mean"].get(b, np.nan)) for b in bins]
+        counts = [int(part["count"].get(b, 0)) for b in bins]
+        bars = ax.bar(x + (k - 0.5) * 0.4, means, 0.4, color=color, label=label)
+        for bar, n in zip(bars, counts, strict=True):
+            if n:
+                ax.annotate(f"{n:,}", (bar.get_x() + bar.get_width() / 2, bar.get_height()), ha="center", va="bottom", fontsize=7)
+    ax.axhline(1.0, color="black", linewidth=0.8, linestyle="--")
+    ax.set_xticks(x, [f"{b} m" for b in bins], fontsize=8)
+    ax.set_ylabel("mean attention share (1 = uniform)")
+    ax.set_title(f"(b) {len(edges):,} ego-neighbour edges by distance", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
     return _save(fig, path)

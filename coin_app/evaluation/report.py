@@ -12,7 +12,8 @@ and ``table_ablation`` ``.{md,csv,tex}``, ``table_paper.{md,csv}`` (the models t
 the paper's figures: :mod:`coin_app.evaluation.paper_table`), ``stats.csv``, ``radar_<scenario>.png``,
 ``generalization_<scenario>.png``, ``learning_curves_<scenario>.png`` (and against the trials' CPU and wall
 hours, ``learning_curves_cpu_s_<scenario>.png`` / ``learning_curves_wall_s_<scenario>.png``, where they recorded them),
-``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``marl_eval.json``, with
+``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``attention_<scenario>.png`` + ``.csv`` (where the
+method's GAT looks, :mod:`~coin_app.evaluation.attention`), ``marl_eval.json``, with
 ``select="validation"`` each trial's checkpoint chosen on validation seeds (``selection.csv``:
 :mod:`coin_app.evaluation.selection`), with
 ``transfer`` the same models on another backend (``transfer_results.csv``, ``table_transfer``
@@ -38,7 +39,7 @@ import pandas as pd
 from coin_app.algorithms.checkpoint_files import META_FILE
 from coin_app.algorithms.checkpoints import scenario_of
 from coin_app.backends.metadrive import INSTALL_HINT, metadrive_available
-from coin_app.evaluation import paper_table, plots, statistics, tables
+from coin_app.evaluation import attention, paper_table, plots, statistics, tables
 from coin_app.evaluation.embedding import kmeans, tsne
 from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.evaluation.evaluate import run_episode
@@ -370,6 +371,27 @@ def latent_figure(table: pd.DataFrame, method: str, options: ReportOptions, path
     return plots.plot_latent_tsne(embeddings, clusters, joint_y, joint_names, path)
 
 
+def attention_figure(table: pd.DataFrame, method: str, scenario: str, options: ReportOptions, out: Path, log: Log) -> Path:
+    """Where the GAT of ``method``'s lowest-seed model on ``scenario`` looks (``attention.py``), on the t-SNE's test episodes:
+    ``attention_<scenario>.png`` and the mean share per distance bin, partners and other neighbours, in ``attention_<scenario>.csv``."""
+
+    rows = statistics.main_rows(statistics.at_training_count(table))
+    rows = rows[(rows["method"] == method) & (rows["scenario"] == scenario)].sort_values(["trained_seed", "test_seed"])
+    if rows.empty:
+        raise ValueError(f"no {method} model on {scenario} in the results")
+    first = rows.iloc[0]
+    sample = attention.collect_attention(Path(first["checkpoint"]), eval_test_seeds(options.tsne_episodes))
+    summary = attention.conflict_summary(sample.edges)
+    summary.to_csv(out / f"attention_{scenario}.csv", index=False)
+    pairs = sample.edges[sample.edges["distance"] < 15.0].groupby("conflict")["share"].mean()
+    log(
+        f"  attention: {len(sample.edges)} edges of seed {first['trained_seed']}'s model; mean share within 15 m: crossing partners "
+        f"{pairs.get(True, float('nan')):.3f}, other neighbours {pairs.get(False, float('nan')):.3f} (1 = uniform)"
+    )
+    title = f"{scenario}, {method} (seed {first['trained_seed']}): the Q1 critic's GAT attention, layer 2, ego row"
+    return plots.plot_attention(sample.edges, summary, sample.snapshot, sample.road_map, out / f"attention_{scenario}.png", title)
+
+
 def _attempt(name: str, figures: dict[str, Any], log: Log, fn: Callable[[], Path]) -> None:
     """Draw one figure; record its path or the reason it could not be drawn."""
     try:
@@ -487,6 +509,8 @@ def build_report(
                 ),
             )
     _attempt("latent_tsne", figures, log, lambda: latent_figure(table, options.method, options, out / "latent_tsne.png", log))
+    for scenario in sorted(set(learned["scenario"])):
+        _attempt(f"attention_{scenario}", figures, log, lambda n=scenario: attention_figure(table, options.method, n, options, out, log))
 
     context = {
         "options": asdict(options),
