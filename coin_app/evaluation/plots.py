@@ -24,7 +24,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
+
+from coin_app.sim.rendering import draw_map, vehicle_corners
 
 RADAR_METRICS = (("success_rate", "Success"), ("safety", "Safety"), ("efficiency", "Efficiency"))
 PALETTE = ("#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf")
@@ -207,10 +210,6 @@ def plot_latent_tsne(
 def plot_attention(edges: pd.DataFrame, summary: pd.DataFrame, snapshot: dict | None, road_map: object, path: Path, title: str) -> Path:
     """(a) The snapshot's scene (if any): the ego, its partner ringed, each neighbour coloured by its share; (b) mean share
     per distance bin, conflict partners beside the other neighbours, edge counts on the bars; 1 = uniform attention."""
-    from matplotlib.collections import PolyCollection
-
-    from coin_app.sim.rendering import draw_map, vehicle_corners
-
     fig = _figure(11.0, 5.0)
     ax = fig.add_subplot(1, 2, 1)
     if snapshot is not None:
