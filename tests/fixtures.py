@@ -59,3 +59,21 @@ def tiny_cli(algo, scenario=None, **extra):
     """The ``--scenario`` and ``--set`` arguments of ``coin-app train --algo algo`` at the tiny scale (see ``tiny``)."""
     scenario, settings = tiny(algo, scenario, **extra)
     return ["--scenario", scenario, "--set", *(f"{k}={v}" for k, v in settings.items())]
+
+
+def acting_counts(config, actor, seed):
+    """(episode step, vehicles acting) at every step of one ``DrivingEnv`` episode of ``config`` driven by the torch ``actor``."""
+    import numpy as np
+    import torch
+
+    from coin_app.sim.driving_env import DrivingEnv
+
+    env = DrivingEnv(config)
+    obs, _ = env.reset(seed=seed)
+    counts = []
+    while not env.episode_over:
+        counts.append((env.sim.episode_step, len(env.agents)))
+        with torch.no_grad():
+            act = actor(torch.as_tensor(np.stack([obs[a] for a in env.agents]))).numpy()
+        obs.update(env.step(dict(zip(env.agents, act, strict=True)))[0])
+    return counts

@@ -7,12 +7,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from fixtures import acting_counts
 
 from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig
 from coin_app.evaluation import attention
 from coin_app.evaluation.attention import conflict_summary, crossing_conflict, ego_attention
 from coin_app.sim.config import make_config
-from coin_app.sim.driving_env import DrivingEnv
 
 EAST, NORTH = 0.0, math.pi / 2
 
@@ -78,15 +78,7 @@ def test_collected_edges_are_every_neighbour_at_every_step(monkeypatch):
     monkeypatch.setattr(attention, "scenario_of", lambda checkpoint: config)
     sample = attention.collect_attention(Path("checkpoint"), [5], min_neighbours=1, near_m=100.0)
     # the same episode by hand: at each env step every acting vehicle has the n - 1 others as neighbours (full graph)
-    env = DrivingEnv(config)
-    obs, _ = env.reset(seed=5)
-    expected = []
-    while not env.episode_over:
-        n = len(env.agents)
-        expected += [env.sim.episode_step] * (n * (n - 1))
-        with torch.no_grad():
-            act = actor(torch.as_tensor(np.stack([obs[a] for a in env.agents]))).numpy()
-        obs.update(env.step(dict(zip(env.agents, act)))[0])
+    expected = [step for step, n in acting_counts(config, actor, 5) for _ in range(n * (n - 1))]
     edges = sample.edges
     assert sorted(edges["env_step"].tolist()) == sorted(expected)
     per_ego = edges.groupby(["env_step", "ego"])

@@ -5,12 +5,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+from fixtures import acting_counts
 
 from coin_app.algorithms.cig_td3.critic import CentralCritic, CentralCriticConfig
 from coin_app.evaluation import latents
 from coin_app.evaluation.latents import _pair_means, _pick_pairs
 from coin_app.sim.config import make_config
-from coin_app.sim.driving_env import DrivingEnv
 
 
 def test_pair_means_equal_the_critics_own_latents():
@@ -61,15 +61,7 @@ def test_collected_latents_follow_the_episode(monkeypatch):
     monkeypatch.setattr(latents, "scenario_of", lambda checkpoint: config)
     sample = latents.collect_latents(Path("checkpoint"), [3], pairs_per_step=3, sample_seed=1)
     # the same episode by hand: min(3, n (n - 1)) ordered pairs of the n acting vehicles at every env step
-    env = DrivingEnv(config)
-    obs, _ = env.reset(seed=3)
-    expected = []
-    while not env.episode_over:
-        n = len(env.agents)
-        expected += [env.sim.episode_step] * min(3, n * (n - 1))
-        with torch.no_grad():
-            act = actor(torch.as_tensor(np.stack([obs[a] for a in env.agents]))).numpy()
-        obs.update(env.step(dict(zip(env.agents, act)))[0])
+    expected = [step for step, n in acting_counts(config, actor, 3) for _ in range(min(3, n * (n - 1)))]
     assert sample.env_step.tolist() == expected
     assert len(set(np.bincount(expected))) > 1  # the number of pairs changes along the episode
     assert sample.z.shape == (len(expected), 4) and np.isfinite(sample.z).all()
