@@ -55,9 +55,11 @@ def test_ego_attention_is_the_critics_own_for_each_ego_and_its_envs_vehicles():
     b, s = 5, critic.cfg.state_dim
     obs, state, action = (rng.standard_normal((b, d)).astype(np.float32) for d in (6, s, 2))
     env = np.array([0, 1, 0, 0, 1])
-    alphas = ego_attention(critic, obs, state, action, env)
-    assert [len(a) for a in alphas] == [3, 2, 3, 3, 2]  # itself, then the other vehicles of its env
-    for i, alpha in enumerate(alphas):
+    alphas, rows = ego_attention(critic, obs, state, action, env)
+    assert alphas.shape == (b, 3) and rows.tolist() == [[2, 3], [4, -1], [0, 3], [0, 2], [1, -1]]  # each env's others in row order
+    for i, (alpha, row) in enumerate(zip(alphas, rows, strict=True)):
+        assert (alpha[1:][row < 0] == 0).all()  # past the env's vehicles
+        alpha = alpha[: 1 + (row >= 0).sum()]
         others = [j for j in range(b) if env[j] == env[i] and j != i][::-1]  # alone and in reverse order
         t = lambda a: torch.as_tensor(a)[None]  # noqa: E731
         with torch.no_grad():

@@ -71,17 +71,24 @@ def test_a_checkpoint_without_a_manifest_or_a_torn_entry_is_never_read(tmp_path)
     assert cache.load(good, SEEDS, None, None, None) is None
 
 
-def test_the_code_fingerprint_follows_the_simulator_and_the_evaluator_not_the_report(tmp_path):
+def test_the_code_fingerprint_follows_the_simulator_maps_and_evaluator_not_the_report_or_the_learners(tmp_path):
     copy = tmp_path / "coin_app"
     shutil.copytree(PACKAGE, copy, ignore=shutil.ignore_patterns("__pycache__", "shipped"))
     before = code_fingerprint(copy)
     assert before == code_fingerprint(PACKAGE) and len(before) == 16
     with open(copy / "evaluation" / "report.py", "a") as f:  # tables and figures: the episodes stay valid
         f.write("\n# a change to the report\n")
-    with open(copy / "training" / "loop.py", "a") as f:
-        f.write("\n# a change to the training loop\n")
+    for part in ("training/loop.py", "algorithms/gradient_step.py", "algorithms/td3/learner.py", "algorithms/cig_td3/losses.py"):
+        with open(copy / part, "a") as f:  # how models learn: an evaluated model is keyed by its own content
+            f.write("\n# a change to training\n")
     assert code_fingerprint(copy) == before
-    for part in ("sim/dynamics.py", "evaluation/metrics.py", "inference/__init__.py"):
+    for part in (
+        "sim/dynamics.py",
+        "sim/maps/intersection.json",
+        "evaluation/metrics.py",
+        "inference/__init__.py",
+        "algorithms/td3/networks.py",
+    ):
         text = (copy / part).read_text()
         (copy / part).write_text(text + "\n# changed\n")
         assert code_fingerprint(copy) != before, part

@@ -79,26 +79,32 @@ def gat_module(checkpoint: Path) -> Any:
     return module
 
 
-def ego_attention(central: Any, obs: np.ndarray, state: np.ndarray, action: np.ndarray, env: np.ndarray) -> list[np.ndarray]:
-    """For each of the B acting vehicles (rows; ``env`` their env index), the attention (1 + n,) of its Q1 GAT readout:
-    entry 0 the ego itself, then the other acting vehicles of its env in row order."""
+def ego_attention(central: Any, obs: np.ndarray, state: np.ndarray, action: np.ndarray, env: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(alpha, others) for the B acting vehicles (rows; ``env`` their env index): ``alpha`` (B, 1 + n) the attention of
+    each one's Q1 GAT readout, column 0 the ego itself, column 1 + k its k-th other acting vehicle of its env in row
+    order, whose row is ``others[i, k]`` (B, n); -1 and attention 0 past the env's vehicles (n: the largest env's, minus 1)."""
     b = len(obs)
-    others = [np.nonzero((env == env[i]) & (np.arange(b) != i))[0] for i in range(b)]
-    n = max((len(o) for o in others), default=0)
-    o_state = np.zeros((b, max(n, 1), state.shape[1]), np.float32)
-    o_action = np.zeros((b, max(n, 1), action.shape[1]), np.float32)
-    mask = np.zeros((b, max(n, 1)), bool)
-    for i, o in enumerate(others):
-        o_state[i, : len(o)], o_action[i, : len(o)], mask[i, : len(o)] = state[o], action[o], True
+    same = (env[:, None] == env[None, :]) & ~np.eye(b, dtype=bool)
+    count = same.sum(1)
+    n = max(int(count.max(initial=0)), 1)
+    rows, cols = np.nonzero(same)  # row-major: each ego's others in row order
+    others = np.full((b, n), -1)
+    others[rows, np.arange(len(rows)) - np.repeat(np.cumsum(count) - count, count)] = cols
+    mask = others >= 0
 
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.asarray(a, dtype=np.float32))
 
     with torch.no_grad():
-        central.q1(t(obs), t(state), t(action), t(o_state), t(o_action), torch.as_tensor(mask))
+        central.q1(
+            t(obs), t(state), t(action), t(state[others] * mask[..., None]), t(action[others] * mask[..., None]), torch.as_tensor(mask)
+        )
     graph: GraphModule = central.q1_branch.graph
-    alpha = graph.last_attention[1][:, 0, 0].numpy()  # (B, M): the ego row of layer 2
-    return [alpha[i, : 1 + len(o)] for i, o in enumerate(others)]
+    row = graph.last_attention[1][:, 0, 0].numpy()[:, : 1 + n]  # the ego row of layer 2 (no column for a lone ego's padding)
+    alpha = np.zeros((b, 1 + n), np.float32)
+    alpha[:, : row.shape[1]] = row
+    alpha[:, 1:][~mask] = 0.0
+    return alpha, others
 
 
 def collect_attention(checkpoint: Path, seeds: list[int], min_neighbours: int = 3, near_m: float = 15.0) -> AttentionSample:
@@ -124,45 +130,47 @@ def collect_attention(checkpoint: Path, seeds: list[int], min_neighbours: int = 
             action = actor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
         slots = envs.acting
         env = sim.env_of[slots]
-        alphas = ego_attention(central, obs, envs.state[slots], action, env)
-        for i, alpha in enumerate(alphas):
-            others = np.nonzero((env == env[i]) & (np.arange(len(slots)) != i))[0]
-            inside = alpha[1:] > 0  # the masked softmax gives exactly 0 outside the neighbourhood
-            if not inside.any():
-                continue
-            j = others[inside]
-            degree = int(inside.sum()) + 1
-            a, b = slots[np.full(len(j), i)], slots[j]
-            conflict = crossing_conflict(sim.pos[a], sim.heading[a], sim.speed[a], sim.pos[b], sim.heading[b], sim.speed[b])
-            e = int(env[i])
-            parts.append(
-                {
-                    "seed": np.full(len(j), seeds[e]),
-                    "env_step": np.full(len(j), int(sim.env_step[e])),
-                    "ego": np.full(len(j), int(slots[i])),
-                    "other": b,
-                    "distance": np.linalg.norm(sim.pos[a] - sim.pos[b], axis=1),
-                    "alpha": alpha[1:][inside],
-                    "share": alpha[1:][inside] * degree,
-                    "degree": np.full(len(j), degree),
-                    "conflict": conflict,
-                }
-            )
-            close = conflict & (np.linalg.norm(sim.pos[a] - sim.pos[b], axis=1) < near_m)
-            if snapshot is None and close.any() and degree - 2 >= min_neighbours:
-                scene = np.nonzero(env == e)[0]
-                k = int(np.argmax(close))
-                snapshot = {
-                    "seed": int(seeds[e]),
-                    "env_step": int(sim.env_step[e]),
-                    "pos": sim.pos[slots[scene]].copy(),
-                    "heading": sim.heading[slots[scene]].copy(),
-                    "ego": int(np.nonzero(scene == i)[0][0]),
-                    "partner": int(np.nonzero(scene == j[k])[0][0]),
-                    "share": {int(np.nonzero(scene == jj)[0][0]): float(s) for jj, s in zip(j, alpha[1:][inside] * degree, strict=True)},
-                    "self_share": float(alpha[0] * degree),
-                    "half": sim.half.copy(),
-                }
+        alpha, others = ego_attention(central, obs, envs.state[slots], action, env)
+        inside = alpha[:, 1:] > 0  # the masked softmax gives exactly 0 outside the neighbourhood and past the env's vehicles
+        degree = inside.sum(1) + 1
+        ego, k = np.nonzero(inside)  # by ego, then its others in row order
+        if not len(ego):
+            return action
+        a, b = slots[ego], slots[others[ego, k]]
+        conflict = crossing_conflict(sim.pos[a], sim.heading[a], sim.speed[a], sim.pos[b], sim.heading[b], sim.speed[b])
+        distance = np.linalg.norm(sim.pos[a] - sim.pos[b], axis=1)
+        share = alpha[ego, 1 + k] * degree[ego].astype(np.float32)
+        e = env[ego]
+        parts.append(
+            {
+                "seed": np.asarray(seeds)[e],
+                "env_step": sim.env_step[e].astype(int),
+                "ego": a,
+                "other": b,
+                "distance": distance,
+                "alpha": alpha[ego, 1 + k],
+                "share": share,
+                "degree": degree[ego],
+                "conflict": conflict,
+            }
+        )
+        close = np.nonzero(conflict & (distance < near_m) & (degree[ego] - 2 >= min_neighbours))[0]
+        if snapshot is None and len(close):
+            first = close[0]  # the first ego in row order, its first partner
+            i, partner = int(ego[first]), int(others[ego[first], k[first]])
+            scene = np.nonzero(env == env[i])[0]
+            mine = ego == i
+            snapshot = {
+                "seed": int(seeds[env[i]]),
+                "env_step": int(sim.env_step[env[i]]),
+                "pos": sim.pos[slots[scene]].copy(),
+                "heading": sim.heading[slots[scene]].copy(),
+                "ego": int(np.nonzero(scene == i)[0][0]),
+                "partner": int(np.nonzero(scene == partner)[0][0]),
+                "share": {int(np.nonzero(scene == j)[0][0]): float(s) for j, s in zip(others[i, k[mine]], share[mine], strict=True)},
+                "self_share": float(alpha[i, 0] * np.float32(degree[i])),
+                "half": sim.half.copy(),
+            }
         return action
 
     for _ in rollout(envs, act, seeds, config.force_stop_factor * config.horizon):
@@ -174,5 +182,4 @@ def collect_attention(checkpoint: Path, seeds: list[int], min_neighbours: int = 
 def conflict_summary(edges: pd.DataFrame, bins: tuple[float, ...] = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf)) -> pd.DataFrame:
     """Mean share of conflict partners and of the other neighbours per distance bin, with their edge counts."""
     cut = pd.cut(edges["distance"], list(bins), right=False)
-    g = edges.assign(bin=cut).groupby(["bin", "conflict"], observed=True)["share"].agg(["mean", "count"]).reset_index()
-    return g
+    return edges.assign(bin=cut).groupby(["bin", "conflict"], observed=True)["share"].agg(["mean", "count"]).reset_index()

@@ -4,13 +4,14 @@ One entry is one task of :func:`~coin_app.evaluation.protocol.run_evaluation`: o
 trained env steps, checkpoint) over one grid (test seeds, agent counts, scenarios, backend), stored as one JSON file
 as soon as the task ends. An entry is found again by the model's *content* (the SHA-256 of every file in its checkpoint's
 manifest, or of the file of a one-file model), not its path, so a report moved to another machine or directory keeps its
-episodes; and it is used only if the code that decides an episode (:data:`CODE_PARTS`) is byte for byte the code that
+episodes; and it is used only if the code that decides an episode (:func:`episode_code`) is byte for byte the code that
 wrote it: after any change there the task runs again, and its new entry replaces the old one. A checkpoint directory
 without a manifest is never cached.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import json
 from collections.abc import Sequence
@@ -23,8 +24,8 @@ from coin_app.evaluation.outputs import write_text_atomic
 FORMAT, VERSION = "coin_app.episodes", 1
 DEFAULT_DIR = "episodes"  # the report's cache: this folder of its output directory
 PACKAGE = Path(__file__).resolve().parents[1]  # coin_app/
-# what decides an episode's outcome: the simulators, the env adapters, the policies' code and loading, the episode loop and
-# its metrics (not the report's tables and figures, the training loop or the CLI)
+# what decides an episode's outcome: the simulators with their map data, the env adapters, the policies' code and
+# loading, the episode loop and its metrics (not the report's tables and figures, the training loop or the CLI)
 CODE_PARTS = (
     "sim",
     "backends",
@@ -37,16 +38,45 @@ CODE_PARTS = (
     "evaluation/protocol.py",
     "evaluation/reference.py",
 )
+DATA_SUFFIXES = (".json", ".npz")  # data files covered beside the code (map geometry, dynamics fits)
+# never run by an evaluation (tests/test_algorithm_conformance.py traces one per algorithm): how models learn and are
+# configured for training, and the models themselves (an entry is keyed by its model's own content)
+NOT_EPISODE_CODE = (
+    "algorithms/gradient_step.py",
+    "algorithms/*/learner.py",
+    "algorithms/*/losses.py",
+    "algorithms/td3/buffer.py",
+    "algorithms/td3/connector.py",
+    "algorithms/td3/transitions.py",
+    "algorithms/copo/advantages.py",
+    "algorithms/nav_ppo/warm_start.py",
+    "inference/shipped/*",
+    "inference/weights/*",
+)
+
+
+def episode_code(package: Path = PACKAGE) -> list[Path]:
+    """The files :func:`code_fingerprint` covers, in :data:`CODE_PARTS`' order: the ``.py`` and data files of :data:`CODE_PARTS` under
+    ``package`` except :data:`NOT_EPISODE_CODE` (``fnmatch`` patterns of paths relative to ``package``) and caches."""
+    files = []
+    for part in CODE_PARTS:
+        path = package / part
+        files += sorted(path.rglob("*")) if path.is_dir() else [path]
+    return [
+        f
+        for f in files
+        if f.is_file()
+        and f.suffix in (".py", *DATA_SUFFIXES)
+        and "__pycache__" not in f.parts
+        and not any(fnmatch.fnmatchcase(f.relative_to(package).as_posix(), pattern) for pattern in NOT_EPISODE_CODE)
+    ]
 
 
 def code_fingerprint(package: Path = PACKAGE) -> str:
-    """SHA-256 (first 16 hex digits) of the paths and bytes of every ``.py`` file of :data:`CODE_PARTS` under ``package``."""
+    """SHA-256 (first 16 hex digits) of the paths and bytes of every file of :func:`episode_code` under ``package``."""
     digest = hashlib.sha256()
-    for part in CODE_PARTS:
-        path = package / part
-        files = sorted(path.rglob("*.py")) if path.is_dir() else [path]
-        for f in files:
-            digest.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    for f in episode_code(package):
+        digest.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
     return digest.hexdigest()[:16]
 
 
