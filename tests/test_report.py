@@ -17,7 +17,7 @@ from coin_app.evaluation.archive import BOOKKEEPING
 from coin_app.evaluation.episode_cache import EpisodeCache
 from coin_app.evaluation.plots import curve_axes, mean_curve, plot_learning_curves
 from coin_app.evaluation.protocol import RESULT_COLUMNS, EvalRun, run_evaluation
-from coin_app.evaluation.report import learning_curves
+from coin_app.evaluation.report import learning_curves, training_cost, write_cost
 from coin_app.evaluation.sweep_results import load_trials
 from coin_app.sim.seeds import TEST_SEED_BASE, VALIDATION_SEED_BASE, validation_seeds
 
@@ -122,6 +122,8 @@ def test_report_from_a_real_sweep_writes_every_output(sweep_dir, tmp_path, capsy
         "table_main.tex",
         "stats.csv",
         "marl_eval.json",
+        "table_cost.md",  # the trials recorded their clocks
+        "table_cost.csv",
         "radar_intersection.png",
         "generalization_intersection.png",
         "learning_curves_intersection.png",
@@ -488,3 +490,25 @@ def test_learning_curves_against_cpu_and_wall_time_by_hand(tmp_path):
     )
     assert curve_axes(no_cpu) == ["wall_s"]
     assert curve_axes(curves[curves["scenario"] == "roundabout"]) == []  # a scene without curves draws none
+
+
+def test_training_cost_per_method_by_hand(tmp_path):
+    # itd3: seeds 0 and 1 end at 2 and 1 CPU hours (3 and 2 wall hours); cig_td3 seed 0 recorded no CPU clock
+    rows = [
+        _progress(tmp_path, "a", 0, {"env_steps": [1, 4], "cpu_s": [10, 7200], "wall_s": [20, 10800]}),
+        _progress(tmp_path, "b", 1, {"env_steps": [2, 6], "cpu_s": [5, 3600], "wall_s": [9, 7200]}),
+        _progress(tmp_path, "c", 0, {"env_steps": [3], "time_total_s": [1800]}) | {"method": "cig_td3"},
+    ]
+    cost = training_cost(learning_curves(pd.DataFrame(rows))).set_index("label")
+    assert cost.loc["itd3", ["trials", "env_steps", "cpu_h_mean", "cpu_h_min", "cpu_h_max", "cpu_h_total", "wall_h_total"]].tolist() == [
+        2,
+        5.0,
+        1.5,
+        1.0,
+        2.0,
+        3.0,
+        5.0,
+    ]
+    assert np.isnan(cost.loc["cig_td3", "cpu_h_total"]) and cost.loc["cig_td3", "wall_h_total"] == 0.5
+    md = write_cost(cost.reset_index(), tmp_path)[1].read_text()
+    assert "| itd3 | 2 | 5 | 1.50 (1.00–2.00) | 3.00 | 5.00 |" in md and "| all | 3 | | | - | 5.50 |" in md

@@ -75,9 +75,11 @@ def write_html(
     context: dict[str, Any],
     transfer: pd.DataFrame | None = None,
     beside: pd.DataFrame | None = None,
+    cost: pd.DataFrame | None = None,
 ) -> Path:
-    """Write the report page (with the native -> other-backend gap when ``transfer`` is given, and the models at Table
-    5.1's density beside the paper's figures when ``beside`` has rows); returns its path."""
+    """Write the report page (with the native -> other-backend gap when ``transfer`` is given, the models at Table
+    5.1's density beside the paper's figures when ``beside`` has rows, and the trials' training cost when ``cost``
+    has rows); returns its path."""
     opts = context["options"]
     fails = context["failures"]
     parts = [
@@ -125,6 +127,13 @@ def write_html(
             f"<p>The same models on the same test seeds at the training agent count, on the native simulator and on {backend}; "
             f"gap = {backend} - native (rates as fractions).</p>",
             transfer.to_html(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-"),
+        ]
+    if cost is not None and len(cost):
+        parts += [
+            "<h2>Training cost</h2>",
+            "<p>Each method's trials, read off their last progress rows: CPU hours (every process of the trial) and "
+            "wall-clock hours, per trial and in all.</p>",
+            cost.to_html(index=False, float_format=lambda v: f"{v:.3g}", na_rep="-"),
         ]
     parts.append("<h2>Figures</h2>")
     for name, value in figures.items():

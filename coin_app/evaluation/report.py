@@ -11,7 +11,8 @@ every output without changes here. Outputs in ``out``:
 and ``table_ablation`` ``.{md,csv,tex}``, ``table_paper.{md,csv}`` (the models trained at Table 5.1's density beside
 the paper's figures: :mod:`coin_app.evaluation.paper_table`), ``stats.csv``, ``radar_<scenario>.png``,
 ``generalization_<scenario>.png``, ``learning_curves_<scenario>.png`` (and against the trials' CPU and wall
-hours, ``learning_curves_cpu_s_<scenario>.png`` / ``learning_curves_wall_s_<scenario>.png``, where they recorded them),
+hours, ``learning_curves_cpu_s_<scenario>.png`` / ``learning_curves_wall_s_<scenario>.png``, where they recorded them,
+and what the trials cost, ``table_cost.{md,csv}``),
 ``trajectories_<scenario>_<method>.png``, ``latent_tsne.png``, ``attention_<scenario>.png`` + ``.csv`` (where the
 method's GAT looks, :mod:`~coin_app.evaluation.attention`), ``marl_eval.json``, with
 ``select="validation"`` each trial's checkpoint chosen on validation seeds (``selection.csv``:
@@ -328,6 +329,59 @@ def learning_curves(table: pd.DataFrame, unreadable: list[dict[str, Any]] | None
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=["label", "seed", "scenario", "env_steps"])
 
 
+def training_cost(curves: pd.DataFrame) -> pd.DataFrame:
+    """Per (scenario, label) what its trials cost, read off each run's last progress row (:func:`learning_curves`):
+    ``trials``, ``env_steps`` per trial (mean), CPU hours per trial (``cpu_h_mean``, ``cpu_h_min``, ``cpu_h_max``) and
+    in all (``cpu_h_total``), wall-clock hours in all (``wall_h_total``); NaN where a run recorded no such clock."""
+    columns = ["scenario", "label", "trials", "env_steps", "cpu_h_mean", "cpu_h_min", "cpu_h_max", "cpu_h_total", "wall_h_total"]
+    if curves.empty:
+        return pd.DataFrame(columns=columns)
+    last = curves.sort_values("env_steps").groupby(["scenario", "label", "seed"], sort=True).tail(1)
+    rows = []
+    for (scenario, label), g in last.groupby(["scenario", "label"], sort=True):
+        cpu, wall = (g[c] / 3600 if c in g else pd.Series(np.nan, index=g.index) for c in ("cpu_s", "wall_s"))
+        rows.append(
+            {
+                "scenario": scenario,
+                "label": label,
+                "trials": len(g),
+                "env_steps": g["env_steps"].mean(),
+                "cpu_h_mean": cpu.mean(),
+                "cpu_h_min": cpu.min(),
+                "cpu_h_max": cpu.max(),
+                "cpu_h_total": cpu.sum() if cpu.notna().all() else np.nan,
+                "wall_h_total": wall.sum() if wall.notna().all() else np.nan,
+            }
+        )
+    return pd.DataFrame(rows, columns=columns)
+
+
+def _hours(value: float) -> str:
+    return "-" if pd.isna(value) else f"{value:.2f}"
+
+
+def write_cost(cost: pd.DataFrame, out: Path) -> list[Path]:
+    """``table_cost.csv`` and ``table_cost.md`` (one table per scenario) of :func:`training_cost`; returns their paths."""
+    cost.to_csv(out / "table_cost.csv", index=False)
+    lines = ["## Training cost: each run's CPU and wall-clock hours, its processes included (the trials' own clocks)", ""]
+    for scenario, g in cost.groupby("scenario", sort=True):
+        lines += [
+            f"### {scenario}",
+            "",
+            "| Method | trials | env steps per trial | CPU hours per trial: mean (range) | CPU hours in all | wall-clock hours in all |",
+            "|---|---:|---:|---:|---:|---:|",
+        ]
+        for r in g.itertuples():
+            lines.append(
+                f"| {r.label} | {r.trials} | {r.env_steps:,.0f} | {_hours(r.cpu_h_mean)} ({_hours(r.cpu_h_min)}–{_hours(r.cpu_h_max)}) | "
+                f"{_hours(r.cpu_h_total)} | {_hours(r.wall_h_total)} |"
+            )
+        total = g[["cpu_h_total", "wall_h_total"]].sum(min_count=len(g))
+        lines += [f"| all | {g['trials'].sum()} | | | {_hours(total['cpu_h_total'])} | {_hours(total['wall_h_total'])} |", ""]
+    (out / "table_cost.md").write_text("\n".join(lines))
+    return [out / "table_cost.csv", out / "table_cost.md"]
+
+
 def trajectory_plot(checkpoint: str, seed: int, path: Path, title: str) -> Path:
     """One deterministic test episode of a checkpoint drawn with every vehicle's path and outcome points."""
 
@@ -471,6 +525,9 @@ def build_report(
     curves = learning_curves(table, unreadable)
     for u in unreadable:
         log(f"  unreadable, left out of the learning curves: {u['path']}: {u['error']}")
+    cost = training_cost(curves)
+    if len(cost):
+        files += write_cost(cost, out)
     for scenario in sorted(table["scenario"].unique()):
         s_sum = main_summary[main_summary["scenario"] == scenario]
         _attempt(f"radar_{scenario}", figures, log, lambda s=s_sum, n=scenario: plots.plot_radar(s, out / f"radar_{n}.png", n, colors))
@@ -520,7 +577,7 @@ def build_report(
         "evaluation": eval_settings,
         "failures": failures + unreadable,
     }
-    html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context, transfer, beside)
+    html = write_html(out / "report.html", table, main_summary, ablation_summary, stats, figures, context, transfer, beside, cost)
     summary = {
         "out": str(shown),
         "episodes": len(table),
